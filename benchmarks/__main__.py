@@ -1,0 +1,70 @@
+"""``make bench``: run every benchmark and write their figures to docs/benchmarks.md.
+
+Each benchmark module exposes ``run() -> dict`` with a ``markdown`` entry; every figure is a
+ratio against a baseline measured in the same run, so numbers stay comparable across machines.
+"""
+
+from __future__ import annotations
+
+import importlib
+import platform
+import sys
+import time
+import traceback
+from datetime import UTC, datetime
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import Progress
+
+BENCHMARKS = [
+    ("bench_rate", "applied-rate error (paper A)"),
+    ("bench_latency", "control latency"),
+    ("bench_positioning", "seed position error (paper C)"),
+    ("bench_store", "record store throughput"),
+    ("bench_mqtt", "MQTT outbox throughput, control latency under load, RSS/CPU"),
+    ("bench_multichannel", "multi-channel metering (paper B)"),
+]
+
+OUT = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+
+
+def main(argv: list[str]) -> int:
+    only = set(argv)
+    console = Console(stderr=True)
+    sections: list[str] = []
+    failed = 0
+    with Progress(console=console) as progress:
+        todo = [(m, d) for m, d in BENCHMARKS if not only or m in only]
+        bar = progress.add_task("benchmarks", total=len(todo))
+        for module, desc in todo:
+            progress.update(bar, description=desc)
+            t0 = time.perf_counter()
+            try:
+                mod = importlib.import_module(f"benchmarks.{module}")
+                result = mod.run()
+                text = str(result["markdown"]).strip()
+                if not text.startswith("#"):
+                    text = f"### {desc}\n\n{text}"
+                sections.append(text + "\n")
+            except Exception:
+                failed += 1
+                sections.append(
+                    f"### {desc}\n\nFAILED in this run:\n\n```\n{traceback.format_exc()}```\n"
+                )
+            console.log(f"{module}: {time.perf_counter() - t0:.1f} s")
+            progress.advance(bar)
+    header = (
+        "# sowgate benchmarks\n\n"
+        f"Written by `make bench` on {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, "
+        f"Python {platform.python_version()}, {platform.machine()}, "
+        "2-core sandbox. Each figure is compared with a baseline measured in the same run.\n\n"
+    )
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    OUT.write_text(header + "\n".join(sections))
+    console.print(f"wrote {OUT}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

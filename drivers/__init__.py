@@ -1,0 +1,1 @@
+"""I/O for one device or bus each: reconnects, timeouts and typed readings live here."""

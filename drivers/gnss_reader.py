@@ -1,0 +1,430 @@
+"""The UM982 on its UART: sentences stamped on arrival, assembled into one epoch per UTC instant.
+
+Why epochs: RMC (speed, date), GGA (fix quality, height) and #HEADINGA (dual-antenna heading)
+each describe the same instant but arrive as separate lines. The position model needs them
+together, with *when they arrived on this host* — that arrival time, not the receiver's UTC,
+is what a seed-tube edge (stamped on the same monotonic clock) can be compared with.
+
+An epoch is emitted as soon as every sentence kind in ``required`` has been seen for its UTC
+time, or, if one never comes (heading lost, line corrupted), when a newer UTC time begins or
+the line goes quiet; it then carries what it had. A sentence for an epoch already emitted is
+counted as ``late`` and dropped, so consumers see each UTC instant at most once, in order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from datetime import UTC, date, datetime, timedelta
+from datetime import time as dtime
+from types import TracebackType
+from typing import Final, Literal
+
+from serial import SerialException
+from serial_asyncio_fast import open_serial_connection
+
+from drivers.backoff import Backoff
+from drivers.errors import DeviceUnavailable
+from drivers.tasks import cancel_and_wait
+from protocol.gnss import GnssEvent, GnssLineDecoder, Rejected
+from protocol.nmea import Gga, Hdt, Rmc, Ths, Vtg
+from protocol.unicore import GPS_UTC_LEAP_S, Heading
+
+log = logging.getLogger(__name__)
+
+Fix = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
+
+READ_CHUNK_BYTES: Final = 4096
+DAY_MS: Final = 86_400_000
+DEFAULT_REQUIRED: Final = frozenset({"RMC", "GGA", "HEADING"})
+EPOCH_MAX_WAIT_S: Final = 0.3  # an open epoch older than this is emitted when the line is quiet
+SILENCE_RECONNECT_S: Final = 5.0  # no byte for this long: reopen the port (adapter wedged)
+
+# GGA quality indicator -> fix. 3 (PPS) counts as single; 6 (dead reckoning), 7 (manual) and
+# 8 (simulator) are not measurements of where we are; 9 is SBAS on some firmwares.
+GGA_QUALITY_FIX: Final[dict[int, Fix]] = {
+    0: "none", 1: "single", 2: "dgps", 3: "single", 4: "rtk_fixed", 5: "rtk_float",
+    6: "none", 7: "none", 8: "none", 9: "dgps",
+}
+# RMC mode indicator (NMEA 2.3+) -> fix, used when the epoch has no GGA.
+RMC_MODE_FIX: Final[dict[str, Fix]] = {
+    "R": "rtk_fixed", "F": "rtk_float", "D": "dgps", "P": "dgps", "A": "single",
+    "E": "none", "M": "none", "S": "none", "N": "none",
+}
+
+
+@dataclass(frozen=True)
+class GnssEpoch:
+    """Everything the receiver said about one UTC instant, and when it reached us."""
+
+    utc: datetime
+    t_mono: float  # host monotonic time when the first sentence of this epoch arrived
+    lat: float
+    lon: float
+    alt_m: float | None  # above mean sea level (GGA)
+    fix: Fix
+    speed_kmh: float | None
+    course_deg: float | None
+    heading_deg: float | None  # None when the receiver had no heading solution at all
+    heading_valid: bool  # ambiguity-fixed dual-antenna heading (see protocol.unicore)
+    num_sv: int | None
+
+
+def fix_from_gga_quality(quality: int) -> Fix:
+    return GGA_QUALITY_FIX.get(quality, "none")
+
+
+def fix_from_rmc(rmc: Rmc) -> Fix:
+    if not rmc.valid:
+        return "none"
+    if rmc.mode is None:  # pre-2.3 receivers: A means "some fix"
+        return "single"
+    return RMC_MODE_FIX.get(rmc.mode, "none")
+
+
+@dataclass
+class _Partial:
+    ms_of_day: int
+    t_first: float
+    day: date | None = None
+    kinds: set[str] = field(default_factory=set)
+    rmc: Rmc | None = None
+    gga: Gga | None = None
+    vtg: Vtg | None = None
+    heading: Heading | Hdt | Ths | None = None
+
+
+def _ms_of_day(t: dtime) -> int:
+    return ((t.hour * 60 + t.minute) * 60 + t.second) * 1000 + round(t.microsecond / 1000)
+
+
+def _newer(a: int, b: int) -> bool:
+    """``a`` is later than ``b`` on the daily clock, allowing for midnight."""
+    return 0 < (a - b) % DAY_MS < DAY_MS // 2
+
+
+class EpochAssembler:
+    """Groups timed sentences by UTC instant. Pure: arrival times are passed in."""
+
+    def __init__(
+        self,
+        required: Iterable[str] = DEFAULT_REQUIRED,
+        *,
+        leap_s: int = GPS_UTC_LEAP_S,
+        today: Callable[[], date] = lambda: datetime.now(UTC).date(),
+    ) -> None:
+        self.required = frozenset(required)
+        self.leap_s = leap_s
+        self._today = today
+        self._open: dict[int, _Partial] = {}
+        self._last_key: int | None = None
+        self._last_utc: datetime | None = None
+        self.counts: Counter[str] = Counter()  # epochs, late, untimed, no_position
+
+    def add(self, event: GnssEvent, t_mono: float) -> list[GnssEpoch]:
+        """Take one decoded sentence that arrived at ``t_mono``; return epochs now complete."""
+        if isinstance(event, Hdt | Ths | Vtg):
+            return self._add_untimed(event)
+        if isinstance(event, Heading):
+            utc = event.utc(event.leap_s if event.leap_s is not None else self.leap_s)
+            key = _ms_of_day(utc.time())
+            day: date | None = utc.date()
+        else:
+            if event.utc is None:
+                self.counts["untimed"] += 1  # no fix yet: receiver leaves the time empty
+                return []
+            key = _ms_of_day(event.utc)
+            day = event.date if isinstance(event, Rmc) else None
+        if self._last_key is not None and not _newer(key, self._last_key):
+            self.counts["late"] += 1
+            return []
+        out = [self._emit(k) for k in sorted(self._open, key=lambda k: (k - key) % DAY_MS)
+               if _newer(key, k)]
+        partial = self._open.get(key)
+        if partial is None:
+            partial = self._open[key] = _Partial(key, t_mono)
+        if day is not None:
+            partial.day = day
+        if isinstance(event, Rmc):
+            partial.rmc, kind = event, "RMC"
+        elif isinstance(event, Gga):
+            partial.gga, kind = event, "GGA"
+        else:
+            partial.heading, kind = event, "HEADING"
+        partial.kinds.add(kind)
+        if partial.kinds >= self.required:
+            out.append(self._emit(key))
+        return [e for e in out if e is not None]
+
+    def _add_untimed(self, event: Hdt | Ths | Vtg) -> list[GnssEpoch]:
+        """HDT/THS/VTG carry no time: they belong to the epoch whose burst is in progress."""
+        if not self._open:
+            self.counts["untimed"] += 1
+            return []
+        key = max(self._open, key=lambda k: self._open[k].t_first)
+        partial = self._open[key]
+        if isinstance(event, Vtg):
+            partial.vtg = event
+            partial.kinds.add("VTG")
+        else:
+            partial.heading = event
+            partial.kinds.add("HEADING")
+        if partial.kinds >= self.required:
+            epoch = self._emit(key)
+            return [] if epoch is None else [epoch]
+        return []
+
+    def expire(self, older_than_mono: float) -> list[GnssEpoch]:
+        """Emit open epochs whose first sentence arrived before ``older_than_mono``."""
+        keys = [k for k, p in self._open.items() if p.t_first < older_than_mono]
+        return self._emit_keys(keys)
+
+    def flush(self) -> list[GnssEpoch]:
+        """Emit everything open (end of stream)."""
+        return self._emit_keys(list(self._open))
+
+    def _emit_keys(self, keys: list[int]) -> list[GnssEpoch]:
+        keys.sort(key=lambda k: self._open[k].t_first)
+        return [e for e in (self._emit(k) for k in keys) if e is not None]
+
+    def _utc(self, p: _Partial) -> datetime:
+        tod = timedelta(milliseconds=p.ms_of_day)
+        if p.day is not None:
+            return datetime.combine(p.day, dtime(), UTC) + tod
+        if self._last_utc is not None:
+            guess = datetime.combine(self._last_utc.date(), dtime(), UTC) + tod
+            if guess < self._last_utc - timedelta(hours=12):
+                guess += timedelta(days=1)  # GGA just after midnight, before the next RMC
+            return guess
+        return datetime.combine(self._today(), dtime(), UTC) + tod
+
+    def _emit(self, key: int) -> GnssEpoch | None:
+        p = self._open.pop(key)
+        if self._last_key is None or _newer(key, self._last_key):
+            self._last_key = key
+        utc = self._utc(p)
+        self._last_utc = utc
+        epoch = _build_epoch(p, utc)
+        self.counts["epochs" if epoch is not None else "no_position"] += 1
+        return epoch
+
+
+def _build_epoch(p: _Partial, utc: datetime) -> GnssEpoch | None:
+    gga, rmc = p.gga, p.rmc
+    if gga is not None and gga.lat is not None and gga.lon is not None:
+        lat, lon = gga.lat, gga.lon
+    elif rmc is not None and rmc.lat is not None and rmc.lon is not None:
+        lat, lon = rmc.lat, rmc.lon
+    else:
+        return None
+    if gga is not None:
+        fix = fix_from_gga_quality(gga.quality)
+    else:
+        assert rmc is not None
+        fix = fix_from_rmc(rmc)
+    speed = rmc.speed_kmh if rmc is not None else None
+    course = rmc.course_deg if rmc is not None else None
+    if speed is None and p.vtg is not None:
+        speed = p.vtg.speed_kmh
+    if course is None and p.vtg is not None:
+        course = p.vtg.course_deg
+    heading_deg: float | None = None
+    valid = False
+    h = p.heading
+    if isinstance(h, Heading):
+        if h.quality != "none":
+            heading_deg, valid = h.heading_deg, h.valid
+    elif isinstance(h, Ths):
+        heading_deg, valid = h.heading_deg, h.valid
+    elif isinstance(h, Hdt):
+        heading_deg, valid = h.heading_deg, h.heading_deg is not None
+    return GnssEpoch(
+        utc=utc,
+        t_mono=p.t_first,
+        lat=lat,
+        lon=lon,
+        alt_m=gga.alt_m if gga is not None else None,
+        fix=fix,
+        speed_kmh=speed,
+        course_deg=course,
+        heading_deg=heading_deg,
+        heading_valid=valid,
+        num_sv=gga.num_sv if gga is not None else None,
+    )
+
+
+@dataclass(frozen=True)
+class GnssStats:
+    sentences_ok: int
+    rejected: dict[str, int]  # per reason, see protocol.gnss REASON_*
+    epochs: int
+    late: int
+    reconnects: int
+    connected: bool
+    last_error: str | None
+
+
+class GnssReader:
+    """Reads the receiver's port forever (reconnecting) and hands complete epochs to a callback.
+
+    ``on_epoch`` runs in the event loop; keep it short (append to a buffer, set an event).
+    """
+
+    def __init__(
+        self,
+        port: str,
+        baudrate: int = 115200,
+        *,
+        on_epoch: Callable[[GnssEpoch], None],
+        stale_after_s: float = 0.5,
+        required: Iterable[str] = DEFAULT_REQUIRED,
+        epoch_max_wait_s: float = EPOCH_MAX_WAIT_S,
+        silence_reconnect_s: float = SILENCE_RECONNECT_S,
+        clock: Callable[[], float] = time.monotonic,
+        backoff: Backoff | None = None,
+    ) -> None:
+        self.port = port
+        self.baudrate = baudrate
+        self._on_epoch = on_epoch
+        self.stale_after_s = stale_after_s
+        self._epoch_max_wait_s = epoch_max_wait_s
+        self._silence_reconnect_s = silence_reconnect_s
+        self._clock = clock
+        self._backoff = backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0)
+        self._decoder = GnssLineDecoder()
+        self._assembler = EpochAssembler(required)
+        self._task: asyncio.Task[None] | None = None
+        self._connected = False
+        self._connects = 0
+        self._last_error: str | None = None
+        self.latest: GnssEpoch | None = None
+        self.last_rejected: Rejected | None = None
+
+    # -- state for the rest of the daemon ----------------------------------------------------
+
+    @property
+    def available(self) -> bool:
+        """A fresh epoch with a fix: usable as a position and as a speed source."""
+        e = self.latest
+        return (
+            e is not None
+            and e.fix != "none"
+            and self._clock() - e.t_mono <= self.stale_after_s
+        )
+
+    def speed_kmh(self) -> float | None:
+        """GNSS ground speed for the control loop, or None when not available."""
+        e = self.latest
+        return e.speed_kmh if self.available and e is not None else None
+
+    @property
+    def stats(self) -> GnssStats:
+        counts = self._decoder.counts
+        return GnssStats(
+            sentences_ok=counts["ok"],
+            rejected={k: v for k, v in counts.items() if k != "ok"},
+            epochs=self._assembler.counts["epochs"],
+            late=self._assembler.counts["late"],
+            reconnects=max(0, self._connects - 1),
+            connected=self._connected,
+            last_error=self._last_error,
+        )
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        if self._task is not None:
+            raise RuntimeError("GnssReader already started")
+        self._task = asyncio.create_task(self._run(), name=f"gnss-reader:{self.port}")
+
+    async def stop(self) -> None:
+        await cancel_and_wait(self._task)
+        self._task = None
+
+    async def __aenter__(self) -> GnssReader:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.stop()
+
+    # -- I/O ---------------------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        while True:
+            try:
+                reader, writer = await open_serial_connection(url=self.port, baudrate=self.baudrate)
+            except (OSError, SerialException) as exc:
+                self._failed(f"cannot open {self.port}: {exc}")
+                await asyncio.sleep(self._backoff.next_delay())
+                continue
+            self._connected = True
+            self._connects += 1
+            log.info("GNSS port %s open (connection %d)", self.port, self._connects)
+            try:
+                await self._pump(reader)
+                self._failed(f"{self.port}: port closed")
+            except (OSError, SerialException, DeviceUnavailable) as exc:
+                self._failed(f"{self.port}: {exc}")
+            finally:
+                self._connected = False
+                writer.close()
+                with contextlib.suppress(Exception):
+                    await writer.wait_closed()
+                self._dispatch(self._decoder.flush(), self._clock())
+                self._deliver(self._assembler.flush())
+            await asyncio.sleep(self._backoff.next_delay())
+
+    def _failed(self, message: str) -> None:
+        if message != self._last_error:
+            log.warning("GNSS: %s", message)
+        self._last_error = message
+
+    async def _pump(self, reader: asyncio.StreamReader) -> None:
+        last_data = self._clock()
+        while True:
+            try:
+                data = await asyncio.wait_for(
+                    reader.read(READ_CHUNK_BYTES), timeout=self._epoch_max_wait_s
+                )
+            except TimeoutError:
+                now = self._clock()
+                self._deliver(self._assembler.expire(now - self._epoch_max_wait_s))
+                if now - last_data > self._silence_reconnect_s:
+                    raise DeviceUnavailable(
+                        f"no data for {self._silence_reconnect_s:.1f} s"
+                    ) from None
+                continue
+            if not data:
+                return
+            now = self._clock()  # the arrival stamp of every line completed by this chunk
+            last_data = now
+            self._backoff.reset()
+            self._dispatch(self._decoder.feed(data), now)
+            self._deliver(self._assembler.expire(now - self._epoch_max_wait_s))
+
+    def _dispatch(self, items: list[GnssEvent | Rejected], t_mono: float) -> None:
+        for item in items:
+            if isinstance(item, Rejected):
+                self.last_rejected = item
+                log.debug("GNSS line rejected (%s): %s", item.reason, item.detail)
+                continue
+            self._deliver(self._assembler.add(item, t_mono))
+
+    def _deliver(self, epochs: list[GnssEpoch]) -> None:
+        for epoch in epochs:
+            self.latest = epoch
+            try:
+                self._on_epoch(epoch)
+            except Exception:  # a consumer bug must not stop the receiver being read
+                log.exception("GNSS on_epoch callback failed")

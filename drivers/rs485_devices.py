@@ -1,0 +1,127 @@
+"""Typed calls for the three devices on the RS485 bus: the daemon asks for km/h, degrees and
+duty percent, never for registers.
+
+Each wrapper is built from its config section (``gateway.config.RadarSection`` etc., passed
+duck-typed so this layer does not import ``gateway``). Bus failures arrive as
+DeviceUnavailable / DeviceRejected naming the device; a reply that arrives intact but does not
+decode (e.g. a NaN float) raises :class:`BadReading`. Polling and control live in gateway/.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from drivers.errors import DeviceRejected
+from drivers.modbus_bus import ModbusBus
+from protocol.errors import FieldError, ProtocolError
+from protocol.registers import (
+    RadarFormat,
+    decode_angle,
+    decode_duty,
+    encode_duty,
+    inclinometer_span,
+)
+
+Channel = Literal["motor", "fan"]
+
+
+class BadReading(DeviceRejected):
+    """The device answered a well-formed frame whose value makes no sense."""
+
+
+class Radar:
+    """Ground speed from the mm-wave radar, in km/h (Doppler eq. 1 applied if configured)."""
+
+    def __init__(self, bus: ModbusBus, section: Any, *, name: str = "radar") -> None:
+        self.bus = bus
+        self.name = name
+        self.device_id: int = section.device_id
+        self.address: int = section.address
+        self.format = RadarFormat(
+            data_type=section.data_type,
+            word_order=section.word_order,
+            scale=section.scale,
+            unit=section.unit,
+            mount_angle_deg=section.mount_angle_deg,
+        )
+
+    @property
+    def available(self) -> bool:
+        return self.bus.available(self.name)
+
+    async def read(self) -> float:
+        registers = await self.bus.read_holding(
+            self.name, self.device_id, self.address, self.format.count
+        )
+        try:
+            return self.format.decode_kmh(registers)
+        except ProtocolError as exc:
+            raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
+
+
+class Inclinometer:
+    """Raw angle of the configured axis in degrees (zeroing and raised/lowered are gateway's)."""
+
+    def __init__(self, bus: ModbusBus, section: Any, *, name: str = "inclinometer") -> None:
+        self.bus = bus
+        self.name = name
+        self.device_id: int = section.device_id
+        self.axis: str = section.axis
+        self.layout: str = section.layout
+        self.address, self.count = inclinometer_span(section.layout, section.axis)
+
+    @property
+    def available(self) -> bool:
+        return self.bus.available(self.name)
+
+    async def read(self) -> float:
+        registers = await self.bus.read_holding(
+            self.name, self.device_id, self.address, self.count
+        )
+        try:
+            return decode_angle(registers, self.layout)  # type: ignore[arg-type]
+        except ProtocolError as exc:
+            raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
+
+
+class PwmModule:
+    """The PWM output module driving the metering motor and the fan."""
+
+    def __init__(self, bus: ModbusBus, section: Any, *, name: str = "pwm") -> None:
+        self.bus = bus
+        self.name = name
+        self.device_id: int = section.device_id
+        self.registers: dict[str, int] = {
+            "motor": section.motor_register,
+            "fan": section.fan_register,
+        }
+
+    @property
+    def available(self) -> bool:
+        return self.bus.available(self.name)
+
+    def _register(self, channel: str) -> int:
+        try:
+            return self.registers[channel]
+        except KeyError:
+            raise ValueError(
+                f"{self.name}: unknown channel {channel!r}, expected 'motor' or 'fan'"
+            ) from None
+
+    async def write_duty(self, channel: Channel, pct: float) -> None:
+        """Set ``channel`` to ``pct`` percent (0..100, 0.1 % resolution)."""
+        register = self._register(channel)
+        try:
+            value = encode_duty(pct)
+        except FieldError as exc:
+            raise FieldError(f"{self.name} {channel}: {exc}") from exc
+        await self.bus.write_register(self.name, self.device_id, register, value)
+
+    async def read_duty(self, channel: Channel) -> float:
+        """The duty the module currently applies on ``channel`` (read back)."""
+        register = self._register(channel)
+        (value,) = await self.bus.read_holding(self.name, self.device_id, register, 1)
+        try:
+            return decode_duty(value)
+        except ProtocolError as exc:
+            raise BadReading(f"{self.name} (id {self.device_id}) {channel}: {exc}") from exc

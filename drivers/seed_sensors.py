@@ -1,0 +1,318 @@
+"""Seed-tube sensors: one edge per seed per row, stamped on the host's monotonic clock.
+
+One interface (:class:`SeedSensorSource`), two sources, chosen by ``seed_sensors.source``:
+
+* ``serial`` — an edge-capture module on a UART sends ``D,<row>\\r\\n`` per seed
+  (``protocol.seed_line``). The line carries no time, so each is stamped when its bytes reach
+  us; all lines completed by one read share that read's stamp (they arrived together).
+* ``gpio`` — one GPIO line per row through libgpiod v2 (``pip install sowgate[gpio]``),
+  falling edges with the KERNEL's timestamp. The kernel stamps the interrupt, so the time is
+  free of Python scheduling delay; libgpiod's default event clock is CLOCK_MONOTONIC, the
+  clock ``time.monotonic()`` reads on Linux, so the stamp is directly comparable with GNSS
+  arrival stamps. Debounce is done here on those raw stamps rather than by the kernel:
+  kernel (software-emulated) debounce reports an edge only after the line has been stable
+  for the debounce period and stamps it then, which would shift every seed by that period
+  (2 ms is 7 mm at 12 km/h).
+
+Both deliver :class:`SeedEdgeEvent` to ``on_edge`` inside the event loop and keep going on any
+bad input; a vanished port or chip is retried with ``drivers.backoff.Backoff``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from serial import SerialException
+from serial_asyncio_fast import open_serial_connection
+
+from drivers.backoff import Backoff
+from drivers.errors import DeviceUnavailable
+from protocol.seed_line import Rejected, SeedLineDecoder
+
+log = logging.getLogger(__name__)
+
+READ_CHUNK_BYTES = 1024
+GPIO_CONSUMER = "sowgate-seed-sensors"
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class SeedEdgeEvent:
+    """A seed passed the sensor of ``row`` (1-based) at host monotonic time ``t_mono``."""
+
+    row: int
+    t_mono: float
+
+
+@dataclass
+class SeedSensorStats:
+    edges: int = 0
+    rejected: int = 0  # lines that did not decode (serial) / events for unknown lines (gpio)
+    debounced: int = 0  # edges dropped as bounce
+    connects: int = 0
+    last_error: str | None = None
+    last_rejected: str | None = None
+
+    @property
+    def reconnects(self) -> int:
+        return max(0, self.connects - 1)
+
+
+class SeedSensorSource(Protocol):
+    """What the daemon needs from either source."""
+
+    @property
+    def available(self) -> bool:
+        """The port/chip is open and being read."""
+        ...
+
+    @property
+    def stats(self) -> SeedSensorStats: ...
+
+    async def run(self) -> None:
+        """Read forever (reconnecting); returns only by cancellation."""
+        ...
+
+
+EdgeCallback = Callable[[SeedEdgeEvent], None]
+
+
+def _deliver(on_edge: EdgeCallback, event: SeedEdgeEvent) -> None:
+    try:
+        on_edge(event)
+    except Exception:  # a consumer bug must not stop the sensors being read
+        log.exception("seed edge callback failed")
+
+
+# ---------------------------------------------------------------- serial
+
+
+class SerialSeedSensors:
+    """The edge-capture module on a UART (the simulator's ``SeedTubeEmulator`` speaks it)."""
+
+    def __init__(
+        self,
+        port: str,
+        baudrate: int,
+        rows: int,
+        on_edge: EdgeCallback,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        backoff: Backoff | None = None,
+    ) -> None:
+        self.port = port
+        self.baudrate = baudrate
+        self.rows = rows
+        SeedLineDecoder(rows)  # validates the row count now, not at first connect
+        self._on_edge = on_edge
+        self._clock = clock
+        self._backoff = backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0)
+        self._connected = False
+        self._stats = SeedSensorStats()
+
+    @property
+    def available(self) -> bool:
+        return self._connected
+
+    @property
+    def stats(self) -> SeedSensorStats:
+        return self._stats
+
+    async def run(self) -> None:
+        while True:
+            try:
+                reader, writer = await open_serial_connection(url=self.port, baudrate=self.baudrate)
+            except (SerialException, OSError) as exc:
+                self._failed(f"cannot open {self.port}: {exc}")
+                await asyncio.sleep(self._backoff.next_delay())
+                continue
+            self._connected = True
+            self._stats.connects += 1
+            try:
+                await self._pump(reader)
+                self._failed(f"{self.port} closed")
+            except (SerialException, OSError) as exc:
+                self._failed(f"{self.port} read failed: {exc}")
+            finally:
+                self._connected = False
+                writer.close()
+                with contextlib.suppress(Exception):
+                    await writer.wait_closed()
+            await asyncio.sleep(self._backoff.next_delay())
+
+    async def _pump(self, reader: asyncio.StreamReader) -> None:
+        decoder = SeedLineDecoder(self.rows)  # a fresh connection starts a fresh line
+        while True:
+            data = await reader.read(READ_CHUNK_BYTES)
+            if not data:
+                return
+            t_arrival = self._clock()
+            self._backoff.reset()
+            for item in decoder.feed(data):
+                if isinstance(item, Rejected):
+                    self._stats.rejected += 1
+                    self._stats.last_rejected = f"{item.reason}: {item.line!r}"
+                    log.debug("seed sensor line rejected (%s): %r", item.reason, item.line)
+                    continue
+                self._stats.edges += 1
+                _deliver(self._on_edge, SeedEdgeEvent(item.row, t_arrival))
+
+    def _failed(self, message: str) -> None:
+        if message != self._stats.last_error:
+            log.warning("seed sensors: %s", message)
+        self._stats.last_error = message
+
+
+# ---------------------------------------------------------------- gpio
+
+
+class EdgeEventLike(Protocol):
+    """The part of ``gpiod.EdgeEvent`` used here."""
+
+    @property
+    def event_type(self) -> Any: ...
+    @property
+    def timestamp_ns(self) -> int: ...
+    @property
+    def line_offset(self) -> int: ...
+
+
+class LineRequestLike(Protocol):
+    """The part of ``gpiod.LineRequest`` used here."""
+
+    @property
+    def fd(self) -> int: ...
+
+    def read_edge_events(self) -> Iterable[EdgeEventLike]: ...
+
+    def release(self) -> None: ...
+
+
+RequestFactory = Callable[[str, Sequence[int], str], LineRequestLike]
+
+
+def gpiod_request(chip: str, offsets: Sequence[int], bias: str) -> LineRequestLike:
+    """Request falling-edge events on ``offsets`` with libgpiod v2 (imported only here)."""
+    try:
+        import gpiod
+        from gpiod.line import Bias, Clock, Edge
+    except ImportError:
+        raise DeviceUnavailable(
+            "seed_sensors.source = 'gpio' needs libgpiod v2 bindings: pip install 'sowgate[gpio]'"
+        ) from None
+    bias_value = {
+        "pull_up": Bias.PULL_UP,
+        "pull_down": Bias.PULL_DOWN,
+        "disabled": Bias.DISABLED,
+        "as_is": Bias.AS_IS,
+    }[bias]
+    settings = gpiod.LineSettings(
+        edge_detection=Edge.FALLING, bias=bias_value, event_clock=Clock.MONOTONIC
+    )
+    request: LineRequestLike = gpiod.request_lines(
+        chip, consumer=GPIO_CONSUMER, config={tuple(offsets): settings}
+    )
+    return request
+
+
+class GpioSeedSensors:
+    """One GPIO line per row (``lines[row-1]``), falling edges with kernel timestamps."""
+
+    def __init__(
+        self,
+        chip: str,
+        lines: Sequence[int],
+        debounce_ms: float,
+        on_edge: EdgeCallback,
+        *,
+        bias: str = "pull_up",
+        request_factory: RequestFactory = gpiod_request,
+        backoff: Backoff | None = None,
+    ) -> None:
+        if not lines:
+            raise ValueError("seed_sensors.gpio_lines: need one GPIO line per row")
+        if len(set(lines)) != len(lines):
+            raise ValueError(f"seed_sensors.gpio_lines: a line is used twice in {list(lines)}")
+        if debounce_ms < 0:
+            raise ValueError(f"seed_sensors.debounce_ms must be >= 0, got {debounce_ms}")
+        self.chip = chip
+        self.lines = list(lines)
+        self._row_of = {offset: i + 1 for i, offset in enumerate(self.lines)}
+        self._debounce_ns = round(debounce_ms * 1e6)
+        self._on_edge = on_edge
+        self._bias = bias
+        self._factory = request_factory
+        self._backoff = backoff if backoff is not None else Backoff(initial_s=0.5, cap_s=10.0)
+        self._last_ns: dict[int, int] = {}
+        self._connected = False
+        self._stats = SeedSensorStats()
+
+    @property
+    def available(self) -> bool:
+        return self._connected
+
+    @property
+    def stats(self) -> SeedSensorStats:
+        return self._stats
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                request = self._factory(self.chip, self.lines, self._bias)
+            except OSError as exc:
+                self._failed(f"cannot request lines {self.lines} on {self.chip}: {exc}")
+                await asyncio.sleep(self._backoff.next_delay())
+                continue
+            broken: asyncio.Future[str] = loop.create_future()
+            fd = request.fd
+            loop.add_reader(fd, self._readable, request, broken)
+            self._connected = True
+            self._stats.connects += 1
+            self._backoff.reset()
+            try:
+                self._failed(await broken)
+            finally:
+                self._connected = False
+                loop.remove_reader(fd)
+                with contextlib.suppress(OSError):
+                    request.release()
+            await asyncio.sleep(self._backoff.next_delay())
+
+    def _readable(self, request: LineRequestLike, broken: asyncio.Future[str]) -> None:
+        try:
+            events = list(request.read_edge_events())
+        except OSError as exc:
+            if not broken.done():
+                broken.set_result(f"reading {self.chip} failed: {exc}")
+            return
+        for event in events:
+            self.handle_event(event)
+
+    def handle_event(self, event: EdgeEventLike) -> None:
+        """One kernel edge event → a seed edge (or a counted bounce / stray)."""
+        if getattr(event.event_type, "name", str(event.event_type)) != "FALLING_EDGE":
+            return
+        row = self._row_of.get(event.line_offset)
+        if row is None:
+            self._stats.rejected += 1
+            self._stats.last_rejected = f"event on unrequested line {event.line_offset}"
+            return
+        last = self._last_ns.get(row)
+        if last is not None and event.timestamp_ns - last < self._debounce_ns:
+            self._stats.debounced += 1  # bounce: keep the first edge's time, the true one
+            return
+        self._last_ns[row] = event.timestamp_ns
+        self._stats.edges += 1
+        _deliver(self._on_edge, SeedEdgeEvent(row, event.timestamp_ns / NS_PER_S))
+
+    def _failed(self, message: str) -> None:
+        if message != self._stats.last_error:
+            log.warning("seed sensors: %s", message)
+        self._stats.last_error = message

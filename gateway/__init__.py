@@ -1,0 +1,1 @@
+"""Composition of drivers into the seeder controller: config, control, records, MQTT, CLI."""

@@ -1,0 +1,92 @@
+"""The set of active alarms, with raise/clear transitions reported once each.
+
+Alarms are keyed by a stable code (``radar.lost``) so a dashboard can track one condition
+across many raise/clear cycles, and so a flapping condition does not flood the operator:
+re-raising an active alarm with the same message is not a new event.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+from gateway.records import AlarmEvent, AlarmSeverity
+
+
+@dataclass
+class ActiveAlarm:
+    code: str
+    message: str
+    severity: AlarmSeverity
+    since: datetime
+
+
+class AlarmBoard:
+    def __init__(
+        self,
+        machine_id: str = "",
+        on_event: Callable[[AlarmEvent], None] | None = None,
+        utcnow: Callable[[], datetime] = lambda: datetime.now(UTC),
+    ) -> None:
+        self._machine_id = machine_id
+        self._active: dict[str, ActiveAlarm] = {}
+        self._listeners: list[Callable[[AlarmEvent], None]] = []
+        if on_event is not None:
+            self._listeners.append(on_event)
+        self._utcnow = utcnow
+
+    def subscribe(self, listener: Callable[[AlarmEvent], None]) -> None:
+        self._listeners.append(listener)
+
+    def _emit(self, event: AlarmEvent) -> None:
+        for listener in self._listeners:
+            listener(event)
+
+    def raise_(self, code: str, message: str, severity: AlarmSeverity = "warning") -> None:
+        current = self._active.get(code)
+        if current is not None and current.message == message and current.severity == severity:
+            return
+        now = self._utcnow()
+        self._active[code] = ActiveAlarm(code, message, severity, current.since if current else now)
+        self._emit(
+            AlarmEvent(
+                machine_id=self._machine_id,
+                code=code,
+                active=True,
+                severity=severity,
+                message=message,
+                utc=now,
+            )
+        )
+
+    def clear(self, code: str) -> None:
+        current = self._active.pop(code, None)
+        if current is None:
+            return
+        self._emit(
+            AlarmEvent(
+                machine_id=self._machine_id,
+                code=code,
+                active=False,
+                severity=current.severity,
+                message=current.message,
+                utc=self._utcnow(),
+            )
+        )
+
+    def set(
+        self, code: str, active: bool, message: str, severity: AlarmSeverity = "warning"
+    ) -> None:
+        """Raise or clear in one call: convenient where a condition is re-evaluated each tick."""
+        if active:
+            self.raise_(code, message, severity)
+        else:
+            self.clear(code)
+
+    def is_active(self, code: str) -> bool:
+        return code in self._active
+
+    @property
+    def active(self) -> list[ActiveAlarm]:
+        return sorted(self._active.values(), key=lambda a: a.since)

@@ -1,0 +1,279 @@
+"""``sowgate calibrate rotation|speed|tilt|undo|show``: field calibration from the cab.
+
+The timed runs show a rich progress bar; the operator then weighs the catch and types the
+mass (or passes ``--mass`` for scripted use). With ``--drive can`` the CLI itself commands a
+``can_pid`` channel's controller over CAN at each speed (stop the daemon first: one owner per
+bus); with ``--drive manual`` (default) the operator runs the meter from the HMI and the CLI
+only times. Results go to ``<state_dir>/calibration.json`` (previous value kept for undo).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import csv
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.prompt import FloatPrompt
+from rich.table import Table
+
+from drivers.errors import DriverError
+from gateway import calibration as cal
+from gateway.config import ConfigError, Settings, load_config, state_dir
+from gateway.errors import GatewayError
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+DEFAULT_B_SPEEDS = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)  # paper B
+DEFAULT_B_SECONDS = 30.0
+DEFAULT_A_SECONDS = 60.0  # paper A weighs 60 s runs
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.replace(",", " ").split()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
+
+
+def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``calibrate`` and its sub-commands on the daemon's argparse subparsers."""
+    p: argparse.ArgumentParser = subparsers.add_parser(
+        "calibrate", help="rotation test, speed calibration, inclinometer zero, undo"
+    )
+    p.add_argument("--config", default=argparse.SUPPRESS, help="sowgate TOML config")
+    p.add_argument("--state-dir", default=None, help="where calibration.json lives")
+    sub = p.add_subparsers(dest="calibrate_command", required=True)
+
+    r = sub.add_parser("rotation", help="rotation (weighing) test of one metering channel")
+    r.add_argument("--channel", required=True, help="channel name (or crop for paper A)")
+    r.add_argument("--model", choices=("grams_per_rev", "paper_a"), default="grams_per_rev")
+    r.add_argument("--speeds", type=_floats, default=None,
+                   help="shaft r/min set points (paper B: 10,20,...,60)")
+    r.add_argument("--duties", type=_floats, default=None, help="paper A: PWM duty %% per run")
+    r.add_argument("--rpm", type=_floats, default=None,
+                   help="paper A: measured shaft r/min per run (default: the set speeds)")
+    r.add_argument("--seconds", type=float, default=None, help="run length (B 30 s, A 60 s)")
+    r.add_argument("--mass", type=_floats, default=None,
+                   help="weighed grams per run, in run order (skips the prompts)")
+    r.add_argument("--min-stable-rpm", type=float, default=cal.PAPER_B_MIN_STABLE_RPM)
+    r.add_argument("--working-range", type=_floats, default=None, help="lo,hi r/min")
+    r.add_argument("--drive", choices=("manual", "can"), default="manual")
+    r.add_argument("--no-wait", action="store_true", help="do not time the runs (masses known)")
+
+    s = sub.add_parser("speed", help="drive a measured distance, store a correction factor")
+    s.add_argument("--source", required=True, help="radar | gnss | isobus | ...")
+    s.add_argument("--distance", type=float, default=50.0, help="measured distance (m)")
+    g = s.add_mutually_exclusive_group(required=True)
+    g.add_argument("--integrated-m", type=float, help="distance the source reported (m)")
+    g.add_argument("--samples", type=Path, help="CSV of time_s,speed_kmh logged on the run")
+
+    t = sub.add_parser("tilt", help="inclinometer zero (level) or critical angle (lowered)")
+    t.add_argument("--mode", choices=("level", "lowered"), required=True)
+    t.add_argument("--sensor", default="inclinometer")
+    t.add_argument("--readings", type=_floats, default=None, help="angles in degrees")
+
+    u = sub.add_parser("undo", help="restore the value replaced by the last calibration")
+    u.add_argument("--key", default=None, help="e.g. rotation.seed, speed.radar, tilt.inclinometer")
+
+    sub.add_parser("show", help="print the stored calibration")
+    return p
+
+
+def _settings(args: argparse.Namespace) -> Settings | None:
+    path = getattr(args, "config", None)
+    return load_config(path) if path else None
+
+
+def _store(args: argparse.Namespace) -> cal.CalibrationStore:
+    return cal.CalibrationStore(args.state_dir or state_dir())
+
+
+def _masses(args: argparse.Namespace, n: int, console: Console,
+            ask: Callable[[str], float]) -> list[float]:
+    if args.mass is not None:
+        if len(args.mass) != n:
+            raise cal.CalibrationError(f"--mass has {len(args.mass)} values for {n} runs")
+        return list(args.mass)
+    return [ask(f"weighed mass of run {i + 1} (g)") for i in range(n)]
+
+
+def _timed_runs(labels: Sequence[str], seconds: float, console: Console,
+                drive: Callable[[int, float], Any] | None, wait: bool) -> None:
+    if not wait:
+        return
+    with Progress(TextColumn("{task.description}"), BarColumn(), TimeRemainingColumn(),
+                  console=console, transient=False) as progress:
+        for i, label in enumerate(labels):
+            task = progress.add_task(f"run {i + 1}: {label}", total=seconds)
+            start = time.monotonic()
+            if drive is not None:
+                drive(i, seconds)
+            while (elapsed := time.monotonic() - start) < seconds:
+                progress.update(task, completed=elapsed)
+                time.sleep(min(0.2, seconds - elapsed))
+            progress.update(task, completed=seconds)
+
+
+def _can_driver(settings: Settings | None, channel: str,
+                speeds: Sequence[float]) -> Callable[[int, float], Any]:
+    """Drive a can_pid channel's controller at each set speed for the run's duration."""
+    from drivers.can_bus import CanBus, MeteringCanLink
+
+    if settings is None:
+        raise cal.CalibrationError("--drive can needs --config (CAN bus and channel node)")
+    ch = next((c for c in settings.channel if c.name == channel and c.drive == "can_pid"), None)
+    if ch is None:
+        raise cal.CalibrationError(f"no can_pid channel named {channel!r} in the config")
+    node = ch.node_id
+
+    async def run(i: int, seconds: float) -> None:
+        can = settings.can
+        async with CanBus(can.interface, can.channel, can.bitrate) as bus:
+            link = MeteringCanLink(bus, [node], command_hz=can.command_hz)
+            link.set_target(node, speeds[i])
+            task = asyncio.create_task(link.run(), name="calibrate-drive")
+            try:
+                await asyncio.sleep(seconds)
+            finally:
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+                link.stop_all()
+                with contextlib.suppress(DriverError):
+                    await link.send_commands()
+
+    def drive(i: int, seconds: float) -> None:
+        asyncio.run(run(i, seconds))
+
+    return drive
+
+
+def _table(title: str, headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> Table:
+    table = Table(title=title)
+    for h in headers:
+        table.add_column(h)
+    for row in rows:
+        table.add_row(*(f"{v:.3f}" if isinstance(v, float) else str(v) for v in row))
+    return table
+
+
+def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
+    settings = _settings(args)
+    store = _store(args)
+    if args.model == "grams_per_rev":
+        speeds = args.speeds or list(DEFAULT_B_SPEEDS)
+        seconds = args.seconds or DEFAULT_B_SECONDS
+        drive = _can_driver(settings, args.channel, speeds) if args.drive == "can" else None
+        _timed_runs([f"{n:g} r/min for {seconds:g} s" for n in speeds], seconds, console, drive,
+                    not args.no_wait)
+        masses = _masses(args, len(speeds), console, ask)
+        runs = [cal.RotationRun(n, seconds, m) for n, m in zip(speeds, masses, strict=True)]
+        fit = cal.grams_per_rev(runs, args.min_stable_rpm)
+        rows: list[tuple[Any, ...]] = [(r.rpm, r.mass_g, g, res) for r, g, res in
+                zip(fit.used, fit.per_run, fit.residuals_g_min, strict=True)]
+        rows += [(r.rpm, r.mass_g, "excluded (unstable)", "") for r in fit.excluded]
+        console.print(_table(f"rotation test {args.channel}", ("r/min", "g", "g/rev",
+                                                               "residual g/min"), rows))
+        console.print(f"g/rev = {fit.grams_per_rev:.2f}  CV {fit.cv_pct:.2f} %  R² {fit.r2:.4f}")
+        store.save(f"rotation.{args.channel}", cal.to_entry(fit, channel=args.channel,
+                                                             model="grams_per_rev"))
+        return EXIT_OK
+    # paper A: duty -> speed line and speed -> rate quadratic
+    if args.duties is None:
+        raise cal.CalibrationError("paper_a rotation needs --duties (PWM % per run)")
+    duties = list(args.duties)
+    seconds = args.seconds or DEFAULT_A_SECONDS
+    _timed_runs([f"duty {d:g} % for {seconds:g} s" for d in duties], seconds, console, None,
+                not args.no_wait)
+    rpm = list(args.rpm) if args.rpm is not None else [
+        ask(f"measured shaft speed of run {i + 1} (r/min)") for i in range(len(duties))
+    ]
+    masses = _masses(args, len(duties), console, ask)
+    rates = [m / (seconds / 60.0) for m in masses]
+    wr = tuple(args.working_range) if args.working_range else (min(rpm), max(rpm))
+    if len(wr) != 2:
+        raise cal.CalibrationError("--working-range takes two numbers: lo,hi r/min")
+    line = cal.fit_motor_line(duties, rpm)
+    quad = cal.fit_meter_quadratic(rpm, rates, (wr[0], wr[1]))
+    console.print(_table(f"rotation test {args.channel} (paper A)",
+                         ("duty %", "r/min", "g/min", "speed resid.", "rate resid."),
+                         list(zip(duties, rpm, rates, line.residuals, quad.residuals,
+                                  strict=True))))
+    console.print(f"R = {line.slope:.4f}·K {line.intercept:+.4f}  (R² {line.r2:.4f})")
+    console.print(f"Q = {quad.a:.4f}·ω² {quad.b:+.4f}·ω {quad.c:+.4f}  (R² {quad.r2:.4f})")
+    store.save(f"rotation.{args.channel}", cal.to_entry(
+        {"motor": line.__dict__, "meter": quad.__dict__, "omega_range": list(wr)},
+        channel=args.channel, model="paper_a"))
+    return EXIT_OK
+
+
+def _speed(args: argparse.Namespace, console: Console) -> int:
+    if args.samples is not None:
+        try:
+            with args.samples.open(encoding="utf-8") as fh:
+                samples = [(float(r[0]), float(r[1])) for r in csv.reader(fh)
+                           if r and not r[0].startswith("#") and r[0] != "time_s"]
+        except (OSError, ValueError, IndexError) as exc:
+            raise cal.CalibrationError(f"{args.samples}: unreadable speed log ({exc})") from None
+        integrated = cal.integrate_distance(samples)
+    else:
+        integrated = args.integrated_m
+    res = cal.speed_correction(args.source, args.distance, integrated)
+    console.print(f"{res.source}: measured {res.measured_m:g} m, integrated "
+                  f"{res.integrated_m:.2f} m -> factor {res.factor:.4f}")
+    _store(args).save(f"speed.{res.source}", cal.to_entry(res))
+    return EXIT_OK
+
+
+def _tilt(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
+    n = cal.LOWERED_READINGS if args.mode == "lowered" else 1
+    readings = args.readings
+    if readings is None:
+        readings = [ask(f"inclinometer reading {i + 1} (°)") for i in range(n)]
+    res = (cal.tilt_lowered_critical(readings) if args.mode == "lowered"
+           else cal.tilt_level_zero(readings))
+    if res.zero_offset_deg is not None:
+        console.print(f"zero offset {res.zero_offset_deg:+.2f}° (zeroed = raw − offset)")
+    if res.critical_angle_deg is not None:
+        console.print(f"critical angle {res.critical_angle_deg:+.2f}° (below → working)")
+    _store(args).save(f"tilt.{args.sensor}", cal.to_entry(res))
+    return EXIT_OK
+
+
+def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
+                    ask: Callable[[str], float] | None = None) -> int:
+    """Run the chosen ``calibrate`` sub-command; 0 on success, 1 with a message otherwise."""
+    con = console or Console()
+
+    def prompt(text: str) -> float:
+        return float(FloatPrompt.ask(text, console=con))
+
+    asker = ask or prompt
+    try:
+        cmd = args.calibrate_command
+        if cmd == "rotation":
+            return _rotation(args, con, asker)
+        if cmd == "speed":
+            return _speed(args, con)
+        if cmd == "tilt":
+            return _tilt(args, con, asker)
+        store = _store(args)
+        if cmd == "undo":
+            key, prev = store.undo(args.key)
+            con.print(f"{key}: restored {'(no value)' if prev is None else prev['saved_at']}")
+            return EXIT_OK
+        con.print_json(json.dumps(store.current()))
+        return EXIT_OK
+    except ConfigError as exc:
+        con.print(f"[red]config error:[/red]\n{exc}")
+        return EXIT_FAILED
+    except (GatewayError, DriverError, OSError) as exc:
+        con.print(f"[red]calibration refused:[/red] {exc}")
+        return EXIT_FAILED

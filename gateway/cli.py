@@ -1,0 +1,152 @@
+"""``sowgate``: the daemon, config checking, the simulated demo and field tools."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from gateway.config import EXIT_CONFIG, ConfigError, load_config, state_dir
+
+log = logging.getLogger("sowgate")
+
+
+def _setup_logging(verbose: bool, quiet: bool = False) -> None:
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    logging.basicConfig(
+        level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
+    )
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    try:
+        settings = load_config(args.file)
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    print(f"{args.file}: ok (machine {settings.machine.id}, {settings.machine.rows} rows)")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    try:
+        settings = load_config(args.config)
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    _setup_logging(args.verbose)
+    from gateway.daemon import Daemon
+
+    async def main() -> None:
+        daemon = Daemon(settings, state_dir())
+        if args.tui:
+            await _with_live_view(daemon, daemon.run())
+        else:
+            await daemon.run()
+
+    asyncio.run(main())
+    return 0
+
+
+async def _with_live_view(daemon: Any, work: Any, truth: Any = None) -> None:
+    from rich.live import Live
+
+    from gateway.view import render
+
+    task = asyncio.ensure_future(work)
+    with Live(render(daemon.snapshot()), refresh_per_second=4, screen=False) as live:
+        while not task.done():
+            live.update(render(daemon.snapshot(), truth() if truth else None))
+            await asyncio.wait({task}, timeout=0.25)
+    await task
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    _setup_logging(args.verbose, quiet=not args.no_tui)
+    from gateway.demo import run_demo
+
+    return asyncio.run(run_demo(duration_s=args.duration, tui=not args.no_tui, crop=args.crop))
+
+
+def cmd_decode_gnss(args: argparse.Namespace) -> int:
+    from gateway.gnss_diagnostics import main_decode_gnss
+
+    return main_decode_gnss(args.file, sys.stdout)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from gateway.export import main_export
+
+    return int(main_export(args) or 0)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sowgate", description=__doc__)
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run the daemon")
+    r.add_argument("--config", required=True, type=Path, help="TOML config file")
+    r.add_argument("--tui", action="store_true", help="show the live terminal view")
+    r.set_defaults(func=cmd_run)
+
+    c = sub.add_parser("check-config", help="validate a config file (exit 78 if invalid)")
+    c.add_argument("file", type=Path)
+    c.set_defaults(func=cmd_check_config)
+
+    d = sub.add_parser("demo", help="run the daemon against the built-in simulated machine")
+    d.add_argument("--duration", type=float, default=None, help="seconds (default: until ^C)")
+    d.add_argument("--no-tui", action="store_true", help="log instead of the live view")
+    d.add_argument("--crop", choices=["rapeseed", "wheat"], default="rapeseed")
+    d.set_defaults(func=cmd_demo)
+
+    g = sub.add_parser("decode-gnss", help="decode receiver output, one JSON object per line")
+    g.add_argument("file", help="capture file, or - for standard input")
+    g.set_defaults(func=cmd_decode_gnss)
+
+    e = sub.add_parser("export", help="export seed records (or the as-applied log)")
+    e.add_argument(
+        "--what",
+        choices=["seeds", "as-applied"],
+        default="seeds",
+        help="seed records with spacing quality (default) or the metering as-applied log",
+    )
+    e.add_argument("--format", choices=["geojson", "csv"], default="geojson")
+    e.add_argument("--output", required=True)
+    e.add_argument("--since", default=None, help="ISO 8601 UTC start time")
+    e.add_argument("--until", default=None, help="ISO 8601 UTC end time")
+    e.add_argument("--rows", default=None, help="comma-separated row numbers")
+    e.add_argument("--config", type=Path, default=None, help="config file (for the store path)")
+    e.set_defaults(func=cmd_export)
+
+    try:
+        from gateway.calibration_cli import add_calibration_commands
+    except ImportError:  # pragma: no cover - calibration module is part of the package
+        pass
+    else:
+        add_calibration_commands(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        # output piped into `head` and closed early: not an error of ours
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,63 @@
+"""Operator commands, whatever screen or topic they come from.
+
+The HMI and MQTT both translate their input into these values and hand them to one
+``CommandSink`` (the controller), so validation and effects are identical on every path: a rate
+the touchscreen would refuse is refused over MQTT with the same words.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+
+@dataclass(frozen=True)
+class SetRate:
+    crop: str
+    rate_kg_ha: float
+
+
+@dataclass(frozen=True)
+class Start:
+    pass
+
+
+@dataclass(frozen=True)
+class Stop:
+    pass
+
+
+@dataclass(frozen=True)
+class ZeroTilt:
+    pass
+
+
+@dataclass(frozen=True)
+class EmptySeed:
+    pass
+
+
+@dataclass(frozen=True)
+class SeedLevelMonitoring:
+    enabled: bool
+
+
+@dataclass(frozen=True)
+class CalibrateSpeed:
+    """Paper A's speed calibration, live: ``start`` at a marker, drive a measured distance,
+    ``finish`` with that distance; every speed source that reported gets its factor."""
+
+    action: str  # "start" | "finish" | "cancel"
+    distance_m: float | None = None
+
+
+Command = SetRate | Start | Stop | ZeroTilt | EmptySeed | SeedLevelMonitoring | CalibrateSpeed
+
+
+class CommandSink(Protocol):
+    def execute(self, command: Command, source: str) -> str:
+        """Apply ``command``; return a short confirmation, raise ``CommandError`` if refused.
+
+        A refused command changes nothing.
+        """
+        ...

@@ -1,0 +1,195 @@
+"""The one TOML config file, validated by pydantic, with ``SOWGATE_<SECTION>__<KEY>`` overrides.
+
+Every problem is reported as ``section.key: problem (got value)`` so a fitter reading a
+terminal in a cab knows exactly which line of which table to fix.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, ValidationError, model_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from gateway.config.farm import CommandsSection, MqttSection, TlsSection
+from gateway.config.machine import (
+    ActuatorsSection,
+    ControlSection,
+    CropModel,
+    HmiSection,
+    InclinometerSection,
+    MachineSection,
+    RadarSection,
+    Rs485Section,
+    SpeedSection,
+)
+from gateway.config.metering import (
+    CanSection,
+    ChannelSection,
+    IsobusSection,
+    PrescriptionSection,
+)
+from gateway.config.recording import (
+    GnssSection,
+    PositioningSection,
+    SeedSensorsSection,
+    StoreSection,
+)
+from gateway.errors import ConfigError
+
+EXIT_CONFIG = 78  # EX_CONFIG from sysexits.h; systemd's RestartPreventExitStatus uses it
+
+__all__ = [
+    "EXIT_CONFIG",
+    "ActuatorsSection",
+    "CanSection",
+    "ChannelSection",
+    "CommandsSection",
+    "ConfigError",
+    "ControlSection",
+    "CropModel",
+    "GnssSection",
+    "HmiSection",
+    "InclinometerSection",
+    "IsobusSection",
+    "MachineSection",
+    "MqttSection",
+    "PositioningSection",
+    "PrescriptionSection",
+    "RadarSection",
+    "Rs485Section",
+    "SeedSensorsSection",
+    "Settings",
+    "SpeedSection",
+    "StoreSection",
+    "TlsSection",
+    "format_validation_error",
+    "load_config",
+    "parse_config",
+    "state_dir",
+]
+
+
+class Settings(BaseSettings):
+    """The whole daemon configuration. Tables absent from the file take their defaults."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="SOWGATE_",
+        env_nested_delimiter="__",
+        extra="forbid",
+        validate_assignment=True,
+    )
+
+    machine: MachineSection = Field(default_factory=MachineSection)
+    rs485: Rs485Section = Field(default_factory=Rs485Section)
+    radar: RadarSection = Field(default_factory=RadarSection)
+    inclinometer: InclinometerSection = Field(default_factory=InclinometerSection)
+    actuators: ActuatorsSection = Field(default_factory=ActuatorsSection)
+    hmi: HmiSection = Field(default_factory=HmiSection)
+    speed: SpeedSection = Field(default_factory=SpeedSection)
+    control: ControlSection = Field(default_factory=ControlSection)
+    gnss: GnssSection = Field(default_factory=GnssSection)
+    seed_sensors: SeedSensorsSection = Field(default_factory=SeedSensorsSection)
+    positioning: PositioningSection = Field(default_factory=PositioningSection)
+    store: StoreSection = Field(default_factory=StoreSection)
+    mqtt: MqttSection = Field(default_factory=MqttSection)
+    commands: CommandsSection = Field(default_factory=CommandsSection)
+    can: CanSection = Field(default_factory=CanSection)
+    channel: list[ChannelSection] = Field(default_factory=list)
+    isobus: IsobusSection = Field(default_factory=IsobusSection)
+    prescription: PrescriptionSection = Field(default_factory=PrescriptionSection)
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # Environment beats the file: a service override can fix one value without editing it.
+        return (env_settings, init_settings)
+
+    @model_validator(mode="after")
+    def _cross_section(self) -> Settings:
+        rows = self.machine.rows
+        if len(self.positioning.row_lateral_m) != rows:
+            raise ValueError(
+                f"positioning.row_lateral_m has {len(self.positioning.row_lateral_m)} entries "
+                f"but machine.rows is {rows}"
+            )
+        if (
+            self.seed_sensors.source == "gpio"
+            and self.seed_sensors.enabled
+            and (len(self.seed_sensors.gpio_lines) != rows)
+        ):
+            raise ValueError(f"seed_sensors.gpio_lines needs one line per row ({rows})")
+        names = [c.name for c in self.channel]
+        if len(names) != len(set(names)):
+            raise ValueError("channel names must be unique")
+        ids = [self.radar.device_id, self.inclinometer.device_id, self.actuators.device_id]
+        if len(ids) != len(set(ids)):
+            raise ValueError(
+                "radar, inclinometer and actuators share one RS485 bus and need distinct device_id"
+            )
+        return self
+
+
+def _loc(loc: tuple[int | str, ...]) -> str:
+    out = ""
+    for item in loc:
+        out += f"[{item}]" if isinstance(item, int) else ("." if out else "") + str(item)
+    return out or "(root)"
+
+
+def format_validation_error(exc: ValidationError) -> list[str]:
+    """One ``section.key: problem (got value)`` line per pydantic error."""
+    lines = []
+    for err in exc.errors(include_url=False):
+        loc = _loc(tuple(err["loc"]))
+        msg = err["msg"].removeprefix("Value error, ")
+        got = err.get("input")
+        if err["type"] in {"missing"} or isinstance(got, dict):
+            lines.append(f"{loc}: {msg}")
+        else:
+            lines.append(f"{loc}: {msg} (got {got!r})")
+    return lines
+
+
+def parse_config(data: dict[str, Any]) -> Settings:
+    """Validate an already-parsed TOML document (plus environment overrides)."""
+    try:
+        return Settings(**data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc)) from None
+
+
+def load_config(path: str | os.PathLike[str]) -> Settings:
+    """Read and validate a config file; a missing or unreadable file is a ConfigError too."""
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError([f"{p}: config file not found"]) from None
+    except OSError as exc:
+        raise ConfigError([f"{p}: cannot read config file ({exc.strerror})"]) from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError([f"{p}: not valid TOML: {exc}"]) from None
+    return parse_config(data)
+
+
+def state_dir() -> Path:
+    """Persistent state: SOWGATE_STATE_DIR, else systemd STATE_DIRECTORY, else ./sowgate-state."""
+    explicit = os.environ.get("SOWGATE_STATE_DIR")
+    if explicit:
+        return Path(explicit)
+    systemd_dir = os.environ.get("STATE_DIRECTORY")
+    if systemd_dir:
+        return Path(systemd_dir.split(":")[0])
+    return Path("sowgate-state")

@@ -1,0 +1,42 @@
+"""Sections for the link to the farm: MQTT and remote commands."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from gateway.config._base import Section
+
+
+class TlsSection(Section):
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    insecure: bool = False
+
+
+class MqttSection(Section):
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(1883, ge=1, le=65535)
+    client_id: str | None = None  # default: sowgate-<machine id>
+    username: str | None = None
+    password: str | None = None
+    password_file: str | None = None
+    tls: TlsSection | None = None
+    keepalive: int = Field(30, ge=5, le=3600)
+    topic_prefix: str = Field("sowgate", min_length=1, pattern=r"^[^#+]+$")
+    batch_max_records: int = Field(500, ge=1, le=5000)
+    batch_max_ms: float = Field(500.0, gt=0, le=10000)
+    max_inflight_batches: int = Field(8, ge=1, le=64)
+    reconnect_max_s: float = Field(30.0, gt=0, le=600)
+    state_hz: float = Field(1.0, gt=0, le=10)
+
+
+CommandName = Literal["rate", "start", "stop", "zero_tilt", "speed_cal"]
+
+
+class CommandsSection(Section):
+    enabled: list[CommandName] = Field(default_factory=list)
+    max_payload_bytes: int = Field(4096, ge=64, le=65536)

@@ -1,0 +1,225 @@
+"""Sections for paper A's machine: the RS485 bus, its devices, the HMI and the crop models."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import ConfigDict, Field, model_validator
+
+from gateway.config._base import Section
+
+
+class MachineSection(Section):
+    id: str = Field("seeder-01", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    working_width_m: float = Field(2.0, gt=0, le=60)
+    rows: int = Field(6, ge=1, le=128)
+
+
+class Rs485Section(Section):
+    port: str = "/dev/ttyUSB0"
+    baudrate: int = Field(9600, ge=1200, le=921600)
+    parity: Literal["N", "E", "O"] = "N"
+    stopbits: Literal[1, 2] = 1
+    poll_hz: float = Field(3.0, gt=0, le=50)
+    timeout_s: float = Field(0.3, gt=0, le=5)
+    retries: int = Field(0, ge=0, le=5)
+    reconnect_max_s: float = Field(5.0, gt=0, le=300)
+
+
+DataType = Literal["uint16", "int16", "uint32", "int32", "float32"]
+
+
+class RadarSection(Section):
+    model_config = ConfigDict(validate_by_name=True, validate_by_alias=True)
+
+    device_id: int = Field(1, ge=1, le=247)
+    # `register` in the file; renamed here because pydantic models already have .register
+    address: int = Field(0, ge=0, le=65535, alias="register")
+    data_type: DataType = "uint16"
+    word_order: Literal["big", "little"] = "big"
+    scale: float = 0.01
+    unit: Literal["km/h", "m/s", "mm/s", "doppler_hz"] = "km/h"
+    mount_angle_deg: float = Field(49.5, ge=0, lt=90)
+    filter_samples: int = Field(12, ge=2, le=256)
+    # "mean": paper A's moving average; "trend": least-squares line, no lag when accelerating
+    filter: Literal["mean", "trend"] = "trend"
+
+
+class InclinometerSection(Section):
+    device_id: int = Field(0x50, ge=1, le=247)
+    axis: Literal["roll", "pitch"] = "pitch"
+    layout: Literal["witmotion16", "witmotion32"] = "witmotion16"
+    zero_offset_deg: float = Field(0.0, ge=-180, le=180)
+    critical_angle_deg: float = Field(0.0, ge=-90, le=90)
+    hysteresis_deg: float = Field(0.5, ge=0, le=10)
+
+
+class ActuatorsSection(Section):
+    device_id: int = Field(3, ge=1, le=247)
+    motor_register: int = Field(0, ge=0, le=65535)
+    fan_register: int = Field(1, ge=0, le=65535)
+    refresh_s: float = Field(2.0, gt=0, le=2.0)
+
+    @model_validator(mode="after")
+    def _distinct_registers(self) -> ActuatorsSection:
+        if self.motor_register == self.fan_register:
+            raise ValueError("motor_register and fan_register must differ")
+        return self
+
+
+class HmiObjects(Section):
+    """TJC/Nextion object names the daemon writes to (``obj.txt="..."``)."""
+
+    speed: str = "t_speed"
+    tilt: str = "t_tilt"
+    state: str = "t_state"
+    crop: str = "t_crop"
+    rate: str = "t_rate"
+    alarm: str = "t_alarm"
+    message: str = "t_msg"
+
+
+class HmiSection(Section):
+    enabled: bool = True
+    port: str = "/dev/ttyS1"
+    baudrate: int = Field(9600, ge=1200, le=921600)
+    encoding: str = "ascii"
+    update_hz: float = Field(2.0, ge=1.0, le=20.0)
+    objects: HmiObjects = Field(default_factory=HmiObjects)
+    state_labels: dict[str, str] = Field(default_factory=dict)
+    crop_labels: dict[str, str] = Field(default_factory=dict)
+    # a screen update waits at most this long for the UART before the caller moves on
+    write_timeout_s: float = Field(0.5, gt=0, le=5.0)
+    reconnect_max_s: float = Field(5.0, gt=0, le=300)
+
+    @model_validator(mode="after")
+    def _encoding_exists(self) -> HmiSection:
+        import codecs
+
+        codecs.lookup(self.encoding)  # raises LookupError -> reported as a value error
+        return self
+
+    @model_validator(mode="after")
+    def _screen_can_show_it(self) -> HmiSection:
+        """Object names are sent unquoted and labels must exist in the screen's font encoding;
+        both mistakes would otherwise only show up as a blank or garbled screen in the cab."""
+        from protocol.hmi import check_object_name
+
+        for key, obj in self.objects.model_dump().items():
+            try:
+                check_object_name(obj)
+            except ValueError:
+                raise ValueError(
+                    f"objects.{key} = {obj!r} is not a screen object name (letters, digits, _)"
+                ) from None
+        for table in ("state_labels", "crop_labels"):
+            for key, label in getattr(self, table).items():
+                try:
+                    label.encode(self.encoding)
+                except UnicodeEncodeError:
+                    raise ValueError(
+                        f"{table}.{key} = {label!r} cannot be shown in encoding {self.encoding!r}"
+                    ) from None
+        return self
+
+
+class SpeedSection(Section):
+    source: Literal["radar", "gnss", "radar_then_gnss", "isobus", "isobus_then_radar"] = "radar"
+    moving_threshold_kmh: float = Field(0.3, ge=0, le=5)
+    moving_hysteresis_kmh: float = Field(0.1, ge=0, le=5)
+    stale_after_s: float = Field(2.0, gt=0, le=30)
+    correction: dict[str, float] = Field(default_factory=dict)
+
+
+class CropModel(Section):
+    """Paper A's fitted models for one crop; refit per machine with ``sowgate calibrate``."""
+
+    code: int = Field(ge=1, le=255)
+    rate_min_kg_ha: float = Field(gt=0)
+    rate_max_kg_ha: float = Field(gt=0)
+    default_rate_kg_ha: float = Field(gt=0)
+    motor_slope: float = Field(gt=0)  # R = slope*K + intercept (r/min, K in %)
+    motor_intercept: float
+    startup_duty_pct: float = Field(ge=0, le=100)
+    meter_a: float  # Q = a*w^2 + b*w + c (g/min, w in r/min)
+    meter_b: float
+    meter_c: float
+    omega_min_rpm: float = Field(ge=0)
+    omega_max_rpm: float = Field(gt=0)
+    fan_high_pct: float = Field(ge=0, le=100)
+    fan_low_pct: float = Field(ge=0, le=100)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> CropModel:
+        if self.rate_min_kg_ha >= self.rate_max_kg_ha:
+            raise ValueError("rate_min_kg_ha must be below rate_max_kg_ha")
+        if not self.rate_min_kg_ha <= self.default_rate_kg_ha <= self.rate_max_kg_ha:
+            raise ValueError("default_rate_kg_ha must lie within rate_min_kg_ha..rate_max_kg_ha")
+        if self.omega_min_rpm >= self.omega_max_rpm:
+            raise ValueError("omega_min_rpm must be below omega_max_rpm")
+        return self
+
+
+def default_crops() -> dict[str, CropModel]:
+    """Paper A, equations (5) and (6), Table 2 ranges."""
+    return {
+        "rapeseed": CropModel(
+            code=1,
+            rate_min_kg_ha=4.5,
+            rate_max_kg_ha=7.5,
+            default_rate_kg_ha=6.0,
+            motor_slope=0.5330,
+            motor_intercept=-5.7088,
+            startup_duty_pct=10.0,
+            meter_a=-0.019,
+            meter_b=5.468,
+            meter_c=-1.419,
+            omega_min_rpm=5.0,
+            omega_max_rpm=30.0,
+            fan_high_pct=70.0,
+            fan_low_pct=20.0,
+        ),
+        "wheat": CropModel(
+            code=2,
+            rate_min_kg_ha=120.0,
+            rate_max_kg_ha=225.0,
+            default_rate_kg_ha=180.0,
+            motor_slope=0.6671,
+            motor_intercept=-19.8309,
+            startup_duty_pct=30.0,
+            meter_a=-0.644,
+            meter_b=132.212,
+            meter_c=-398.316,
+            omega_min_rpm=20.0,
+            omega_max_rpm=45.0,
+            fan_high_pct=85.0,
+            fan_low_pct=25.0,
+        ),
+    }
+
+
+class ControlSection(Section):
+    crop: str = "rapeseed"
+    rate_kg_ha: float | None = None  # None -> the crop's default rate
+    loop_hz: float = Field(10.0, ge=1, le=100)
+    emptying_timeout_s: float = Field(120.0, gt=0, le=3600)
+    emptying_motor_pct: float = Field(100.0, ge=0, le=100)
+    start_working: bool = False  # start in the "work" mode without an HMI start press
+    crops: dict[str, CropModel] = Field(default_factory=default_crops)
+
+    @model_validator(mode="after")
+    def _crop_known(self) -> ControlSection:
+        if self.crop not in self.crops:
+            raise ValueError(f"crop {self.crop!r} is not one of {sorted(self.crops)}")
+        model = self.crops[self.crop]
+        if self.rate_kg_ha is not None and not (
+            model.rate_min_kg_ha <= self.rate_kg_ha <= model.rate_max_kg_ha
+        ):
+            raise ValueError(
+                f"rate_kg_ha {self.rate_kg_ha} outside {self.crop} range "
+                f"{model.rate_min_kg_ha}..{model.rate_max_kg_ha}"
+            )
+        codes = [c.code for c in self.crops.values()]
+        if len(codes) != len(set(codes)):
+            raise ValueError("crop codes must be unique")
+        return self

@@ -1,0 +1,65 @@
+"""Sections for paper B: metering channels on CAN, ISOBUS tractor inputs, prescriptions."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from gateway.config._base import Section
+
+
+class CanSection(Section):
+    enabled: bool = False
+    interface: str = "socketcan"  # python-can interface: socketcan | virtual | ...
+    channel: str = "can0"
+    bitrate: int = Field(250_000, ge=10_000, le=1_000_000)
+    command_hz: float = Field(10.0, ge=1, le=100)  # target-speed frames per node
+    feedback_timeout_s: float = Field(1.0, gt=0, le=30)  # no status for longer -> channel alarm
+    off_target_pct: float = Field(5.0, gt=0, le=100)  # |measured-target|/target above this ...
+    off_target_s: float = Field(3.0, gt=0, le=60)  # ... for longer than this -> rate alarm
+    min_target_rpm: float = Field(1.0, ge=0, le=100)  # below: channel commanded off (no alarm)
+
+
+class ChannelSection(Section):
+    name: str = Field(min_length=1, max_length=32, pattern=r"^[A-Za-z0-9_-]+$")
+    product: str = "seed"
+    target_rate_kg_ha: float = Field(gt=0, le=2000)
+    drive: Literal["pwm_modbus", "can_pid"] = "can_pid"
+    node_id: int = Field(1, ge=0, le=15)  # CAN controller address
+    grams_per_rev: float = Field(10.0, gt=0, le=10000)  # paper B per-revolution displacement
+    max_shaft_rpm: float = Field(60.0, gt=0, le=1000)
+    prescription_attribute: str | None = None
+    outlets: int = Field(1, ge=1, le=128)  # m_total = grams_per_rev * outlets
+    outlet_behind_m: float = Field(0.0, ge=-50, le=50)  # outlets behind the GNSS antenna
+    outlet_lateral_m: float = Field(0.0, ge=-50, le=50)  # to the right of the antenna
+
+    @model_validator(mode="after")
+    def _can_node(self) -> ChannelSection:
+        if self.drive == "can_pid" and not 1 <= self.node_id <= 15:
+            raise ValueError("a can_pid channel needs node_id 1..15 (0 is not addressable)")
+        return self
+
+
+SpeedSource = Literal["machine_selected", "ground", "wheel"]
+
+
+def _default_priority() -> list[SpeedSource]:
+    return ["machine_selected", "ground", "wheel"]
+
+
+class IsobusSection(Section):
+    enabled: bool = False
+    interface: str = "socketcan"
+    channel: str = "can1"
+    work_state_source: Literal["inclinometer", "hitch", "hitch_then_inclinometer"] = "inclinometer"
+    hitch_in_work_below_pct: float | None = Field(None, ge=0, le=100)
+    speed_priority: list[SpeedSource] = Field(default_factory=_default_priority, min_length=1)
+    stale_after_s: float = Field(0.3, gt=0, le=5)  # ISO 11783-7 sends at 100 ms
+
+
+class PrescriptionSection(Section):
+    enabled: bool = False
+    path: str | None = None
+    lookahead_s: float = Field(1.0, ge=0, le=30)
+    as_applied_path: str | None = None  # CSV/GeoJSON log of applied rates; None -> state dir

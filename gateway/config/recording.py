@@ -1,0 +1,90 @@
+"""Sections for paper C: GNSS receiver, seed-tube sensors, position model and record store."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from gateway.config._base import Section
+
+EpochSentence = Literal["RMC", "GGA", "HEADING", "VTG"]
+DEFAULT_EPOCH_SENTENCES: tuple[EpochSentence, ...] = ("RMC", "GGA", "HEADING")
+
+
+class GnssSection(Section):
+    enabled: bool = False
+    port: str = "/dev/ttyUSB1"
+    baudrate: int = Field(115200, ge=1200, le=921600)
+    rate_hz: float = Field(10.0, gt=0, le=50)
+    stale_after_s: float = Field(0.5, gt=0, le=10)
+    # sentence kinds an epoch waits for before it is emitted early (otherwise: when the next
+    # UTC time begins). HEADING = #HEADINGA/#UNIHEADINGA, or $--HDT/$--THS.
+    epoch_sentences: list[EpochSentence] = Field(
+        default_factory=lambda: list(DEFAULT_EPOCH_SENTENCES), min_length=1
+    )
+    # no byte at all for this long: close and reopen the port (wedged USB adapter)
+    silence_reconnect_s: float = Field(5.0, gt=0, le=600)
+
+
+class SeedSensorsSection(Section):
+    enabled: bool = False
+    source: Literal["serial", "gpio"] = "serial"
+    port: str = "/dev/ttyUSB2"
+    baudrate: int = Field(115200, ge=1200, le=921600)
+    gpio_chip: str = "/dev/gpiochip0"
+    gpio_lines: list[int] = Field(default_factory=list)
+    debounce_ms: float = Field(2.0, ge=0, le=100)
+    # through-beam sensors usually pull the line low when a seed breaks the beam
+    gpio_bias: Literal["pull_up", "pull_down", "disabled", "as_is"] = "pull_up"
+
+
+# Paper C, Table 1: seed fall time from sensor to furrow (ms) against speed (km/h).
+DEFAULT_FALL_TIME_TABLE: list[tuple[float, float]] = [
+    (4.0, 114.2),
+    (5.0, 111.6),
+    (6.0, 109.3),
+    (7.0, 108.2),
+    (8.0, 106.3),
+    (9.0, 105.9),
+    (10.0, 105.3),
+    (11.0, 104.8),
+    (12.0, 104.1),
+]
+
+
+class PositioningSection(Section):
+    method: Literal["interpolated", "paper"] = "interpolated"
+    outlet_behind_antenna_m: float = Field(1.2, ge=-20, le=20)
+    row_lateral_m: list[float] = Field(default_factory=lambda: [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5])
+    fall_time_table: list[tuple[float, float]] = Field(
+        default_factory=lambda: list(DEFAULT_FALL_TIME_TABLE)
+    )
+    # paper C's constant lags, used by method = "paper"
+    paper_fall_ms: float = Field(107.7, ge=0, le=1000)
+    paper_fix_age_ms: float = Field(50.0, ge=0, le=1000)
+    paper_transmission_ms: float = Field(39.5, ge=0, le=1000)
+    # interpolated method: the known latency between the epoch time and the sentence arrival
+    gnss_output_latency_ms: float = Field(0.0, ge=0, le=1000)
+    # fixed delay between a seed breaking the beam and the host stamping its edge
+    seed_edge_latency_ms: float = Field(0.0, ge=0, le=1000)
+    # a seed waits this long past its landing instant for the epoch that brackets it, then it
+    # is extrapolated (at most one epoch ahead) and flagged
+    pending_timeout_s: float = Field(0.5, gt=0, le=5)
+    # a row's spacing restarts (None) after a gap this long: raised at the headland, stopped
+    spacing_reset_gap_s: float = Field(3.0, gt=0, le=60)
+    target_spacing_m: float | None = Field(None, gt=0, le=10)
+
+    @model_validator(mode="after")
+    def _table_sorted(self) -> PositioningSection:
+        speeds = [s for s, _ in self.fall_time_table]
+        if not speeds or speeds != sorted(speeds):
+            raise ValueError("fall_time_table must be non-empty and sorted by speed")
+        return self
+
+
+class StoreSection(Section):
+    path: str | None = None  # default: <state dir>/records.sqlite3
+    retention_days: float = Field(30.0, gt=0, le=3650)
+    backlog_alarm_records: int = Field(200_000, ge=1)
+    commit_interval_s: float = Field(0.2, gt=0, le=1.0)

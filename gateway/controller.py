@@ -1,0 +1,349 @@
+"""The controller: sensor samples and operator commands in, motor and fan duty out.
+
+Pure state plus arithmetic: the caller supplies timestamps (``now`` from a monotonic clock),
+so every safety rule here — stale speed, lost inclinometer, emptying timeout — is tested by
+moving a number, not by sleeping. The daemon polls the bus and calls ``tick``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from gateway import commands as cmd
+from gateway.alarms import AlarmBoard
+from gateway.attitude import Attitude as AttitudeBand
+from gateway.attitude import zeroed_tilt
+from gateway.config import CropModel, Settings
+from gateway.errors import CommandError, OutsideCalibrationError, TooFastError
+from gateway.rate_model import flow_at, omega_for_duty, plan_duty, rate_for_flow
+from gateway.speed import Hysteresis, MovingAverage, TrendFilter
+from gateway.work_state import Attitude, Fan, Mode, Motion, Motor, WorkState, decide
+
+log = logging.getLogger(__name__)
+
+TILT_STALE_S = 2.0
+OTHER_SOURCE_FILTER_SAMPLES = 5
+
+
+@dataclass
+class SpeedSource:
+    """Latest filtered reading of one speed source and when it arrived."""
+
+    filter: MovingAverage | TrendFilter
+    correction: float = 1.0
+    last_t: float | None = None
+    last_raw: float = 0.0
+    raw_distance_m: float = 0.0  # uncorrected odometer, for speed calibration
+
+    def add(self, kmh: float, t: float, stale_after_s: float = 2.0) -> None:
+        raw = max(0.0, kmh)
+        if self.last_t is not None and 0.0 < t - self.last_t <= stale_after_s:
+            self.raw_distance_m += (self.last_raw + raw) / 2.0 / 3.6 * (t - self.last_t)
+        self.filter.add(raw * self.correction, t)
+        self.last_t = t
+        self.last_raw = raw
+
+    def value(self, now: float, stale_after_s: float) -> float | None:
+        if self.last_t is None or now - self.last_t > stale_after_s:
+            return None
+        return self.filter.value
+
+
+@dataclass
+class ControlOutputs:
+    state: WorkState
+    motor_pct: float
+    fan_pct: float
+    speed_kmh: float | None
+    speed_source: str | None
+    tilt_deg: float | None
+    raised: bool
+    commanded_rate_kg_ha: float
+    message: str | None = None
+
+
+@dataclass
+class Counters:
+    area_m2: float = 0.0
+    seed_mass_g: float = 0.0
+    distance_m: float = 0.0
+
+
+@dataclass
+class Controller:
+    settings: Settings
+    alarms: AlarmBoard
+    state_dir: Path | None = None
+    mode: Mode = Mode.STOPPED
+    counters: Counters = field(default_factory=Counters)
+    seed_level_monitoring: bool = False
+
+    def __post_init__(self) -> None:
+        s = self.settings
+        self.crop = s.control.crop
+        model = s.control.crops[self.crop]
+        self.rate_kg_ha = s.control.rate_kg_ha or model.default_rate_kg_ha
+        self.zero_offset_deg = s.inclinometer.zero_offset_deg
+        corr = s.speed.correction
+        self.sources: dict[str, SpeedSource] = {
+            "radar": SpeedSource(
+                (TrendFilter if s.radar.filter == "trend" else MovingAverage)(
+                    s.radar.filter_samples
+                ),
+                corr.get("radar", 1.0),
+            ),
+            "gnss": SpeedSource(MovingAverage(OTHER_SOURCE_FILTER_SAMPLES), corr.get("gnss", 1.0)),
+            "isobus": SpeedSource(
+                MovingAverage(OTHER_SOURCE_FILTER_SAMPLES), corr.get("isobus", 1.0)
+            ),
+        }
+        thr, hyst = s.speed.moving_threshold_kmh, s.speed.moving_hysteresis_kmh
+        self._moving = Hysteresis(thr + hyst, thr, initial=False)
+        self._attitude = AttitudeBand(
+            s.inclinometer.critical_angle_deg, s.inclinometer.hysteresis_deg
+        )
+        self._odometer_start: dict[str, float] | None = None
+        self._tilt_raw: float | None = None
+        self._tilt_t: float | None = None
+        self._hitch_working: bool | None = None
+        self._hitch_t: float | None = None
+        self._speed_lost_since: float | None = None
+        self._emptying_since: float | None = None
+        self._last_tick: float | None = None
+        self._message: str | None = None
+        self.last: ControlOutputs | None = None
+        if s.control.start_working:
+            self.mode = Mode.WORKING
+
+    # ---- inputs -------------------------------------------------------------------------
+    @property
+    def crop_model(self) -> CropModel:
+        return self.settings.control.crops[self.crop]
+
+    def on_speed(self, source: str, kmh: float, t: float) -> None:
+        self.sources[source].add(kmh, t, self.settings.speed.stale_after_s)
+
+    def on_tilt(self, raw_deg: float, t: float) -> None:
+        self._tilt_raw = raw_deg
+        self._tilt_t = t
+
+    def on_hitch(self, in_work: bool, t: float) -> None:
+        """ISOBUS rear hitch in-work flag, an alternative attitude source."""
+        self._hitch_working = in_work
+        self._hitch_t = t
+
+    def speed(self, now: float) -> tuple[float | None, str | None]:
+        order = {
+            "radar": ("radar",),
+            "gnss": ("gnss",),
+            "isobus": ("isobus",),
+            "radar_then_gnss": ("radar", "gnss"),
+            "isobus_then_radar": ("isobus", "radar"),
+        }[self.settings.speed.source]
+        for name in order:
+            v = self.sources[name].value(now, self.settings.speed.stale_after_s)
+            if v is not None:
+                return v, name
+        return None, None
+
+    def tilt(self, now: float) -> float | None:
+        if self._tilt_raw is None or self._tilt_t is None or now - self._tilt_t > TILT_STALE_S:
+            return None
+        return zeroed_tilt(self._tilt_raw, self.zero_offset_deg)
+
+    # ---- commands (the one path for HMI and MQTT) ----------------------------------------
+    def execute(self, command: cmd.Command, source: str) -> str:
+        match command:
+            case cmd.SetRate(crop=crop, rate_kg_ha=rate):
+                crops = self.settings.control.crops
+                if crop not in crops:
+                    raise CommandError(f"unknown crop {crop!r}; known: {', '.join(sorted(crops))}")
+                m = crops[crop]
+                if not m.rate_min_kg_ha <= rate <= m.rate_max_kg_ha:
+                    raise CommandError(
+                        f"{crop} rate {rate:g} kg/ha outside "
+                        f"{m.rate_min_kg_ha:g}-{m.rate_max_kg_ha:g} kg/ha"
+                    )
+                self.crop, self.rate_kg_ha = crop, rate
+                reply = f"{crop} {rate:g} kg/ha"
+            case cmd.Start():
+                self.mode = Mode.WORKING
+                self._emptying_since = None
+                reply = "work started"
+            case cmd.Stop():
+                self.mode = Mode.STOPPED
+                self._emptying_since = None
+                reply = "stopped"
+            case cmd.EmptySeed():
+                if self._moving.state:
+                    raise CommandError("empty residual seed only while standing")
+                self.mode = Mode.EMPTYING
+                self._emptying_since = None  # stamped at the next tick
+                reply = "emptying residual seed"
+            case cmd.SeedLevelMonitoring(enabled=on):
+                self.seed_level_monitoring = on
+                reply = f"seed-level monitoring {'on' if on else 'off'}"
+            case cmd.CalibrateSpeed(action=action, distance_m=distance):
+                reply = self._calibrate_speed(action, distance)
+            case cmd.ZeroTilt():
+                if self._tilt_raw is None:
+                    raise CommandError("cannot zero: no inclinometer reading")
+                self.zero_offset_deg = self._tilt_raw
+                self._attitude.forget()
+                self._save_zero()
+                reply = f"tilt zeroed at raw {self._tilt_raw:.2f} deg"
+            case _:
+                raise CommandError(f"unsupported command {command!r}")
+        log.info("command from %s: %s", source, reply)
+        self._message = reply
+        return reply
+
+    def _calibrate_speed(self, action: str, distance_m: float | None) -> str:
+        from gateway import calibration as cal
+
+        if action == "start":
+            self._odometer_start = {n: s.raw_distance_m for n, s in self.sources.items()}
+            return "speed calibration started: drive the measured distance, then finish"
+        if action == "cancel":
+            self._odometer_start = None
+            return "speed calibration cancelled"
+        if action != "finish":
+            raise CommandError(f"unknown speed calibration action {action!r}")
+        if self._odometer_start is None:
+            raise CommandError("speed calibration was not started")
+        if distance_m is None:
+            raise CommandError("finish needs the measured distance_m")
+        results = []
+        for name, source in self.sources.items():
+            integrated = source.raw_distance_m - self._odometer_start[name]
+            if integrated <= 0.0:
+                continue  # this source did not report during the run
+            try:
+                res = cal.speed_correction(name, distance_m, integrated)
+            except cal.CalibrationError as exc:
+                raise CommandError(str(exc)) from None
+            results.append(res)
+        if not results:
+            raise CommandError("no speed source reported any distance during the run")
+        if self.state_dir is not None:
+            store = cal.CalibrationStore(self.state_dir)
+            for res in results:
+                store.save(f"speed.{res.source}", cal.to_entry(res, source="live"))
+        for res in results:
+            self.sources[res.source].correction = res.factor
+        self._odometer_start = None
+        return "; ".join(
+            f"{r.source} {r.integrated_m:.1f} m -> x{r.factor:.4f}" for r in results
+        )
+
+    def _save_zero(self) -> None:
+        """Persist as a paper-A level-ground calibration, with undo like any other."""
+        if self.state_dir is None:
+            return
+        from gateway import calibration as cal
+
+        result = cal.tilt_level_zero([self.zero_offset_deg])
+        try:
+            cal.CalibrationStore(self.state_dir).save(
+                "tilt.inclinometer", cal.to_entry(result, source="hmi")
+            )
+        except (cal.CalibrationError, OSError) as exc:
+            raise CommandError(f"zeroed, but could not be saved: {exc}") from exc
+
+    # ---- the control step ----------------------------------------------------------------
+    def _attitude_now(self, now: float) -> tuple[Attitude, float | None]:
+        tilt = self.tilt(now)
+        src = self.settings.isobus.work_state_source
+        hitch_fresh = self._hitch_t is not None and now - self._hitch_t <= TILT_STALE_S
+        if src in ("hitch", "hitch_then_inclinometer") and hitch_fresh:
+            self.alarms.clear("inclinometer.lost")
+            return (Attitude.LOWERED if self._hitch_working else Attitude.RAISED), tilt
+        if tilt is None:
+            self._attitude.forget()
+            self.alarms.raise_(
+                "inclinometer.lost", "inclinometer lost: treated as raised", "critical"
+            )
+            return Attitude.RAISED, None
+        self.alarms.clear("inclinometer.lost")
+        return (Attitude.RAISED if self._attitude.update(tilt) else Attitude.LOWERED), tilt
+
+    def tick(self, now: float) -> ControlOutputs:
+        dt = 0.0 if self._last_tick is None else max(0.0, now - self._last_tick)
+        self._last_tick = now
+        speed, source = self.speed(now)
+        if speed is None:
+            motion = Motion.UNKNOWN
+            self._moving.state = None
+            if self._speed_lost_since is None:
+                self._speed_lost_since = now
+        else:
+            self._speed_lost_since = None
+            motion = Motion.MOVING if self._moving.update(speed) else Motion.STANDING
+        lost_for = 0.0 if self._speed_lost_since is None else now - self._speed_lost_since
+        self.alarms.set(
+            "speed.lost",
+            speed is None and self.mode is Mode.WORKING and lost_for >= 0.0,
+            "no valid ground speed: metering stopped",
+            "critical",
+        )
+        attitude, tilt = self._attitude_now(now)
+
+        if self.mode is Mode.EMPTYING:
+            if self._emptying_since is None:
+                self._emptying_since = now
+            if motion is not Motion.STANDING:
+                self.mode = Mode.STOPPED
+                self._message = "emptying ended: machine moving"
+            elif now - self._emptying_since >= self.settings.control.emptying_timeout_s:
+                self.mode = Mode.STOPPED
+                self._message = "emptying finished (timeout)"
+
+        out = decide(self.mode, motion, attitude)
+        model = self.crop_model
+        motor = 0.0
+        commanded_rate = 0.0
+        too_fast = outside = False
+        if out.motor is Motor.FOLLOW and speed is not None:
+            plan = plan_duty(self.rate_kg_ha, self.settings.machine.working_width_m, speed, model)
+            motor = plan.duty_pct
+            too_fast = isinstance(plan.problem, TooFastError)
+            outside = isinstance(plan.problem, OutsideCalibrationError)
+            if plan.problem is not None:
+                self.alarms.raise_(
+                    "rate.too_fast" if too_fast else "rate.outside_calibration",
+                    str(plan.problem),
+                )
+            self.alarms.set("rate.low_duty", plan.warning is not None, plan.warning or "", "info")
+            q = flow_at(omega_for_duty(motor, model), model) if motor > 0 else 0.0
+            commanded_rate = rate_for_flow(q, self.settings.machine.working_width_m, speed)
+            self.counters.seed_mass_g += max(0.0, q) * dt / 60.0
+            self.counters.area_m2 += self.settings.machine.working_width_m * speed / 3.6 * dt
+        elif out.motor is Motor.EMPTY:
+            motor = self.settings.control.emptying_motor_pct
+        if not too_fast:
+            self.alarms.clear("rate.too_fast")
+        if not outside:
+            self.alarms.clear("rate.outside_calibration")
+        if out.motor is not Motor.FOLLOW:
+            self.alarms.clear("rate.low_duty")
+        if speed is not None:
+            self.counters.distance_m += speed / 3.6 * dt
+        fan = {Fan.OFF: 0.0, Fan.LOW: model.fan_low_pct, Fan.HIGH: model.fan_high_pct}[out.fan]
+        self.last = ControlOutputs(
+            state=out.state,
+            motor_pct=motor,
+            fan_pct=fan,
+            speed_kmh=speed,
+            speed_source=source,
+            tilt_deg=tilt,
+            raised=attitude is Attitude.RAISED,
+            commanded_rate_kg_ha=commanded_rate,
+            message=self._message,
+        )
+        return self.last
+
+    def take_message(self) -> str | None:
+        msg, self._message = self._message, None
+        return msg

@@ -1,0 +1,269 @@
+"""The daemon: one TaskGroup, one named task per driver, the controller in the middle.
+
+The RS485 task is also the control loop: it polls the radar and the inclinometer, ticks the
+controller and writes the PWM module, one request at a time on the one bus, because that is
+the order a half-duplex RS485 bus imposes anyway and it keeps the reply→write latency to the
+few microseconds of arithmetic between them. Everything else (HMI, GNSS, seed sensors, the
+record store, MQTT, CAN) runs beside it and talks to the controller only through callbacks
+that never block, so a broker outage or a dead screen cannot delay a duty write.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import time
+from collections import deque
+from collections.abc import Callable, Coroutine
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from drivers.errors import DriverError
+from drivers.modbus_bus import ModbusBus
+from drivers.rs485_devices import Channel, Inclinometer, PwmModule, Radar
+from gateway import commands as cmd
+from gateway.alarms import AlarmBoard
+from gateway.calibration_apply import apply_calibrations
+from gateway.config import Settings
+from gateway.controller import Controller, ControlOutputs
+from gateway.errors import CommandError
+from gateway.hmi_view import HmiAdapter
+from gateway.records import AlarmEvent
+
+log = logging.getLogger(__name__)
+
+LATENCY_SAMPLES = 4096  # reply→write latencies kept for the benchmark and the status view
+SAFE_OFF_TIMEOUT_S = 1.0
+DUTY_EPSILON_PCT = 0.05  # below this a change is not worth a bus write
+DEVICE_LOST_AFTER_S = 2.0
+
+
+class _Shutdown(Exception):
+    """Raised inside the TaskGroup to stop every task when a stop is requested."""
+
+
+class Daemon:
+    def __init__(
+        self,
+        settings: Settings,
+        state_dir: Path,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.settings = settings
+        self.state_dir = state_dir
+        state_dir.mkdir(parents=True, exist_ok=True)
+        self.clock = clock
+        self.alarms = AlarmBoard(settings.machine.id)
+        self.calibrations = apply_calibrations(settings, state_dir)
+        self.alarm_log: deque[AlarmEvent] = deque(maxlen=64)
+        self.alarms.subscribe(self.alarm_log.append)
+        self.controller = Controller(settings, self.alarms, state_dir=state_dir)
+        self.bus = ModbusBus.from_config(settings.rs485)
+        self.radar = Radar(self.bus, settings.radar)
+        self.inclinometer = Inclinometer(self.bus, settings.inclinometer)
+        self.pwm = PwmModule(self.bus, settings.actuators)
+        self.latencies_s: deque[float] = deque(maxlen=LATENCY_SAMPLES)
+        self.outputs: ControlOutputs | None = None
+        self._written: dict[str, float] = {}
+        self._written_at: float = -1e18
+        self._stop = asyncio.Event()
+        self._extra: list[tuple[str, Callable[[], Coroutine[Any, Any, None]]]] = []
+        self.hmi: HmiAdapter | None = None
+        if settings.hmi.enabled:
+            self.hmi = HmiAdapter(settings.hmi, self)
+        self.components: dict[str, Any] = {}
+        self.tick_hooks: list[Callable[[ControlOutputs], None]] = []
+        self.closers: list[Callable[[], None]] = []
+        self.epoch_listeners: list[Callable[[Any], None]] = []
+        self._build_optional()
+
+    # ---- optional subsystems --------------------------------------------------------------
+    def _build_optional(self) -> None:
+        """Seed recording, MQTT and CAN metering, each only when its table enables it."""
+        from gateway import optional_parts
+
+        optional_parts.attach(self)
+
+    def add_task(self, name: str, factory: Callable[[], Coroutine[Any, Any, None]]) -> None:
+        self._extra.append((name, factory))
+
+    # ---- command path -----------------------------------------------------------------------
+    def execute(self, command: cmd.Command, source: str) -> str:
+        """The one command path for HMI and MQTT (see gateway.commands)."""
+        return self.controller.execute(command, source)
+
+    def try_execute(self, command: cmd.Command, source: str) -> tuple[bool, str]:
+        try:
+            return True, self.execute(command, source)
+        except CommandError as exc:
+            return False, str(exc)
+
+    # ---- lifecycle ---------------------------------------------------------------------------
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        installed: list[signal.Signals] = []
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.add_signal_handler(sig, self.request_stop)
+                installed.append(sig)
+        await self.bus.start()
+        try:
+            # both outputs are 0 before anything else happens
+            await self._write_outputs(0.0, 0.0, force=True)
+            try:
+                async with asyncio.TaskGroup() as tg:
+                    tg.create_task(self._control_loop(), name="rs485")
+                    if self.hmi is not None:
+                        tg.create_task(self.hmi.link.run(), name="hmi")
+                        tg.create_task(self.hmi.refresh_loop(), name="hmi-view")
+                    for name, factory in self._extra:
+                        tg.create_task(factory(), name=name)
+                    tg.create_task(self._wait_stop(), name="stop")
+            except* _Shutdown:
+                pass
+        finally:
+            await self._safe_off()
+            await self.bus.close()
+            for close in reversed(self.closers):
+                try:
+                    close()
+                except Exception:
+                    log.exception("error while closing %r", close)
+            for sig in installed:
+                loop.remove_signal_handler(sig)
+
+    async def _wait_stop(self) -> None:
+        await self._stop.wait()
+        raise _Shutdown
+
+    async def _safe_off(self) -> None:
+        """Motor and fan to 0 before exit, whatever else has gone wrong."""
+        try:
+            async with asyncio.timeout(SAFE_OFF_TIMEOUT_S):
+                await self._write_outputs(0.0, 0.0, force=True)
+        except (TimeoutError, DriverError) as exc:
+            log.error("could not set motor and fan to 0 on exit: %s", exc)
+
+    # ---- the control loop --------------------------------------------------------------------
+    async def _control_loop(self) -> None:
+        period = 1.0 / self.settings.rs485.poll_hz
+        next_at = self.clock()
+        while True:
+            reply_t = None
+            try:
+                kmh = await self.radar.read()
+                reply_t = self.clock()
+                self.controller.on_speed("radar", kmh, reply_t)
+            except DriverError:
+                pass
+            try:
+                tilt = await self.inclinometer.read()
+                reply_t = self.clock()
+                self.controller.on_tilt(tilt, reply_t)
+            except DriverError:
+                pass
+            out = self.controller.tick(self.clock())
+            self.outputs = out
+            await self._write_outputs(out.motor_pct, out.fan_pct, reply_t=reply_t)
+            self._update_device_alarms()
+            self.on_tick(out)
+            next_at += period
+            delay = next_at - self.clock()
+            if delay < -period:  # fell behind (e.g. timeouts): don't burst to catch up
+                next_at = self.clock()
+                delay = 0.0
+            await asyncio.sleep(max(0.0, delay))
+
+    def on_tick(self, out: ControlOutputs) -> None:
+        """Hook for per-tick observers (watchdog kick, telemetry); set by optional parts."""
+        for hook in self.tick_hooks:
+            hook(out)
+
+    async def _write_outputs(
+        self, motor: float, fan: float, *, force: bool = False, reply_t: float | None = None
+    ) -> None:
+        now = self.clock()
+        refresh = now - self._written_at >= self.settings.actuators.refresh_s
+        wanted: dict[Channel, float] = {"motor": round(motor, 1), "fan": round(fan, 1)}
+        for channel, pct in wanted.items():
+            prev = self._written.get(channel)
+            if not (force or refresh or prev is None or abs(prev - pct) >= DUTY_EPSILON_PCT):
+                continue
+            if reply_t is not None:
+                self.latencies_s.append(self.clock() - reply_t)
+                reply_t = None  # latency is to the first write after the reply
+            try:
+                await self.pwm.write_duty(channel, pct)
+            except DriverError:
+                self._written.pop(channel, None)  # unknown: rewrite as soon as it answers
+                continue
+            self._written[channel] = pct
+        if refresh or force:
+            self._written_at = now
+
+    def _update_device_alarms(self) -> None:
+        for name, label in (
+            ("radar", "radar"),
+            ("inclinometer", "inclinometer"),
+            ("pwm", "PWM module"),
+        ):
+            st = self.bus.stats.get(name)
+            lost = st is not None and not st.available
+            self.alarms.set(
+                f"{name}.unavailable",
+                lost,
+                f"{label} not answering on RS485: {st.last_error if st else ''}",
+                "critical" if name == "pwm" else "warning",
+            )
+
+    # ---- telemetry ----------------------------------------------------------------------------
+    def snapshot(self) -> dict[str, Any]:
+        out = self.outputs
+        c = self.controller
+        data: dict[str, Any] = {
+            "machine_id": self.settings.machine.id,
+            "utc": datetime.now(UTC).isoformat(),
+            "work_state": out.state.value if out else "stopped",
+            "mode": c.mode.value,
+            "speed_kmh": out.speed_kmh if out else None,
+            "speed_source": out.speed_source if out else None,
+            "tilt_deg": out.tilt_deg if out else None,
+            "raised": out.raised if out else True,
+            "crop": c.crop,
+            "target_rate_kg_ha": c.rate_kg_ha,
+            "commanded_rate_kg_ha": out.commanded_rate_kg_ha if out else 0.0,
+            "motor_duty_pct": out.motor_pct if out else 0.0,
+            "fan_duty_pct": out.fan_pct if out else 0.0,
+            "devices": {name: st.available for name, st in self.bus.stats.items()},
+            "alarms": [
+                {
+                    "code": a.code,
+                    "severity": a.severity,
+                    "message": a.message,
+                    "since": a.since.isoformat(),
+                }
+                for a in self.alarms.active
+            ],
+            "area_ha": c.counters.area_m2 / 10_000.0,
+            "seed_mass_kg": c.counters.seed_mass_g / 1000.0,
+        }
+        gnss = self.components.get("gnss")
+        fix = "none"
+        if gnss is not None and gnss.available and gnss.latest is not None:
+            fix = gnss.latest.fix
+            data["devices"]["gnss"] = True
+        elif gnss is not None:
+            data["devices"]["gnss"] = False
+        data["gnss_fix"] = fix
+        for name, part in self.components.items():
+            snap = getattr(part, "snapshot", None)
+            if callable(snap):
+                data[name] = snap()
+        return data

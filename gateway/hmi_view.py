@@ -1,0 +1,109 @@
+"""The touchscreen as the operator sees it: HMI frames become commands, state becomes text.
+
+Translation lives here, not in the driver: the driver knows frames and instructions, this
+module knows that crop code 2 is wheat in this machine's config and that a refused rate must
+be explained on the screen in words the operator can act on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import TYPE_CHECKING
+
+from drivers.hmi_link import HmiLink
+from gateway import commands as cmd
+from gateway.config import HmiSection
+from protocol import hmi
+
+if TYPE_CHECKING:
+    from gateway.daemon import Daemon
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STATE_LABELS = {
+    "stopped": "STOPPED",
+    "pre_seed": "PRE-SEED",
+    "seeding": "SEEDING",
+    "turning": "TURNING",
+    "paused": "PAUSED",
+    "emptying": "EMPTYING",
+}
+
+
+class HmiAdapter:
+    def __init__(self, section: HmiSection, daemon: Daemon) -> None:
+        self.section = section
+        self.daemon = daemon
+        self.link = HmiLink(
+            section.port, section.baudrate, section.encoding, on_event=self.on_event
+        )
+        self.last_message: str = ""
+        self._dirty = asyncio.Event()
+
+    def crop_for_code(self, code: int) -> str | None:
+        for name, model in self.daemon.settings.control.crops.items():
+            if model.code == code:
+                return name
+        return None
+
+    def to_command(self, event: hmi.HmiEvent) -> cmd.Command | str:
+        """The command for an HMI event, or the reason it is refused."""
+        match event:
+            case hmi.StartWork():
+                return cmd.Start()
+            case hmi.StopWork():
+                return cmd.Stop()
+            case hmi.SelectCrop(crop_code=code, rate_kg_ha=rate):
+                crop = self.crop_for_code(code)
+                if crop is None:
+                    return f"unknown crop code {code}"
+                return cmd.SetRate(crop, rate)
+            case hmi.EmptySeed():
+                return cmd.EmptySeed()
+            case hmi.SeedLevelMonitoring(enabled=on):
+                return cmd.SeedLevelMonitoring(on)
+            case hmi.ZeroTilt():
+                return cmd.ZeroTilt()
+            case hmi.Rejected(reason=reason):
+                return f"bad frame: {reason}"
+        return f"unsupported input {event!r}"
+
+    def on_event(self, event: hmi.HmiEvent) -> None:
+        command = self.to_command(event)
+        if isinstance(command, str):
+            log.warning("HMI input refused: %s", command)
+            self.last_message = command
+        else:
+            ok, text = self.daemon.try_execute(command, "hmi")
+            self.last_message = text if ok else f"refused: {text}"
+        self._dirty.set()
+
+    def screen_texts(self) -> dict[str, str]:
+        o = self.section.objects
+        snap = self.daemon.snapshot()
+        labels = {**DEFAULT_STATE_LABELS, **self.section.state_labels}
+        crop = snap["crop"]
+        speed = snap["speed_kmh"]
+        tilt = snap["tilt_deg"]
+        alarms = snap["alarms"]
+        return {
+            o.speed: "--" if speed is None else f"{speed:.1f} km/h",
+            o.tilt: "--" if tilt is None else f"{tilt:+.1f} deg",
+            o.state: labels.get(snap["work_state"], snap["work_state"]),
+            o.crop: self.section.crop_labels.get(crop, crop),
+            o.rate: f"{snap['target_rate_kg_ha']:g} kg/ha",
+            o.alarm: alarms[0]["message"] if alarms else "",
+            o.message: self.last_message,
+        }
+
+    async def refresh_loop(self) -> None:
+        period = 1.0 / self.section.update_hz
+        while True:
+            await self.link.show_many(self.screen_texts())
+            self._dirty.clear()
+            try:
+                async with asyncio.timeout(period):
+                    await self._dirty.wait()
+            except TimeoutError:
+                pass

@@ -1,0 +1,475 @@
+"""The MQTT link to the farm: durable outbox publishing, retained state, remote commands.
+
+Design rules, in order of importance:
+
+* Nothing is lost. Seed records and alarms are published from the record store's outbox and
+  marked delivered only when the broker's PUBACK arrives; after a reconnect or a restart the
+  outbox is read again from the oldest undelivered record (at-least-once; consumers dedupe by
+  ``id``). Several seed batches are in flight at once, so a 4G round trip does not cap the rate.
+* The control loop never waits on MQTT. The only entry points the daemon's control loop
+  touches are synchronous callbacks that enqueue (alarm listener, ``notify_state_changed``);
+  everything that can block on the network runs in this module's own tasks.
+* Remote commands go through the same ``CommandSink`` as the HMI. Each gets an ack; a refused
+  command changes nothing. Commands are off unless listed in ``[commands] enabled``.
+* ``run()`` reconnects forever with capped, jittered backoff and never raises (except
+  ``CancelledError``): a broker outage is a normal day on a tractor.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import ssl
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import aiomqtt
+from pydantic import BaseModel, ValidationError
+
+from drivers.backoff import Backoff
+from gateway.alarms import AlarmBoard
+from gateway.commands import CalibrateSpeed, Command, CommandSink, SetRate, Start, Stop, ZeroTilt
+from gateway.config import Settings
+from gateway.errors import CommandError
+from gateway.payloads import (
+    CommandAck,
+    EmptyCommand,
+    RateCommand,
+    SpeedCalCommand,
+    StatePayload,
+)
+from gateway.records import AlarmEvent
+from gateway.store import OutboxBatch, RecordStore, StoreError
+
+log = logging.getLogger(__name__)
+
+KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
+    "rate": RateCommand,
+    "start": EmptyCommand,
+    "stop": EmptyCommand,
+    "zero_tilt": EmptyCommand,
+    "speed_cal": SpeedCalCommand,
+}
+DISCONNECT_TIMEOUT_S = 3.0
+STATE_POLL_S = 0.1  # how often the state snapshot is compared for changes (max 10 msg/s)
+ALARMS_PER_READ = 100
+OFFLINE_PUBLISH_TIMEOUT_S = 2.0  # clean shutdown must not hang on a dead link
+ERROR_TEXT_MAX_CHARS = 500
+BACKLOG_ALARM = "mqtt.backlog"
+
+
+@dataclass
+class LinkStats:
+    connects: int = 0
+    disconnects: int = 0
+    batches_published: int = 0
+    seeds_published: int = 0
+    alarms_published: int = 0
+    states_published: int = 0
+    commands_ok: int = 0
+    commands_rejected: int = 0
+    last_error: str = ""
+
+
+@dataclass(frozen=True)
+class Topics:
+    base: str
+
+    @property
+    def status(self) -> str:
+        return f"{self.base}/status"
+
+    @property
+    def state(self) -> str:
+        return f"{self.base}/state"
+
+    @property
+    def seeds(self) -> str:
+        return f"{self.base}/seeds"
+
+    @property
+    def alarms(self) -> str:
+        return f"{self.base}/alarms"
+
+    @property
+    def commands(self) -> str:
+        return f"{self.base}/cmd/+"
+
+    def ack(self, name: str) -> str:
+        return f"{self.base}/cmd/{name}/ack"
+
+
+def _describe_validation(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors(include_url=False):
+        loc = ".".join(str(p) for p in err["loc"]) or "payload"
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] in {"missing", "extra_forbidden"}:
+            parts.append(f"{loc}: {msg}")
+        else:
+            parts.append(f"{loc}: {msg} (got {err.get('input')!r})")
+    return "; ".join(parts)
+
+
+def _to_command(name: str, payload: BaseModel) -> Command:
+    if isinstance(payload, RateCommand):
+        return SetRate(crop=payload.crop, rate_kg_ha=payload.rate_kg_ha)
+    if isinstance(payload, SpeedCalCommand):
+        return CalibrateSpeed(action=payload.action, distance_m=payload.distance_m)
+    simple: dict[str, Command] = {"start": Start(), "stop": Stop(), "zero_tilt": ZeroTilt()}
+    return simple[name]
+
+
+class MqttLink:
+    def __init__(
+        self,
+        settings: Settings,
+        store: RecordStore,
+        commands: CommandSink,
+        state: Callable[[], StatePayload | Mapping[str, Any]],
+        alarms: AlarmBoard,
+        *,
+        backoff: Backoff | None = None,
+    ) -> None:
+        self.cfg = settings.mqtt
+        self.enabled_commands = frozenset(settings.commands.enabled)
+        self.max_payload_bytes = settings.commands.max_payload_bytes
+        self.machine_id = settings.machine.id
+        self.client_id = self.cfg.client_id or f"sowgate-{self.machine_id}"
+        self.topics = Topics(f"{self.cfg.topic_prefix.rstrip('/')}/{self.machine_id}")
+        self.store = store
+        self.commands = commands
+        self.state = state
+        self.alarms = alarms
+        self.backoff = backoff or Backoff(initial_s=0.5, cap_s=self.cfg.reconnect_max_s)
+        self.connected = False
+        self.stats = LinkStats()
+        self.publish_timeout_s = 2.0 * self.cfg.keepalive + 30.0
+        self._seeds_wake = asyncio.Event()
+        self._alarms_wake = asyncio.Event()
+        self._state_wake = asyncio.Event()
+        alarms.subscribe(self._on_alarm)
+        store.add_commit_listener(self._on_commit)
+        if store.on_backlog is None:
+            store.on_backlog = self._on_backlog
+
+    # -- callbacks: called from the control loop, so they only enqueue ---------------------
+
+    def _on_alarm(self, event: AlarmEvent) -> None:
+        try:
+            self.store.add_alarm(event)
+        except StoreError:
+            log.exception("cannot store alarm %s", event.code)
+        self._alarms_wake.set()
+
+    def _on_commit(self) -> None:
+        self._seeds_wake.set()
+        self._alarms_wake.set()
+
+    def _on_backlog(self, count: int, over: bool) -> None:
+        self.alarms.set(
+            BACKLOG_ALARM,
+            over,
+            f"{count} records waiting for the MQTT broker (alarm above "
+            f"{self.store.backlog_alarm_records}); they are kept, nothing is dropped",
+        )
+
+    def notify_state_changed(self) -> None:
+        """Publish the state soon (within ``STATE_POLL_S``) instead of at the next period."""
+        self._state_wake.set()
+
+    # -- connection loop -------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Connect, publish, reconnect; forever. Only ``CancelledError`` escapes."""
+        if not self.cfg.enabled:
+            log.info("mqtt disabled in config")
+            return
+        while True:
+            try:
+                await self._session()
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # every failure means: reconnect later
+                self.stats.last_error = _flatten(exc)[:ERROR_TEXT_MAX_CHARS]
+                log.warning("mqtt %s:%s: %s", self.cfg.host, self.cfg.port, self.stats.last_error)
+            if self.connected:
+                self.stats.disconnects += 1
+            self.connected = False
+            await asyncio.sleep(self.backoff.next_delay())
+
+    def _client(self) -> aiomqtt.Client:
+        password = self.cfg.password
+        if self.cfg.password_file:
+            try:
+                password = Path(self.cfg.password_file).read_text(encoding="utf-8").strip()
+            except OSError as exc:
+                raise OSError(f"mqtt.password_file {self.cfg.password_file}: {exc}") from exc
+        tls_params = None
+        tls_insecure = None
+        if self.cfg.tls is not None:
+            tls_params = aiomqtt.TLSParameters(
+                ca_certs=self.cfg.tls.ca_file,
+                certfile=self.cfg.tls.cert_file,
+                keyfile=self.cfg.tls.key_file,
+                cert_reqs=ssl.CERT_REQUIRED,
+            )
+            tls_insecure = self.cfg.tls.insecure
+        return aiomqtt.Client(
+            self.cfg.host,
+            self.cfg.port,
+            identifier=self.client_id,
+            username=self.cfg.username,
+            password=password if self.cfg.username else None,
+            will=aiomqtt.Will(self.topics.status, b"offline", qos=1, retain=True),
+            keepalive=self.cfg.keepalive,
+            timeout=max(10.0, float(self.cfg.keepalive)),
+            max_inflight_messages=self.cfg.max_inflight_batches + 8,
+            tls_params=tls_params,
+            tls_insecure=tls_insecure,
+        )
+
+    async def _connect(self, client: aiomqtt.Client) -> None:
+        """Enter the client; on cancel or failure make sure no half-open socket survives."""
+        enter = asyncio.create_task(client.__aenter__(), name="mqtt-connect")
+        try:
+            await asyncio.shield(enter)
+        except asyncio.CancelledError:
+            # The connect runs in an executor thread that cannot be interrupted: let it finish,
+            # then close what it opened, then honour the cancel.
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(enter, timeout=client.timeout + 1.0)
+                await client.__aexit__(None, None, None)
+            _force_close(client)
+            raise
+        except Exception:
+            _force_close(client)
+            raise
+
+    async def _session(self) -> None:
+        client = self._client()
+        await self._connect(client)
+        try:
+            self.connected = True
+            self.stats.connects += 1
+            self.backoff.reset()
+            log.info("mqtt connected to %s:%s as %s", self.cfg.host, self.cfg.port, self.client_id)
+            await client.subscribe(self.topics.commands, qos=1)
+            await client.publish(self.topics.status, b"online", qos=1, retain=True)
+            try:
+                async with asyncio.TaskGroup() as tg:
+                    tg.create_task(self._commands_loop(client), name="mqtt-commands")
+                    tg.create_task(self._seeds_loop(client), name="mqtt-seeds")
+                    tg.create_task(self._alarms_loop(client), name="mqtt-alarms")
+                    tg.create_task(self._state_loop(client), name="mqtt-state")
+            except asyncio.CancelledError:
+                with contextlib.suppress(Exception):
+                    await asyncio.wait_for(
+                        client.publish(self.topics.status, b"offline", qos=1, retain=True),
+                        OFFLINE_PUBLISH_TIMEOUT_S,
+                    )
+                raise
+        finally:
+            self.connected = False
+            try:
+                # bounded: a disconnect that never completes must not hold up shutdown
+                async with asyncio.timeout(DISCONNECT_TIMEOUT_S):
+                    await client.__aexit__(None, None, None)
+            except Exception:  # the connection is gone either way (TimeoutError included)
+                _force_close(client)
+
+    # -- publishers ----------------------------------------------------------------------------
+
+    async def _seeds_loop(self, client: aiomqtt.Client) -> None:
+        slots = asyncio.Semaphore(self.cfg.max_inflight_batches)
+        cursor = 0  # highest id handed to a publisher in this session
+        async with asyncio.TaskGroup() as tg:
+            while True:
+                await slots.acquire()
+                batch = await self._next_seed_batch(cursor)
+                cursor = batch.ids[-1]
+                tg.create_task(
+                    self._publish_batch(client, batch, slots),
+                    name=f"mqtt-seed-batch-{batch.ids[0]}",
+                )
+
+    async def _next_seed_batch(self, cursor: int) -> OutboxBatch:
+        """A full batch at once, or a partial one once its first record waited batch_max_ms."""
+        limit = self.cfg.batch_max_records
+        deadline: float | None = None
+        while True:
+            self._seeds_wake.clear()
+            waiting = self.store.count_pending_seeds(after_id=cursor, cap=limit)
+            now = time.monotonic()
+            if waiting:
+                if deadline is None:
+                    deadline = now + self.cfg.batch_max_ms / 1000.0
+                if waiting >= limit or now >= deadline:
+                    batch = self.store.pending_seed_batch(limit, after_id=cursor)
+                    if batch is not None:
+                        return batch
+            timeout = None if deadline is None else max(0.0, deadline - now)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._seeds_wake.wait(), timeout)
+
+    async def _publish_batch(
+        self, client: aiomqtt.Client, batch: OutboxBatch, slots: asyncio.Semaphore
+    ) -> None:
+        try:
+            await client.publish(
+                self.topics.seeds, batch.payload, qos=1, timeout=self.publish_timeout_s
+            )
+            # PUBACK received: only now is the batch delivered.
+            self.store.mark_seeds_delivered(batch.ids)
+            self.stats.batches_published += 1
+            self.stats.seeds_published += len(batch.ids)
+        finally:
+            slots.release()
+
+    async def _alarms_loop(self, client: aiomqtt.Client) -> None:
+        cursor = 0
+        while True:
+            self._alarms_wake.clear()
+            events = self.store.pending_alarms(ALARMS_PER_READ, after_id=cursor)
+            for event in events:  # one at a time: alarms are rare and order matters to readers
+                await client.publish(
+                    self.topics.alarms,
+                    event.model_dump_json().encode(),
+                    qos=1,
+                    timeout=self.publish_timeout_s,
+                )
+                self.store.mark_alarms_delivered([event.id])
+                self.stats.alarms_published += 1
+                cursor = event.id
+            if not events:
+                await self._alarms_wake.wait()
+
+    def _snapshot(self) -> StatePayload | None:
+        try:
+            value = self.state()
+            if isinstance(value, StatePayload):
+                return value
+            return StatePayload.model_validate(value)
+        except Exception:  # a bad snapshot must not take the link down
+            log.exception("state snapshot failed")
+            return None
+
+    async def _state_loop(self, client: aiomqtt.Client) -> None:
+        period = 1.0 / self.cfg.state_hz
+        last: StatePayload | None = None
+        last_at = -float("inf")
+        while True:
+            self._state_wake.clear()
+            snap = self._snapshot()
+            now = time.monotonic()
+            if snap is not None and (not snap.same_as(last) or now - last_at >= period):
+                await client.publish(
+                    self.topics.state,
+                    snap.model_dump_json().encode(),
+                    qos=1,
+                    retain=True,
+                    timeout=self.publish_timeout_s,
+                )
+                self.stats.states_published += 1
+                last, last_at = snap, now
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._state_wake.wait(), STATE_POLL_S)
+
+    # -- commands ------------------------------------------------------------------------------
+
+    async def _commands_loop(self, client: aiomqtt.Client) -> None:
+        prefix = self.topics.base + "/cmd/"
+        async for message in client.messages:
+            topic = message.topic.value
+            if not topic.startswith(prefix):
+                continue
+            name = topic[len(prefix) :]
+            raw = message.payload
+            payload = raw if isinstance(raw, bytes) else str(raw or "").encode()
+            ack = self.handle_command(name, payload, retained=message.retain)
+            await client.publish(
+                self.topics.ack(name), ack.to_json(), qos=1, timeout=self.publish_timeout_s
+            )
+
+    def handle_command(self, name: str, payload: bytes, *, retained: bool = False) -> CommandAck:
+        """Validate and execute one command; every outcome is an ack, nothing raises."""
+        ack = self._evaluate(name, payload, retained)
+        if ack.ok:
+            self.stats.commands_ok += 1
+        else:
+            self.stats.commands_rejected += 1
+            log.warning("mqtt command %r refused: %s", name, ack.error)
+        return ack
+
+    def _evaluate(self, name: str, payload: bytes, retained: bool) -> CommandAck:
+        model = KNOWN_COMMANDS.get(name)
+        if model is None:
+            known = ", ".join(KNOWN_COMMANDS)
+            return CommandAck(ok=False, error=f"unknown command {name!r} (known: {known})")
+        if name not in self.enabled_commands:
+            return CommandAck(
+                ok=False,
+                error=f"command {name!r} is disabled; enable it in [commands] enabled",
+            )
+        if retained:
+            return CommandAck(
+                ok=False,
+                error="retained command ignored: a retained command would replay "
+                "on every reconnect; publish commands with retain=false",
+            )
+        if len(payload) > self.max_payload_bytes:
+            return CommandAck(
+                ok=False,
+                error=f"payload too large: {len(payload)} bytes (max {self.max_payload_bytes})",
+            )
+        if payload.strip() == b"" and model is EmptyCommand:
+            data: Any = {}
+        else:
+            try:
+                data = json.loads(payload.decode("utf-8"))
+            except UnicodeDecodeError:
+                return CommandAck(ok=False, error="payload is not UTF-8 text")
+            except json.JSONDecodeError as exc:
+                return CommandAck(ok=False, error=f"payload is not valid JSON: {exc}")
+        if not isinstance(data, dict):
+            return CommandAck(
+                ok=False, error=f"payload must be a JSON object, got {type(data).__name__}"
+            )
+        rid = data.get("request_id")
+        request_id = rid if isinstance(rid, str) and len(rid) <= 128 else None
+        try:
+            parsed = model.model_validate(data)
+        except ValidationError as exc:
+            return CommandAck(ok=False, error=_describe_validation(exc), request_id=request_id)
+        try:
+            self.commands.execute(_to_command(name, parsed), "mqtt")
+        except CommandError as exc:
+            return CommandAck(ok=False, error=str(exc), request_id=request_id)
+        except Exception as exc:  # report, keep the link alive
+            log.exception("command %r failed", name)
+            return CommandAck(
+                ok=False,
+                error=f"internal error: {exc}"[:ERROR_TEXT_MAX_CHARS],
+                request_id=request_id,
+            )
+        return CommandAck(ok=True, request_id=request_id)
+
+
+def _flatten(exc: BaseException) -> str:
+    if isinstance(exc, BaseExceptionGroup):
+        return "; ".join(_flatten(e) for e in exc.exceptions)
+    return f"{type(exc).__name__}: {exc}"
+
+
+def _force_close(client: aiomqtt.Client) -> None:
+    """Close paho's socket if aiomqtt left it open (connect timed out, cancelled mid-connect)."""
+    paho = getattr(client, "_client", None)
+    reset = getattr(paho, "_reset_sockets", None)
+    if callable(reset):
+        with contextlib.suppress(Exception):
+            reset()

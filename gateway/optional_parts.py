@@ -1,0 +1,285 @@
+"""Wiring of the subsystems a machine may or may not have: systemd notification, the GNSS
+receiver and seed recording, the record store and MQTT, CAN metering channels. Each is attached
+only when its table enables it, so a paper-A-only drill runs with the RS485 bus and the screen.
+
+Every part talks to the control loop through callbacks that only store a value or enqueue
+work; none of them is awaited by the control loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from gateway.controller import ControlOutputs
+from gateway.records import AlarmSeverity
+
+if TYPE_CHECKING:
+    from drivers.gnss_reader import GnssEpoch
+    from gateway.daemon import Daemon
+    from gateway.payloads import StatePayload
+
+log = logging.getLogger(__name__)
+
+STORE_FILE = "records.sqlite3"
+
+
+async def _forever() -> None:
+    await asyncio.Event().wait()
+
+
+def store_path(daemon: Daemon) -> Path:
+    configured = daemon.settings.store.path
+    return Path(configured) if configured else daemon.state_dir / STORE_FILE
+
+
+def state_payload(daemon: Daemon) -> StatePayload:
+    from gateway.payloads import ActiveAlarmInfo, StatePayload
+
+    snap = daemon.snapshot()
+    return StatePayload(
+        machine_id=snap["machine_id"],
+        utc=snap["utc"],
+        work_state=snap["work_state"],
+        speed_kmh=snap["speed_kmh"],
+        speed_source=snap["speed_source"] or "none",
+        tilt_deg=snap["tilt_deg"],
+        raised=snap["raised"],
+        crop=snap["crop"],
+        target_rate_kg_ha=snap["target_rate_kg_ha"],
+        commanded_rate_kg_ha=snap["commanded_rate_kg_ha"],
+        motor_duty_pct=snap["motor_duty_pct"],
+        fan_duty_pct=snap["fan_duty_pct"],
+        devices=snap["devices"],
+        gnss_fix=snap["gnss_fix"],
+        alarms=[ActiveAlarmInfo(**a) for a in snap["alarms"]],
+        area_ha=snap["area_ha"],
+        seed_mass_kg=snap["seed_mass_kg"],
+    )
+
+
+def attach(daemon: Daemon) -> None:
+    """Create the enabled optional components and register their tasks on ``daemon``."""
+    s = daemon.settings
+    _attach_systemd(daemon)
+    store = None
+    recording = s.gnss.enabled and s.seed_sensors.enabled
+    if recording or s.mqtt.enabled:
+        from gateway.store import RecordStore
+
+        store = RecordStore(
+            store_path(daemon),
+            s.machine.id,
+            commit_interval_s=s.store.commit_interval_s,
+            retention_days=s.store.retention_days,
+            backlog_alarm_records=s.store.backlog_alarm_records,
+        )
+        daemon.components["store"] = store
+        daemon.add_task("store", store.run)
+        daemon.closers.append(store.close)
+    if s.gnss.enabled:
+        _attach_gnss(daemon)
+    if recording and store is not None:
+        _attach_seed_recording(daemon, store)
+    if s.mqtt.enabled and store is not None:
+        _attach_mqtt(daemon, store)
+    if s.can.enabled and any(c.drive == "can_pid" for c in s.channel):
+        _attach_metering(daemon)
+    if s.isobus.enabled:
+        _attach_isobus(daemon)
+
+
+def _attach_systemd(daemon: Daemon) -> None:
+    from gateway.sdnotify import Notifier, Watchdog
+
+    notifier = Notifier()
+    if not notifier.enabled:
+        return
+    watchdog = Watchdog.from_environment(notifier)
+    ready = False
+
+    def on_tick(_: ControlOutputs) -> None:
+        nonlocal ready
+        watchdog.kick()
+        if not ready:
+            ready = notifier.ready("control loop running")
+
+    daemon.tick_hooks.append(on_tick)
+    daemon.add_task("watchdog", watchdog.run)
+
+    def stopping() -> None:
+        notifier.stopping()
+        notifier.close()
+
+    daemon.closers.append(stopping)
+
+
+def _attach_gnss(daemon: Daemon) -> None:
+    from drivers.gnss_reader import GnssReader
+
+    g = daemon.settings.gnss
+    epoch_listeners = daemon.epoch_listeners
+
+    def on_epoch(epoch: GnssEpoch) -> None:
+        if epoch.fix != "none" and epoch.speed_kmh is not None:
+            daemon.controller.on_speed("gnss", epoch.speed_kmh, epoch.t_mono)
+        for listener in epoch_listeners:
+            listener(epoch)
+
+    reader = GnssReader(
+        g.port,
+        g.baudrate,
+        on_epoch=on_epoch,
+        stale_after_s=g.stale_after_s,
+        required=g.epoch_sentences,
+        silence_reconnect_s=g.silence_reconnect_s,
+    )
+    daemon.components["gnss"] = reader
+
+    async def run() -> None:
+        async with reader:
+            await _forever()
+
+    daemon.add_task("gnss", run)
+
+
+def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
+    from gateway.seed_recorder import SeedRecorder
+
+    recorder = SeedRecorder(daemon.settings, store)
+    daemon.components["seeds"] = recorder
+    daemon.epoch_listeners.append(recorder.on_epoch)
+    sensors = _seed_sensor_source(daemon, recorder.on_edge)
+    daemon.components["seed_sensors"] = sensors
+    daemon.add_task("seed-sensors", sensors.run)
+    daemon.add_task("seed-recorder", recorder.run)
+
+
+def _seed_sensor_source(daemon: Daemon, on_edge: Any) -> Any:
+    ss = daemon.settings.seed_sensors
+    if ss.source == "gpio":
+        from drivers.seed_sensors import GpioSeedSensors
+
+        return GpioSeedSensors(
+            ss.gpio_chip, ss.gpio_lines, ss.debounce_ms, on_edge, bias=ss.gpio_bias
+        )
+    from drivers.seed_sensors import SerialSeedSensors
+
+    return SerialSeedSensors(ss.port, ss.baudrate, daemon.settings.machine.rows, on_edge)
+
+
+def _attach_mqtt(daemon: Daemon, store: Any) -> None:
+    from gateway.mqtt_link import MqttLink
+
+    link = MqttLink(daemon.settings, store, daemon, lambda: state_payload(daemon), daemon.alarms)
+    daemon.components["mqtt"] = link
+    last_state: list[str] = [""]
+
+    def on_tick(out: ControlOutputs) -> None:
+        if out.state.value != last_state[0]:
+            last_state[0] = out.state.value
+            link.notify_state_changed()
+
+    daemon.tick_hooks.append(on_tick)
+    daemon.add_task("mqtt", link.run)
+
+
+def _gnss_pose(daemon: Daemon) -> Any:
+    """Position for prescription look-ups: the latest fresh GNSS epoch, else None."""
+    from gateway.prescription import Pose
+
+    reader = daemon.components.get("gnss")
+    if reader is None or not reader.available or reader.latest is None:
+        return None
+    e = reader.latest
+    heading = e.heading_deg if e.heading_valid else e.course_deg
+    return Pose(lon=e.lon, lat=e.lat, heading_deg=heading or 0.0, speed_kmh=e.speed_kmh or 0.0)
+
+
+def _attach_metering(daemon: Daemon) -> None:
+    from gateway.channels import ChannelAlarm, MeteringComponent
+    from gateway.prescription import AsAppliedLog, PrescriptionError, PrescriptionMap
+
+    def speed() -> float | None:
+        out = daemon.outputs
+        return None if out is None else out.speed_kmh
+
+    def working() -> bool:
+        out = daemon.outputs
+        return out is not None and out.state.value == "seeding"
+
+    def on_alarm(alarm: ChannelAlarm) -> None:
+        severity: AlarmSeverity = (
+            "critical" if alarm.kind in ("feedback_lost", "controller_fault") else "warning"
+        )
+        daemon.alarms.set(
+            f"channel.{alarm.channel}.{alarm.kind}", alarm.active, alarm.message, severity
+        )
+
+    p = daemon.settings.prescription
+    as_applied = AsAppliedLog(
+        Path(p.as_applied_path) if p.as_applied_path else daemon.state_dir / "as_applied.csv"
+    )
+    prescription = None
+    if p.enabled:
+        # a bad map must not keep the drill from sowing: default rates, and say why
+        attrs = [c.prescription_attribute for c in daemon.settings.channel]
+        try:
+            if p.path is None:
+                raise PrescriptionError("prescription.path: required when prescription.enabled")
+            prescription = PrescriptionMap.load(p.path, [a for a in attrs if a])
+        except PrescriptionError as exc:
+            log.error("prescription map not used: %s", exc)
+            daemon.alarms.raise_(
+                "prescription.invalid", f"prescription map not used: {exc}", "critical"
+            )
+            p.enabled = False
+    component = MeteringComponent(
+        daemon.settings,
+        speed,
+        working,
+        lambda: _gnss_pose(daemon),
+        on_alarm,
+        prescription=prescription,
+        as_applied=as_applied,
+    )
+    daemon.components["metering"] = component
+    daemon.add_task("metering", component.run)
+
+
+ISOBUS_PUMP_S = 0.1
+
+
+def _attach_isobus(daemon: Daemon) -> None:
+    from drivers.can_bus import CanBus, IsobusListener
+
+    cfg = daemon.settings.isobus
+    listener = IsobusListener(
+        priority=cfg.speed_priority,
+        stale_after_s=cfg.stale_after_s,
+        hitch_in_work_below_pct=cfg.hitch_in_work_below_pct,
+    )
+    daemon.components["isobus"] = listener
+
+    async def pump() -> None:
+        """ISOBUS values into the controller at the tractor's own 100 ms rate."""
+        while True:
+            await asyncio.sleep(ISOBUS_PUMP_S)
+            now = daemon.clock()
+            kmh = listener.speed_kmh()
+            if kmh is not None:
+                daemon.controller.on_speed("isobus", kmh, now)
+            working = listener.working()
+            if working is not None:
+                daemon.controller.on_hitch(working, now)
+
+    async def run() -> None:
+        async with CanBus(cfg.interface, cfg.channel) as bus:
+            listener.bus = bus
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(listener.run(), name="isobus-listen")
+                tg.create_task(pump(), name="isobus-pump")
+
+    daemon.add_task("isobus", run)

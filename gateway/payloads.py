@@ -1,0 +1,185 @@
+"""Every MQTT payload as a pydantic model: the contract dashboard authors code against.
+
+Topics live under ``<topic_prefix>/<machine_id>/`` (see docs/mqtt.md). The JSON Schemas in
+docs/schemas/ are generated from these models (``python -m gateway.payloads --write
+docs/schemas``) and a test fails when they are stale, so the documentation cannot drift from
+what the daemon sends.
+
+``status`` is the one payload that is *not* JSON: it is the bare string ``online`` or
+``offline`` (retained), because that is what MQTT last-will conventions and most dashboard
+tools (Home Assistant availability, Node-RED) expect. ``StatusPayload`` documents the allowed
+values; its schema describes the string, not a JSON document.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, RootModel, field_validator
+
+from gateway.records import AlarmEvent, AlarmSeverity, FixQuality, SeedRecord
+
+__all__ = [
+    "SCHEMA_MODELS",
+    "ActiveAlarmInfo",
+    "AlarmEvent",
+    "CommandAck",
+    "EmptyCommand",
+    "RateCommand",
+    "SeedBatch",
+    "SpeedCalCommand",
+    "StatePayload",
+    "StatusPayload",
+    "render_schemas",
+    "write_schemas",
+]
+
+REQUEST_ID_MAX_CHARS = 128
+
+
+class _Payload(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class StatusPayload(RootModel[Literal["online", "offline"]]):
+    """Retained on ``status``; sent as the bare string (not JSON-quoted)."""
+
+
+class ActiveAlarmInfo(_Payload):
+    code: str
+    severity: AlarmSeverity
+    message: str
+    since: datetime
+
+
+class StatePayload(_Payload):
+    """Retained on ``state`` at ``state_hz`` and on every change: what the cab screen shows."""
+
+    machine_id: str
+    utc: datetime
+    work_state: str = Field(description="e.g. idle, working, raised, stopped, fault")
+    speed_kmh: float | None = Field(None, ge=0)
+    speed_source: str = Field("none", description="radar, gnss, simulated or none")
+    tilt_deg: float | None = None
+    raised: bool | None = None
+    crop: str | None = None
+    target_rate_kg_ha: float | None = Field(None, ge=0)
+    commanded_rate_kg_ha: float | None = Field(None, ge=0)
+    motor_duty_pct: float | None = Field(None, ge=0, le=100)
+    fan_duty_pct: float | None = Field(None, ge=0, le=100)
+    devices: dict[str, bool] = Field(
+        default_factory=dict, description="device name -> answering (radar, hmi, gnss, ...)"
+    )
+    gnss_fix: FixQuality = "none"
+    alarms: list[ActiveAlarmInfo] = Field(default_factory=list)
+    area_ha: float = Field(0.0, ge=0, description="area worked since the counters were reset")
+    seed_mass_kg: float = Field(0.0, ge=0, description="seed applied since the counters were reset")
+
+    def same_as(self, other: StatePayload | None) -> bool:
+        """Equal apart from the timestamp: decides whether a change must be published now."""
+        if other is None:
+            return False
+        return self.model_dump(exclude={"utc"}) == other.model_dump(exclude={"utc"})
+
+
+class SeedBatch(_Payload):
+    """One message on ``seeds``: consumers dedupe by record ``id`` (delivery is at-least-once)."""
+
+    machine_id: str
+    records: list[SeedRecord]
+
+
+class _Command(_Payload):
+    request_id: str | None = Field(
+        None, max_length=REQUEST_ID_MAX_CHARS, description="echoed in the ack when given"
+    )
+
+
+class RateCommand(_Command):
+    """``cmd/rate``: set crop and target rate (ranges checked like HMI input by the controller)."""
+
+    crop: str = Field(min_length=1, max_length=64)
+    rate_kg_ha: float = Field(gt=0)
+
+    @field_validator("rate_kg_ha")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("must be a finite number")
+        return v
+
+
+class SpeedCalCommand(_Command):
+    """``cmd/speed_cal``: ``{"action": "start"}`` at the first marker, then
+    ``{"action": "finish", "distance_m": 50}`` at the second (or ``"cancel"``)."""
+
+    action: Literal["start", "finish", "cancel"]
+    distance_m: float | None = Field(None, gt=0, le=10_000)
+
+
+class EmptyCommand(_Command):
+    """``cmd/start``, ``cmd/stop``, ``cmd/zero_tilt``: an empty object (or empty payload)."""
+
+
+class CommandAck(_Payload):
+    """On ``cmd/<name>/ack``: ``{"ok": true}`` or ``{"ok": false, "error": "…"}``."""
+
+    ok: bool
+    error: str | None = None
+    request_id: str | None = None
+
+    def to_json(self) -> bytes:
+        return self.model_dump_json(exclude_none=True).encode()
+
+
+SCHEMA_MODELS: dict[str, type[BaseModel]] = {
+    "status": StatusPayload,
+    "state": StatePayload,
+    "seed_batch": SeedBatch,
+    "seed_record": SeedRecord,
+    "alarm_event": AlarmEvent,
+    "rate_command": RateCommand,
+    "empty_command": EmptyCommand,
+    "speed_cal_command": SpeedCalCommand,
+    "command_ack": CommandAck,
+}
+
+
+def render_schemas() -> dict[str, str]:
+    """File name -> JSON Schema text, deterministic so the staleness test can compare."""
+    out: dict[str, str] = {}
+    for name, model in SCHEMA_MODELS.items():
+        schema: dict[str, Any] = model.model_json_schema(mode="serialization")
+        schema["$id"] = f"https://sowgate.invalid/schemas/{name}.json"
+        out[f"{name}.json"] = json.dumps(schema, indent=2, sort_keys=True) + "\n"
+    return out
+
+
+def write_schemas(directory: Path) -> list[Path]:
+    directory.mkdir(parents=True, exist_ok=True)
+    written = []
+    for fname, text in render_schemas().items():
+        target = directory / fname
+        target.write_text(text, encoding="utf-8")
+        written.append(target)
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m gateway.payloads")
+    parser.add_argument("--write", metavar="DIR", required=True, help="write JSON Schemas here")
+    args = parser.parse_args(argv)
+    for path in write_schemas(Path(args.write)):
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,61 @@
+"""What the daemon records and publishes: seed records and alarm events.
+
+These pydantic models are the public payload contract for dashboards (their JSON Schemas are
+generated into docs/schemas/). A ``SeedDrop`` is a positioned seed not yet stored; the record
+store turns it into a ``SeedRecord`` by giving it its durable ``id``.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+FixQuality = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
+HeadingSource = Literal["dual_antenna", "course", "none"]
+PositionMethod = Literal["interpolated", "paper", "oracle"]
+
+
+class _Payload(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SeedDrop(_Payload):
+    """A seed whose landing point has been predicted, before it gets its id."""
+
+    row: int = Field(ge=1, le=128, description="planter row, 1 = leftmost")
+    utc: datetime = Field(description="UTC time the seed reached the furrow")
+    lat: float = Field(ge=-90, le=90)
+    lon: float = Field(ge=-180, le=180)
+    fix: FixQuality
+    speed_kmh: float = Field(ge=0)
+    heading_deg: float | None = Field(None, ge=0, lt=360)
+    heading_source: HeadingSource = "none"
+    extrapolated: bool = False
+    method: PositionMethod = "interpolated"
+    spacing_m: float | None = Field(
+        None, ge=0, description="distance to the previous seed of the row"
+    )
+
+
+class SeedRecord(SeedDrop):
+    """A stored seed: ``id`` is strictly increasing per machine and unique across restarts."""
+
+    id: int = Field(ge=1)
+    machine_id: str
+
+
+AlarmSeverity = Literal["info", "warning", "critical"]
+
+
+class AlarmEvent(_Payload):
+    """An alarm being raised or cleared; consumers dedupe by ``id``."""
+
+    id: int = Field(0, ge=0, description="assigned by the record store (0 = not stored yet)")
+    machine_id: str = ""
+    code: str = Field(description="stable identifier, e.g. radar.lost, rate.too_fast")
+    active: bool
+    severity: AlarmSeverity = "warning"
+    message: str
+    utc: datetime

@@ -1,0 +1,183 @@
+"""The daemon's seed recording component: GNSS epochs + seed edges → positioned, stored records.
+
+Wiring (done by the daemon)::
+
+    recorder = SeedRecorder(settings, store, on_records=view.add)
+    GnssReader(..., on_epoch=recorder.on_epoch)
+    SerialSeedSensors(..., on_edge=recorder.on_edge)   # or GpioSeedSensors
+    tasks: recorder.run(), store.run(), reader, sensors
+
+The driver callbacks only feed the ``SeedPositioner`` and buffer what it resolves; ``run``
+hands the buffer to the store every ``FLUSH_INTERVAL_S`` as one batch (one INSERT batch
+instead of one per seed), resolves seeds whose epoch never came (GNSS outage) and keeps the
+per-row spacing quality. Records are given to ``on_records`` only after the store has
+accepted them and given them ids; the store itself decides when they are committed and when
+the MQTT outbox sees them, so nothing leaves the box that a crash could take back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+from drivers.seed_sensors import SeedEdgeEvent
+from gateway.config import Settings
+from gateway.positioning import AntennaEpoch, Landing, SeedPositioner
+from gateway.records import SeedDrop, SeedRecord
+from gateway.spacing_quality import RowQualityAccumulator
+
+log = logging.getLogger(__name__)
+
+FLUSH_INTERVAL_S = 0.1
+# Positioned seeds waiting for the next flush; far above 12 rows x 30 seeds/s x 0.1 s. If the
+# store stalls beyond this, flush runs inline so memory stays bounded.
+MAX_BUFFERED_DROPS = 10_000
+
+
+class SeedSink(Protocol):
+    """What the recorder needs from ``gateway.store.RecordStore``.
+
+    A sink may also offer ``append_seeds(drops) -> ids`` (the store does); the recorder uses
+    it when no ``on_records`` callback wants the record objects.
+    """
+
+    def add_seeds(self, drops: Sequence[SeedDrop]) -> list[SeedRecord]: ...
+
+
+RecordsCallback = Callable[[list[SeedRecord]], None]
+
+
+class SeedRecorder:
+    def __init__(
+        self,
+        settings: Settings,
+        store: SeedSink,
+        *,
+        on_records: RecordsCallback | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.on_records = on_records
+        self._clock = clock
+        self.positioner = SeedPositioner(settings.positioning)
+        rows = settings.machine.rows
+        x_ref = settings.positioning.target_spacing_m
+        self.quality = {r: RowQualityAccumulator(x_ref) for r in range(1, rows + 1)}
+        self.seeds_per_row = dict.fromkeys(range(1, rows + 1), 0)
+        self.last_spacing_m: dict[int, float | None] = dict.fromkeys(range(1, rows + 1))
+        self._buffer: list[SeedDrop] = []
+        self.records_stored = 0
+        self.bad_edges = 0
+        self.store_errors = 0
+        self.last_error: str | None = None
+
+    # ------------------------------------------------------------ driver callbacks
+
+    def on_epoch(self, epoch: AntennaEpoch) -> None:
+        self._take(self.positioner.add_epoch(epoch))
+
+    def on_edge(self, event: SeedEdgeEvent) -> None:
+        try:
+            landed = self.positioner.add_edge(event.row, event.t_mono)
+        except ValueError as exc:  # a row the config does not know: wiring or firmware fault
+            self.bad_edges += 1
+            self.last_error = str(exc)
+            log.warning("seed edge ignored: %s", exc)
+            return
+        if landed:  # usually empty: the seed waits for the epoch after its landing
+            self._take(landed)
+
+    def _take(self, landed: list[Landing]) -> None:
+        self._buffer.extend(la.drop for la in landed)
+        if len(self._buffer) >= MAX_BUFFERED_DROPS:
+            self._flush_quietly()
+
+    # ------------------------------------------------------------ batching
+
+    def flush(self) -> list[SeedRecord]:
+        """Resolve timed-out seeds and hand everything positioned to the store."""
+        self._take_quiet(self.positioner.poll(self._clock()))
+        return self._store(want_records=True)
+
+    def _flush_quietly(self) -> None:
+        """``flush`` for the periodic loop: nobody reads its return value."""
+        self._take_quiet(self.positioner.poll(self._clock()))
+        self._store(want_records=False)
+
+    def _take_quiet(self, landed: list[Landing]) -> None:
+        self._buffer.extend(la.drop for la in landed)
+
+    def _store(self, want_records: bool) -> list[SeedRecord]:
+        """Hand the buffer to the store; record objects only if someone wants them."""
+        if not self._buffer:
+            return []
+        drops, self._buffer = self._buffer, []
+        append = None
+        if not want_records and self.on_records is None:
+            append = getattr(self.store, "append_seeds", None)
+        records: list[SeedRecord] = []
+        try:
+            if append is not None:
+                append(drops)  # ids only: no record objects nobody reads
+            else:
+                records = self.store.add_seeds(drops)
+        except Exception as exc:  # keep positioning; the store raises its own alarm
+            self.store_errors += 1
+            self.last_error = f"store rejected {len(drops)} seeds: {exc}"
+            log.error("%s", self.last_error)
+            self._buffer = drops + self._buffer
+            del self._buffer[:-MAX_BUFFERED_DROPS]  # bounded: the oldest are lost first
+            return []
+        self.records_stored += len(drops)
+        seeds_per_row, last_spacing, quality = self.seeds_per_row, self.last_spacing_m, self.quality
+        for d in drops:
+            row, spacing = d.row, d.spacing_m
+            seeds_per_row[row] = seeds_per_row.get(row, 0) + 1
+            last_spacing[row] = spacing
+            if spacing is not None and row in quality:
+                quality[row].add(spacing)
+        if self.on_records is not None and records:
+            try:
+                self.on_records(records)
+            except Exception:
+                log.exception("on_records callback failed")
+        return records
+
+    async def run(self) -> None:
+        """Flush every FLUSH_INTERVAL_S; on cancellation position and store what is pending."""
+        try:
+            while True:
+                await asyncio.sleep(FLUSH_INTERVAL_S)
+                self._flush_quietly()
+        finally:
+            self._take_quiet(self.positioner.flush())
+            self._store(want_records=False)
+
+    # ------------------------------------------------------------ telemetry
+
+    def snapshot(self) -> dict[str, Any]:
+        """Plain data for the view and telemetry: per row count, last spacing, quality."""
+        st = self.positioner.stats
+        return {
+            "method": self.positioner.method,
+            "records_stored": self.records_stored,
+            "pending": self.positioner.pending,
+            "buffered": len(self._buffer),
+            "unpositioned": st.unpositioned,
+            "extrapolated": st.extrapolated,
+            "bad_edges": self.bad_edges,
+            "store_errors": self.store_errors,
+            "last_error": self.last_error,
+            "rows": {
+                row: {
+                    "seeds": self.seeds_per_row[row],
+                    "last_spacing_m": self.last_spacing_m[row],
+                    "quality": self.quality[row].result().as_dict(),
+                }
+                for row in sorted(self.seeds_per_row)
+            },
+        }

@@ -1,0 +1,228 @@
+"""The whole seeder in software: every device the daemon talks to, on real pty pairs.
+
+``SimulatedMachine`` starts the RS485 bus (radar, inclinometer, PWM module), the touchscreen,
+and optionally the UM982 receiver and the seed-tube sensors, all driven by one plant model
+running in (real) simulated time, and hands out a config that points the daemon at them.
+It keeps ground truth: seed mass really discharged, area really covered, seeds really landed.
+Used by ``sowgate demo``, the integration tests and the benchmarks.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import random
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from drivers.tasks import cancel_and_wait
+from gateway.config import Settings, parse_config
+from simulator.hmi_peer import HmiPeer
+from simulator.modbus_devices import Rs485Simulator
+from simulator.plant import Drive, MeteringPlant, Pose, SensorNoise, demo_drive
+
+PLANT_STEP_S = 0.01
+GNSS_OUTPUT_LATENCY_S = 0.02  # the emulated UM982's delay from epoch to sentence
+SEED_SPACING_M = 0.2
+# A ~45 deg N field near Wuhan-like latitudes is not needed: any origin works; pick paper C's
+# region (Jilin maize) so latitudes are realistic.
+ORIGIN_LAT = 43.8
+ORIGIN_LON = 125.3
+
+
+@dataclass
+class Truth:
+    """What really happened, for accuracy checks."""
+
+    mass_g: float = 0.0
+    mass_while_seeding_g: float = 0.0
+    area_m2: float = 0.0  # lowered and moving
+    distance_m: float = 0.0
+    mass_wasted_g: float = 0.0  # discharged while raised or standing
+
+    def applied_kg_ha(self) -> float:
+        return 0.0 if self.area_m2 <= 0 else self.mass_while_seeding_g / 1000 / (self.area_m2 / 1e4)
+
+
+@dataclass
+class SimulatedMachine:
+    drive: Drive = field(default_factory=demo_drive)
+    crop: str = "rapeseed"
+    noise: SensorNoise = field(default_factory=SensorNoise)
+    seed: int = 1
+    loop_drive: bool = False
+    with_gnss: bool = False
+    with_seed_tubes: bool = False
+    discharge_bias: float = 0.0  # plant discharge off the fitted model by this fraction
+    settings_overrides: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.rng = random.Random(self.seed)
+        self.truth = Truth()
+        self.base_settings = parse_config({})
+        model = self.base_settings.control.crops[self.crop]
+        self.plant = MeteringPlant(
+            slope=model.motor_slope,
+            intercept=model.motor_intercept,
+            startup_duty_pct=model.startup_duty_pct,
+            meter_a=model.meter_a * (1 + self.discharge_bias),
+            meter_b=model.meter_b * (1 + self.discharge_bias),
+            meter_c=model.meter_c * (1 + self.discharge_bias),
+            rng=random.Random(self.seed + 1),
+        )
+        self.fan_pct = 0.0
+        self.rs485: Rs485Simulator | None = None
+        self.hmi: HmiPeer | None = None
+        self.gnss: Any = None
+        self.seed_tubes: Any = None
+        self._t0 = 0.0
+        self._task: asyncio.Task[None] | None = None
+        self._stack = contextlib.AsyncExitStack()
+
+    # ---- time and truth ----------------------------------------------------------------------
+    def now(self) -> float:
+        """Simulated time (s) since start."""
+        t = asyncio.get_running_loop().time() - self._t0
+        if self.loop_drive:
+            t %= self.drive.duration_s
+        return t
+
+    def pose(self) -> Pose:
+        return self.drive.pose_at(self.now())
+
+    def pose_at(self, t: float) -> Pose:
+        return self.drive.pose_at(t % self.drive.duration_s if self.loop_drive else t)
+
+    def radar_kmh(self) -> float:
+        v = self.pose().speed_kmh
+        return max(0.0, v * (1.0 + self.rng.gauss(0.0, self.noise.radar_cv))) if v > 0 else 0.0
+
+    def tilt_deg(self) -> float:
+        p = self.pose()
+        return (
+            p.tilt_deg
+            + self.noise.tilt_mount_deg
+            + self.noise.tilt_offset_deg
+            + self.rng.gauss(0.0, self.noise.tilt_sigma_deg)
+        )
+
+    def on_duty(self, channel: str, pct: float) -> None:
+        if channel == "motor":
+            self.plant.duty_pct = pct
+        elif channel == "fan":
+            self.fan_pct = pct
+
+    async def _run_plant(self) -> None:
+        last = self.now()
+        while True:
+            await asyncio.sleep(PLANT_STEP_S)
+            now = self.now()
+            dt = now - last if now >= last else PLANT_STEP_S
+            last = now
+            grams = self.plant.step(dt)
+            p = self.drive.pose_at(now)
+            moved = p.speed_kmh / 3.6 * dt
+            self.truth.mass_g += grams
+            self.truth.distance_m += moved
+            if p.tilt_deg < 0.0 and p.speed_kmh > 0.05:  # openers in the soil
+                self.truth.mass_while_seeding_g += grams
+                self.truth.area_m2 += moved * self.base_settings.machine.working_width_m
+            else:
+                self.truth.mass_wasted_g += grams
+
+    # ---- lifecycle -----------------------------------------------------------------------------
+    async def __aenter__(self) -> SimulatedMachine:
+        self._t0 = asyncio.get_running_loop().time()
+        try:
+            self.rs485 = await self._stack.enter_async_context(
+                Rs485Simulator(
+                    radar_kmh=self.radar_kmh,
+                    tilt_deg=self.tilt_deg,
+                    on_duty=self.on_duty,
+                    rng=random.Random(self.seed + 2),
+                )
+            )
+            self.hmi = await self._stack.enter_async_context(HmiPeer())
+            if self.with_gnss:
+                await self._start_gnss()
+            if self.with_seed_tubes:
+                await self._start_seed_tubes()
+            self._task = asyncio.create_task(self._run_plant(), name="sim-plant")
+        except BaseException:
+            await self._stack.aclose()
+            raise
+        return self
+
+    async def _start_gnss(self) -> None:
+        from simulator.um982 import Um982Emulator
+
+        self.gnss = await self._stack.enter_async_context(
+            Um982Emulator(
+                self.pose_at,
+                origin_lat=ORIGIN_LAT,
+                origin_lon=ORIGIN_LON,
+                output_latency_s=GNSS_OUTPUT_LATENCY_S,
+                seed=self.seed + 3,
+                t0_mono=self._t0,
+            )
+        )
+
+    async def _start_seed_tubes(self) -> None:
+        from simulator.seed_tubes import SeedTubeEmulator
+
+        positioning = self.base_settings.positioning.model_copy(
+            update={"target_spacing_m": SEED_SPACING_M}
+        )
+        self.seed_tubes = await self._stack.enter_async_context(
+            SeedTubeEmulator(self.drive, positioning, seed=self.seed + 4, t0_mono=self._t0)
+        )
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await cancel_and_wait(self._task)
+        await self._stack.aclose()
+
+    # ---- config for the daemon -------------------------------------------------------------------
+    def config(self, **overrides: Any) -> dict[str, Any]:
+        assert self.rs485 is not None and self.hmi is not None
+        model = self.base_settings.control.crops[self.crop]
+        data: dict[str, Any] = {
+            "rs485": {"port": self.rs485.device_path, "timeout_s": 0.2, "reconnect_max_s": 1.0},
+            "inclinometer": {"zero_offset_deg": self.noise.tilt_mount_deg},
+            "hmi": {"port": self.hmi.device_path},
+            "control": {"crop": self.crop, "rate_kg_ha": model.default_rate_kg_ha},
+        }
+        if self.gnss is not None:
+            data["gnss"] = {"enabled": True, "port": self.gnss.device_path}
+            data["speed"] = {"source": "radar_then_gnss"}
+            data["positioning"] = {
+                "gnss_output_latency_ms": GNSS_OUTPUT_LATENCY_S * 1000,
+                "target_spacing_m": SEED_SPACING_M,
+            }
+        if self.seed_tubes is not None:
+            data["seed_sensors"] = {
+                "enabled": True,
+                "source": "serial",
+                "port": self.seed_tubes.device_path,
+            }
+        for section, values in {**self.settings_overrides, **overrides}.items():
+            if isinstance(values, dict):
+                data.setdefault(section, {}).update(values)
+            else:
+                data[section] = values
+        return data
+
+    def settings(self, **overrides: Any) -> Settings:
+        return parse_config(self.config(**overrides))
+
+    def write_config(self, path: Path, **overrides: Any) -> Path:
+        import tomli_w
+
+        path.write_text(tomli_w.dumps(self.config(**overrides)))
+        return path

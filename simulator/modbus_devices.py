@@ -1,0 +1,405 @@
+"""The RS485 bus of paper A's seeder in software: radar, inclinometer and PWM module as ONE
+pymodbus RTU server, reachable by the daemon on a pty, with the faults a real bus produces.
+
+Wiring (two pty pairs, bytes pumped by :class:`Rs485Simulator`)::
+
+    daemon --pyserial--> device_path (symlink) = line pty  <== relay ==>  server pty <-- pymodbus
+
+The relay is the "cable": it lets the simulator unplug the port (``vanish``/``restore``) while
+the pymodbus server keeps running. Faults that concern whole frames (silence, CRC corruption,
+noise before a reply) are applied in the server's ``trace_packet`` hook, where pymodbus hands
+over each reply as one complete frame, so no re-framing is needed here.
+
+Why silence is done by hand: a real RS485 device that is dead, or an id nobody owns, says
+nothing and the master times out. pymodbus's server would instead answer an exception (its
+``ignore_missing_devices`` is not honoured by the SimDevice datastore), so replies from
+silenced or unknown ids are dropped before they reach the line.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import random
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import Literal
+
+from pymodbus.constants import ExcCodes
+from pymodbus.framer import FramerType
+from pymodbus.server import ModbusSerialServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from gateway.config.machine import ActuatorsSection, InclinometerSection, RadarSection
+from protocol.errors import ProtocolError
+from protocol.registers import (
+    WITMOTION_ANGLE_BASE,
+    RadarFormat,
+    decode_duty,
+    encode_angle,
+    inclinometer_span,
+)
+from simulator.pty_link import PtyPair
+
+log = logging.getLogger(__name__)
+
+Channel = Literal["motor", "fan"]
+
+RELAY_CHUNK = 4096  # bytes per read on the relay; Modbus RTU frames are at most 256
+MAX_GARBAGE_BYTES = 4096  # one injection; more would only test the pty buffer
+_CATCH_ALL_ID = 0  # pymodbus routes ids without a SimDevice to id 0
+
+
+class Rs485Simulator:
+    """Radar, WitMotion inclinometer and PWM module on one simulated RS485 bus.
+
+    Use as ``async with Rs485Simulator(...) as sim:`` and point the daemon at
+    ``sim.device_path``. Values come from the callables at each request, so a plant model can
+    drive them; ``on_duty`` is called when the master writes a motor or fan register.
+    """
+
+    def __init__(
+        self,
+        *,
+        radar_kmh: Callable[[], float],
+        tilt_deg: Callable[[], float],
+        on_duty: Callable[[str, float], None] | None = None,
+        radar: RadarSection | None = None,
+        inclinometer: InclinometerSection | None = None,
+        actuators: ActuatorsSection | None = None,
+        link_path: str | os.PathLike[str] | None = None,
+        baudrate: int = 9600,
+        rng: random.Random | None = None,
+    ) -> None:
+        self.radar = radar or RadarSection()
+        self.inclinometer = inclinometer or InclinometerSection()
+        self.actuators = actuators or ActuatorsSection()
+        ids = [self.radar.device_id, self.inclinometer.device_id, self.actuators.device_id]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"RS485 device ids must be distinct (radar, incl., pwm = {ids})")
+        self._radar_kmh = radar_kmh
+        self._tilt_deg = tilt_deg
+        self._on_duty = on_duty
+        self._radar_format = RadarFormat(
+            data_type=self.radar.data_type,
+            word_order=self.radar.word_order,
+            scale=self.radar.scale,
+            unit=self.radar.unit,
+            mount_angle_deg=self.radar.mount_angle_deg,
+        )
+        self._baudrate = baudrate
+        self._rng = rng or random.Random()
+        self._requested_link = Path(link_path) if link_path is not None else None
+        self._tmpdir: str | None = None
+        self._link: Path | None = None
+        self._line: PtyPair | None = None
+        self._server_pty: PtyPair | None = None
+        self._server: ModbusSerialServer | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+        self._silent: set[int] = set()
+        self._corrupt_left = 0
+        self._garbage: bytes = b""
+        self.duty_pct: dict[str, float] = {"motor": 0.0, "fan": 0.0}
+        self.replies_dropped = 0  # replies swallowed because the id is silent or unknown
+        self.requests_seen: dict[int, int] = {}
+
+    # -------------------------------------------------------------------------------------
+    # lifecycle
+
+    @property
+    def device_path(self) -> str:
+        """The port the daemon opens (stable across ``vanish``/``restore``)."""
+        if self._link is None:
+            raise RuntimeError("Rs485Simulator is not started")
+        return str(self._link)
+
+    @property
+    def device_ids(self) -> dict[str, int]:
+        return {
+            "radar": self.radar.device_id,
+            "inclinometer": self.inclinometer.device_id,
+            "pwm": self.actuators.device_id,
+        }
+
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        if self._requested_link is None:
+            self._tmpdir = tempfile.mkdtemp(prefix="sowgate-rs485-")
+            self._link = Path(self._tmpdir) / "rs485"
+        else:
+            self._link = self._requested_link
+        try:
+            self._server_pty = PtyPair()
+            self._server = ModbusSerialServer(
+                self._build_devices(),
+                framer=FramerType.RTU,
+                port=self._server_pty.slave_path,
+                baudrate=self._baudrate,
+                trace_packet=self._trace_packet,
+            )
+            await self._server.serve_forever(background=True)
+            self._loop.add_reader(self._server_pty.master_fd, self._pump_from_server)
+            self._open_line()
+        except BaseException:
+            await self.close()
+            raise
+
+    async def close(self) -> None:
+        """Stop the server and remove both ptys and the symlink. Idempotent."""
+        self._close_line()
+        if self._server is not None:
+            server, self._server = self._server, None
+            await server.shutdown()  # type: ignore[no-untyped-call]
+        if self._server_pty is not None:
+            if self._loop is not None:
+                self._loop.remove_reader(self._server_pty.master_fd)
+            self._server_pty.close()
+            self._server_pty = None
+        if self._tmpdir is not None:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self._tmpdir = None
+
+    async def __aenter__(self) -> Rs485Simulator:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    # -------------------------------------------------------------------------------------
+    # fault injection
+
+    def inject_garbage(self, n_bytes: int) -> bytes:
+        """Put ``n_bytes`` of line noise on the bus just before the next reply (noise while
+        the master is idle is discarded by it anyway). Returns the bytes, for the test log."""
+        if not 0 < n_bytes <= MAX_GARBAGE_BYTES:
+            raise ValueError(f"n_bytes must be 1..{MAX_GARBAGE_BYTES} (got {n_bytes})")
+        noise = self._rng.randbytes(n_bytes)
+        self._garbage += noise
+        return noise
+
+    def inject_bytes(self, data: bytes) -> None:
+        """Like :meth:`inject_garbage` with chosen bytes (reproducible tests)."""
+        if len(self._garbage) + len(data) > MAX_GARBAGE_BYTES:
+            raise ValueError(f"at most {MAX_GARBAGE_BYTES} bytes of noise may be pending")
+        self._garbage += data
+
+    def corrupt_next_crc(self, count: int = 1) -> None:
+        """The next ``count`` replies go out with a wrong CRC (last byte inverted)."""
+        if count < 0:
+            raise ValueError(f"count must be >= 0 (got {count})")
+        self._corrupt_left = count
+
+    def set_silent(self, device_id: int, silent: bool) -> None:
+        """A silent device ignores requests: no reply, no side effect (a dead RS485 node)."""
+        if silent:
+            self._silent.add(device_id)
+        else:
+            self._silent.discard(device_id)
+
+    @property
+    def vanished(self) -> bool:
+        return self._line is None
+
+    def vanish(self) -> None:
+        """Unplug the port: the daemon's open fd fails with EIO and the path disappears."""
+        self._close_line()
+
+    def restore(self) -> None:
+        """Plug the port back in on the same ``device_path`` (a fresh pty behind it)."""
+        if self._line is None:
+            self._open_line()
+
+    # -------------------------------------------------------------------------------------
+    # the relay ("cable")
+
+    def _open_line(self) -> None:
+        assert self._loop is not None and self._link is not None
+        self._line = PtyPair(self._link)
+        self._loop.add_reader(self._line.master_fd, self._pump_from_daemon)
+
+    def _close_line(self) -> None:
+        if self._line is None:
+            return
+        line, self._line = self._line, None
+        if self._loop is not None and not line.closed:
+            self._loop.remove_reader(line.master_fd)
+        line.close()
+
+    def _pump_from_daemon(self) -> None:
+        if self._line is None or self._server_pty is None:
+            return
+        data = _read_some(self._line.master_fd)
+        if data:
+            _write_all(self._server_pty.master_fd, data, "server")
+
+    def _pump_from_server(self) -> None:
+        if self._server_pty is None:
+            return
+        data = _read_some(self._server_pty.master_fd)
+        if data and self._line is not None:
+            _write_all(self._line.master_fd, data, "daemon")
+
+    # -------------------------------------------------------------------------------------
+    # frame-level faults (pymodbus hands us each complete frame here)
+
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        if not sending or not data:
+            return data
+        device_id = data[0]
+        self.requests_seen[device_id] = self.requests_seen.get(device_id, 0) + 1
+        if device_id in self._silent or device_id not in self.device_ids.values():
+            self.replies_dropped += 1
+            return b""
+        if self._corrupt_left > 0:
+            self._corrupt_left -= 1
+            data = data[:-1] + bytes([data[-1] ^ 0xFF])
+        if self._garbage:
+            data, self._garbage = self._garbage + data, b""
+        return data
+
+    # -------------------------------------------------------------------------------------
+    # device models
+
+    def _build_devices(self) -> list[SimDevice]:
+        radar_regs = SimData(
+            self.radar.address,
+            count=self._radar_format.count,
+            values=0,
+            datatype=DataType.REGISTERS,
+            readonly=True,
+        )
+        _, per_axis = inclinometer_span(self.inclinometer.layout, "roll")
+        incl_regs = SimData(
+            WITMOTION_ANGLE_BASE,
+            count=3 * per_axis,
+            values=0,
+            datatype=DataType.REGISTERS,
+            readonly=True,
+        )
+        pwm_regs = [
+            SimData(self.actuators.motor_register, values=0, datatype=DataType.REGISTERS),
+            SimData(self.actuators.fan_register, values=0, datatype=DataType.REGISTERS),
+        ]
+        return [
+            SimDevice(self.radar.device_id, simdata=[radar_regs], action=self._radar_action),
+            SimDevice(
+                self.inclinometer.device_id, simdata=[incl_regs], action=self._incl_action
+            ),
+            SimDevice(self.actuators.device_id, simdata=pwm_regs, action=self._pwm_action),
+            SimDevice(_CATCH_ALL_ID, simdata=[SimData(0, datatype=DataType.INVALID)]),
+        ]
+
+    async def _radar_action(
+        self,
+        func_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        if self.radar.device_id in self._silent or set_values is not None:
+            return None
+        try:
+            words = self._radar_format.encode_kmh(self._radar_kmh())
+        except (ProtocolError, ArithmeticError, ValueError) as exc:
+            log.warning("simulated radar cannot encode its speed: %s", exc)
+            return ExcCodes.DEVICE_FAILURE
+        offset = self.radar.address - start_address
+        registers[offset : offset + len(words)] = words
+        return None
+
+    async def _incl_action(
+        self,
+        func_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        if self.inclinometer.device_id in self._silent or set_values is not None:
+            return None
+        layout = self.inclinometer.layout
+        try:
+            words = encode_angle(self._tilt_deg(), layout)
+        except (ProtocolError, ArithmeticError, ValueError) as exc:
+            log.warning("simulated inclinometer cannot encode its angle: %s", exc)
+            return ExcCodes.DEVICE_FAILURE
+        first, _ = inclinometer_span(layout, self.inclinometer.axis)
+        zero = encode_angle(0.0, layout)
+        for axis in ("roll", "pitch", "yaw"):
+            axis_first, n = inclinometer_span(layout, axis)
+            offset = axis_first - start_address
+            registers[offset : offset + n] = words if axis_first == first else zero
+        return None
+
+    async def _pwm_action(
+        self,
+        func_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        if set_values is None or self.actuators.device_id in self._silent:
+            return None
+        changes: list[tuple[str, float]] = []
+        for i, raw in enumerate(set_values):
+            reg = address + i
+            channel = (
+                "motor"
+                if reg == self.actuators.motor_register
+                else "fan"
+                if reg == self.actuators.fan_register
+                else None
+            )
+            if channel is None:
+                continue
+            try:
+                changes.append((channel, decode_duty(int(raw))))
+            except ProtocolError:
+                return ExcCodes.ILLEGAL_VALUE  # the module refuses > 100 %, nothing changes
+        for channel, pct in changes:
+            self.duty_pct[channel] = pct
+            if self._on_duty is not None:
+                self._on_duty(channel, pct)
+        return None
+
+
+def _read_some(fd: int) -> bytes:
+    with contextlib.suppress(BlockingIOError, InterruptedError):
+        try:
+            return os.read(fd, RELAY_CHUNK)
+        except OSError as exc:  # EIO: nobody on the far side right now
+            log.debug("relay read on fd %d failed: %s", fd, exc)
+    return b""
+
+
+def _write_all(fd: int, data: bytes, towards: str) -> None:
+    """Write everything or drop the rest: a full pty buffer means the peer is not reading,
+    and an RS485 line does not queue bytes for a deaf receiver either."""
+    view = memoryview(data)
+    while view:
+        try:
+            n = os.write(fd, view)
+        except (BlockingIOError, InterruptedError):
+            log.warning("relay dropped %d bytes towards the %s (buffer full)", len(view), towards)
+            return
+        except OSError as exc:
+            log.debug("relay write towards the %s failed: %s", towards, exc)
+            return
+        view = view[n:]

@@ -1,0 +1,350 @@
+"""A UM982 dual-antenna RTK receiver in software: sentences on a pty, ground truth on the side.
+
+Two layers:
+
+* ``um982_sentences`` — a pure generator: one epoch's ``$GNRMC``, ``$GNGGA`` and ``#HEADINGA``
+  with correct checksums/CRC and the field widths the real receiver uses. Tests build their
+  inputs with it, so the parsers are never tested against hand-typed strings.
+* ``Um982Emulator`` — samples a true trajectory at ``rate_hz`` on the UTC grid, adds RTK and
+  heading noise, converts local ENU metres to WGS84 with pymap3d, waits the receiver's output
+  latency and writes the lines to a pty. For every epoch it keeps the *true* pose and the
+  instant it describes, which is what every accuracy check compares against.
+
+Faults a field receiver produces can be injected: corrupted checksums, line noise, a heading
+solution that drops out, and the port vanishing (USB adapter unplugged) and coming back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import random
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from types import TracebackType
+from typing import Final, Literal, Protocol
+
+import pymap3d
+
+from drivers.tasks import cancel_and_wait
+from protocol.nmea import KMH_PER_KNOT, encode_nmea
+from protocol.unicore import GPS_UTC_LEAP_S, encode_headinga, utc_to_gps
+from simulator.pty_link import PtyPair
+
+Fix = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
+
+TRUTH_CAPACITY: Final = 200_000  # epochs of ground truth kept (5.5 h at 10 Hz)
+GEOID_SEP_M: Final = 40.0  # a plausible geoid separation; GGA altitude = ellipsoidal - this
+SPEED_SIGMA_KMH: Final = 0.03  # Doppler speed noise of an RTK receiver
+
+# GGA quality, RMC mode indicator and horizontal noise scale for each fix type.
+_GGA_QUALITY: Final[dict[str, int]] = {
+    "rtk_fixed": 4, "rtk_float": 5, "dgps": 2, "single": 1, "none": 0,
+}
+_RMC_MODE: Final[dict[str, str]] = {
+    "rtk_fixed": "R", "rtk_float": "F", "dgps": "D", "single": "A", "none": "N",
+}
+_SIGMA_FACTOR: Final[dict[str, float]] = {  # multiples of rtk_sigma_m (1 cm -> 20 cm float...)
+    "rtk_fixed": 1.0, "rtk_float": 20.0, "dgps": 50.0, "single": 150.0, "none": 150.0,
+}
+
+
+class PoseLike(Protocol):
+    """What the emulator needs from a true pose (simulator.plant.Pose satisfies it)."""
+
+    @property
+    def east(self) -> float: ...
+    @property
+    def north(self) -> float: ...
+    @property
+    def heading_deg(self) -> float: ...
+    @property
+    def speed_kmh(self) -> float: ...
+
+
+@dataclass(frozen=True)
+class TruthEpoch:
+    """Ground truth for one output epoch: what the receiver should ideally have reported."""
+
+    utc: datetime
+    t_mono: float  # the epoch instant on the monotonic clock the daemon stamps arrivals with
+    t_sim: float  # the same instant in the trajectory's time (argument given to pose_at)
+    pose: PoseLike
+    lat: float  # true position of the antenna (before noise)
+    lon: float
+
+
+def _dm(value: float, deg_digits: int) -> str:
+    """Degrees to NMEA (d)ddmm.mmmmmmmm with 8 decimals of minutes, as the UM982 prints."""
+    units = round(abs(value) * 60.0 * 1e8)
+    deg, minutes = divmod(units, 60 * 10**8)
+    return f"{deg:0{deg_digits}d}{minutes // 10**8:02d}.{minutes % 10**8:08d}"
+
+
+def _hms(utc: datetime) -> str:
+    centis = round(utc.microsecond / 10_000)
+    if centis == 100:  # only reachable for sub-centisecond times; keep the field valid
+        centis = 99
+    return f"{utc:%H%M%S}.{centis:02d}"
+
+
+def um982_sentences(
+    utc: datetime,
+    lat: float,
+    lon: float,
+    alt_m: float,
+    speed_kmh: float,
+    course_deg: float,
+    heading_deg: float,
+    fix: Fix = "rtk_fixed",
+    heading_ok: bool = True,
+    *,
+    num_sv: int = 28,
+    hdop: float = 0.6,
+    pitch_deg: float = 0.0,
+    baseline_m: float = 1.0,
+    hdg_std: float = 0.08,
+    geoid_sep_m: float = GEOID_SEP_M,
+    talker: str = "GN",
+) -> list[str]:
+    """One epoch's RMC, GGA and #HEADINGA (no line terminators).
+
+    ``alt_m`` is the height above mean sea level that GGA carries. With ``fix="none"`` the
+    position fields are empty, as a receiver without a fix sends them.
+    """
+    if utc.tzinfo is None:
+        raise ValueError("utc must be timezone-aware")
+    utc = utc.astimezone(UTC)
+    hms = _hms(utc)
+    has_fix = fix != "none"
+    ns, ew = ("N" if lat >= 0 else "S"), ("E" if lon >= 0 else "W")
+    pos = f"{_dm(lat, 2)},{ns},{_dm(lon, 3)},{ew}" if has_fix else ",,,"
+    knots = max(0.0, speed_kmh) / KMH_PER_KNOT
+    rmc = (
+        f"{talker}RMC,{hms},{'A' if has_fix else 'V'},{pos},"
+        f"{knots:.3f},{course_deg % 360.0:.1f},{utc:%d%m%y},,,{_RMC_MODE[fix]},V"
+    )
+    quality = _GGA_QUALITY[fix]
+    diff = "1.0,0001" if quality in (2, 4, 5) else ","
+    gga_fix = f"{alt_m:.4f},M,{geoid_sep_m:.4f},M,{diff}" if has_fix else ",M,,M,,"
+    gga = f"{talker}GGA,{hms},{pos},{quality},{num_sv if has_fix else 0:02d},"
+    gga += f"{hdop if has_fix else 99.9:.1f},{gga_fix}"
+    week, tow = utc_to_gps(utc, GPS_UTC_LEAP_S)
+    if heading_ok:
+        heading = encode_headinga(
+            week, tow, heading_deg, pitch_deg, baseline_m, hdg_std=hdg_std,
+            ptch_std=2 * hdg_std, num_sv_tracked=num_sv, num_sv_used=max(0, num_sv - 6),
+        )
+    else:
+        heading = encode_headinga(
+            week, tow, 0.0, 0.0, 0.0, sol_status="INSUFFICIENT_OBS", pos_type="NONE",
+            hdg_std=0.0, ptch_std=0.0, num_sv_tracked=num_sv, num_sv_used=0,
+        )
+    return [encode_nmea(rmc), encode_nmea(gga), heading]
+
+
+def corrupt_checksum(line: str) -> str:
+    """The same line with its last checksum digit changed, so it must be rejected."""
+    last = line[-1]
+    swapped = "0" if last not in "0" else "1"
+    return line[:-1] + swapped
+
+
+class Um982Emulator:
+    """Writes a noisy view of ``pose_at`` as UM982 output to a pty, 10 times a second.
+
+    ``pose_at`` is called with the trajectory time ``t_sim = t_mono - t0_mono``: pass the same
+    ``t0_mono`` to every simulator of a run so seeds, radar and GNSS share one time line.
+    The UTC of epoch k is ``utc_start + k / rate_hz`` and it is written at
+    ``t0_mono + k / rate_hz + output_latency_s`` (the receiver's real delay, which the position
+    model must account for).
+    """
+
+    def __init__(
+        self,
+        pose_at: Callable[[float], PoseLike],
+        *,
+        origin_lat: float,
+        origin_lon: float,
+        origin_alt_m: float = 100.0,
+        rate_hz: float = 10.0,
+        rtk_sigma_m: float = 0.01,
+        heading_sigma_deg: float = 0.1,
+        output_latency_s: float = 0.02,
+        seed: int = 0,
+        fix: Fix = "rtk_fixed",
+        utc_start: datetime | None = None,
+        t0_mono: float | None = None,
+        link_path: str | os.PathLike[str] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not 0 < rate_hz <= 50:
+            raise ValueError(f"rate_hz must be in (0, 50], got {rate_hz}")
+        if not 0 <= output_latency_s < 1.0 / rate_hz:
+            raise ValueError("output_latency_s must be >= 0 and shorter than one epoch")
+        self._pose_at = pose_at
+        self.origin = (origin_lat, origin_lon, origin_alt_m)
+        self.rate_hz = rate_hz
+        self.rtk_sigma_m = rtk_sigma_m
+        self.heading_sigma_deg = heading_sigma_deg
+        self.output_latency_s = output_latency_s
+        self.fix: Fix = fix
+        self._rng = random.Random(seed)
+        self._clock = clock
+        self._utc_start = utc_start
+        self._t0_mono = t0_mono
+        self._link_path = link_path
+        self._pair: PtyPair | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._corrupt_left = 0
+        self._garbage = bytearray()
+        self._drop_heading = False
+        self.truth: deque[TruthEpoch] = deque(maxlen=TRUTH_CAPACITY)
+        self.epochs_written = 0
+        self.lines_corrupted = 0
+        self.bytes_dropped = 0  # written while nobody read and the pty buffer was full
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    async def __aenter__(self) -> Um982Emulator:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    async def start(self) -> None:
+        if self._task is not None:
+            raise RuntimeError("emulator already started")
+        self._pair = PtyPair(self._link_path)
+        if self._t0_mono is None:
+            self._t0_mono = self._clock()
+        if self._utc_start is None:
+            self._utc_start = datetime.now(UTC).replace(microsecond=0)
+        self._task = asyncio.create_task(self._run(), name="um982-emulator")
+
+    async def close(self) -> None:
+        await cancel_and_wait(self._task)
+        self._task = None
+        if self._pair is not None:
+            self._pair.close()
+            self._pair = None
+
+    @property
+    def device_path(self) -> str:
+        """The path the daemon opens (the symlink when ``link_path`` was given)."""
+        if self._pair is None:
+            if self._link_path is not None:
+                return os.fspath(self._link_path)
+            raise RuntimeError("emulator not started")
+        return self._pair.device_path
+
+    @property
+    def t0_mono(self) -> float:
+        if self._t0_mono is None:
+            raise RuntimeError("emulator not started")
+        return self._t0_mono
+
+    # -- fault injection ---------------------------------------------------------------------
+
+    def corrupt_next(self, n: int = 1) -> None:
+        """Give the next ``n`` lines a wrong checksum/CRC."""
+        self._corrupt_left += n
+
+    def garbage(self, n_bytes: int) -> None:
+        """Write ``n_bytes`` of random line noise before the next epoch's lines."""
+        self._garbage += self._rng.randbytes(n_bytes)
+
+    def drop_heading(self, on: bool = True) -> None:
+        """Stop (or resume) sending #HEADINGA, as when the secondary antenna loses lock."""
+        self._drop_heading = on
+
+    def unplug(self) -> None:
+        """The port vanishes: both pty ends close, the reader sees EIO, the path disappears."""
+        if self._pair is not None:
+            self._pair.close()
+            self._pair = None
+
+    def replug(self) -> None:
+        """The port comes back on the same ``link_path`` (a new pty, as a new ttyUSB would)."""
+        if self._link_path is None:
+            raise RuntimeError("replug needs a link_path so the daemon can find the new port")
+        if self._pair is None:
+            self._pair = PtyPair(self._link_path)
+
+    # -- the epoch loop ----------------------------------------------------------------------
+
+    def sample_epoch(self, k: int) -> list[str]:
+        """Lines of epoch ``k`` (noise, faults applied) and its ground truth recorded.
+
+        Usable without the pty (given ``t0_mono`` and ``utc_start``) for statistics tests.
+        """
+        if self._utc_start is None:
+            raise RuntimeError("utc_start unknown: pass it or start the emulator")
+        t_mono = self.t0_mono + k / self.rate_hz
+        t_sim = t_mono - self.t0_mono
+        utc = self._utc_start + timedelta(milliseconds=round(k * 1000.0 / self.rate_hz))
+        pose = self._pose_at(t_sim)
+        lat0, lon0, h0 = self.origin
+        true_lat, true_lon, _ = pymap3d.enu2geodetic(pose.east, pose.north, 0.0, lat0, lon0, h0)
+        self.truth.append(
+            TruthEpoch(utc, t_mono, t_sim, pose, float(true_lat), float(true_lon))
+        )
+        sigma = self.rtk_sigma_m * _SIGMA_FACTOR[self.fix]
+        east = pose.east + self._rng.gauss(0.0, sigma)
+        north = pose.north + self._rng.gauss(0.0, sigma)
+        up = self._rng.gauss(0.0, 2.0 * sigma)
+        lat, lon, h = pymap3d.enu2geodetic(east, north, up, lat0, lon0, h0)
+        heading = (pose.heading_deg + self._rng.gauss(0.0, self.heading_sigma_deg)) % 360.0
+        speed = max(0.0, pose.speed_kmh + self._rng.gauss(0.0, SPEED_SIGMA_KMH))
+        lines = um982_sentences(
+            utc, float(lat), float(lon), float(h) - GEOID_SEP_M, speed, pose.heading_deg,
+            heading, self.fix, heading_ok=True, hdg_std=max(self.heading_sigma_deg, 0.01),
+        )
+        if self._drop_heading:
+            lines = lines[:2]
+        for i in range(len(lines)):
+            if self._corrupt_left > 0:
+                self._corrupt_left -= 1
+                self.lines_corrupted += 1
+                lines[i] = corrupt_checksum(lines[i])
+        return lines
+
+    def _write(self, data: bytes) -> None:
+        if self._pair is None or self._pair.closed:
+            return
+        try:
+            written = os.write(self._pair.master_fd, data)
+        except BlockingIOError:
+            written = 0
+        except OSError:
+            return
+        self.bytes_dropped += len(data) - written
+
+    async def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        k = 0
+        while True:
+            t_epoch = self.t0_mono + k * period
+            delay = t_epoch - self._clock()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            elif delay < -period:  # we were starved (loaded CI box): skip, don't burst
+                k += math.ceil(-delay / period)
+                continue
+            lines = self.sample_epoch(k)
+            await asyncio.sleep(max(0.0, t_epoch + self.output_latency_s - self._clock()))
+            payload = bytes(self._garbage) + "".join(f"{ln}\r\n" for ln in lines).encode()
+            self._garbage.clear()
+            self._write(payload)
+            self.epochs_written += 1
+            k += 1

@@ -1,0 +1,88 @@
+"""Suite-wide guards: a test that leaks tasks, threads or file descriptors fails."""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import os
+import threading
+import time
+from collections.abc import AsyncIterator, Iterator
+
+import pytest
+
+LEAK_GRACE_S = 2.0
+
+
+def _fd_targets() -> dict[int, str]:
+    """Open sockets, ptys and serial devices of this process (fd -> target)."""
+    out: dict[int, str] = {}
+    for name in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{name}")
+        except OSError:
+            continue
+        if target.startswith(("socket:", "/dev/pts/", "/dev/ptmx", "/dev/tty")):
+            out[int(name)] = target
+    return out
+
+
+def _threads() -> set[threading.Thread]:
+    return {t for t in threading.enumerate() if t.is_alive()}
+
+
+def _leak_problems(threads_before: set[threading.Thread], fds_before: dict[int, str]) -> list[str]:
+    deadline = time.monotonic() + LEAK_GRACE_S
+    while True:
+        gc.collect()
+        new_threads = list(_threads() - threads_before)
+        fds_now = _fd_targets()
+        new_fds = {fd: t for fd, t in fds_now.items() if fds_before.get(fd) != t}
+        if (not new_threads and not new_fds) or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    problems = []
+    if new_threads:
+        problems.append("threads: " + ", ".join(t.name for t in new_threads))
+    if new_fds:
+        problems.append("fds: " + ", ".join(f"{fd}->{t}" for fd, t in sorted(new_fds.items())))
+    return problems
+
+
+@pytest.fixture
+async def _no_leaked_tasks() -> AsyncIterator[None]:
+    """For async tests: checked inside the test's own loop, whose own fds are the baseline."""
+    threads_before = _threads()
+    fds_before = _fd_targets()
+    yield
+    me = asyncio.current_task()
+    deadline = time.monotonic() + LEAK_GRACE_S
+    while True:
+        pending = [t for t in asyncio.all_tasks() if t is not me and not t.done()]
+        if not pending or time.monotonic() > deadline:
+            break
+        await asyncio.sleep(0.05)
+    if pending:
+        names = ", ".join(sorted(t.get_name() for t in pending))
+        for t in pending:
+            t.cancel()
+        pytest.fail(f"test leaked asyncio tasks: {names}")
+    # executor threads (e.g. DNS look-ups) belong to the loop and end with it
+    await asyncio.get_running_loop().shutdown_default_executor()
+    problems = _leak_problems(threads_before, fds_before)
+    if problems:
+        pytest.fail("test leaked " + "; ".join(problems))
+
+
+@pytest.fixture(autouse=True)
+def _no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
+    if request.node.get_closest_marker("asyncio") is not None:
+        request.getfixturevalue("_no_leaked_tasks")
+        yield
+        return
+    threads_before = _threads()
+    fds_before = _fd_targets()
+    yield
+    problems = _leak_problems(threads_before, fds_before)
+    if problems:
+        pytest.fail("test leaked " + "; ".join(problems))

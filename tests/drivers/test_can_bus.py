@@ -1,0 +1,225 @@
+"""CAN driver on python-can's virtual interface: frames, timeouts, reconnects, ISOBUS state."""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+import uuid
+from collections.abc import AsyncIterator
+
+import can
+import pytest
+
+from drivers.backoff import Backoff
+from drivers.can_bus import CanBus, IsobusListener, MeteringCanLink
+from drivers.errors import DeviceUnavailable, DriverError
+from protocol import can_metering as cm
+from protocol import isobus as ib
+from protocol.errors import FieldError
+
+FAST = Backoff(initial_s=0.01, cap_s=0.05)
+
+
+@pytest.fixture
+def channel() -> str:
+    return f"test-{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+async def bus(channel: str) -> AsyncIterator[CanBus]:
+    async with CanBus("virtual", channel, backoff=FAST) as b:
+        yield b
+
+
+@pytest.fixture
+async def peer(channel: str) -> AsyncIterator[CanBus]:
+    """The other end of the wire (a controller or a tractor)."""
+    async with CanBus("virtual", channel, backoff=FAST) as b:
+        yield b
+
+
+async def test_frames_cross_the_virtual_bus_both_ways(bus: CanBus, peer: CanBus) -> None:
+    await bus.send(0x201, bytes(range(8)))
+    msg = await peer.recv(max_wait_s=2.0)
+    assert msg is not None and msg.arbitration_id == 0x201 and bytes(msg.data) == bytes(range(8))
+    await peer.send(0x18FE49F0, bytes(8), extended=True)
+    back = await bus.recv(max_wait_s=2.0)
+    assert back is not None and back.is_extended_id and back.arbitration_id == 0x18FE49F0
+
+
+async def test_recv_times_out_with_none(bus: CanBus) -> None:
+    assert await bus.recv(max_wait_s=0.05) is None
+
+
+async def test_close_stops_the_notifier_thread_and_is_idempotent(channel: str) -> None:
+    """The leak guard fails this test if the notifier's reader thread survives close()."""
+    b = CanBus("virtual", channel)
+    await b.open()
+    assert b.connected
+    b.close()
+    b.close()
+    assert not b.connected
+
+
+async def test_bus_reopens_after_the_interface_fails(bus: CanBus, peer: CanBus) -> None:
+    """Shutting the interface under the notifier is what an unplugged adapter looks like."""
+    inner = bus._bus
+    assert inner is not None
+    inner.shutdown()
+    # the notifier thread hits the closed bus, reports the error, recv() reconnects
+    assert await bus.recv(max_wait_s=0.5) is None
+    assert bus.stats.reconnects >= 1 and bus.connected
+    await peer.send(0x281, bytes(8))
+    msg = await bus.recv(max_wait_s=2.0)
+    assert msg is not None and msg.arbitration_id == 0x281
+
+
+async def test_unknown_interface_is_a_clear_driver_error() -> None:
+    b = CanBus("no-such-interface", "x")
+    with pytest.raises(DriverError, match="no-such-interface"):
+        await b.open()
+    b.close()
+
+
+async def test_link_sends_each_node_target_with_rising_sequence(bus: CanBus, peer: CanBus) -> None:
+    link = MeteringCanLink(bus, [1, 2], command_hz=50)
+    link.set_target(1, 37.5)
+    link.set_target(2, 0.0)
+    task = asyncio.create_task(link.run(), name="link-under-test")
+    try:
+        seen: dict[int, list[cm.SpeedCommand]] = {1: [], 2: []}
+        while min(len(v) for v in seen.values()) < 3:
+            msg = await peer.recv(max_wait_s=2.0)
+            assert msg is not None, "no command frames arrived"
+            cmd = cm.decode_command(msg.arbitration_id, bytes(msg.data))
+            seen[cmd.node_id].append(cmd)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert all(c.target_rpm == 37.5 and c.enable for c in seen[1])
+    assert all(c.target_rpm == 0 and not c.enable for c in seen[2])
+    seqs = [c.sequence for c in seen[1]]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+
+
+async def test_link_delivers_typed_status_and_skips_bad_frames(bus: CanBus, peer: CanBus) -> None:
+    link = MeteringCanLink(bus, [4], command_hz=20)
+    got: list[cm.MeterStatus] = []
+    task = asyncio.create_task(link.run(lambda s, t: got.append(s)), name="link-under-test")
+    try:
+        await peer.send(0x284, bytes(5))  # wrong DLC
+        await peer.send(0x285, bytes(8))  # status of a node we do not drive
+        await peer.send(0x2FF, bytes(8))  # unknown id
+        frame_id, data = cm.encode_status(
+            cm.MeterStatus(4, 21.5, True, True, False, False, cm.FaultCode.NONE, 0, 3, 40.0)
+        )
+        await peer.send(frame_id, data)
+        for _ in range(200):
+            if got:
+                break
+            await asyncio.sleep(0.01)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert [s.measured_rpm for s in got] == [21.5]
+    assert bus.stats.bad_frames == 1
+    latest = link.status(4)
+    assert latest is not None and latest[0].at_target
+
+
+def test_link_refuses_duplicate_or_unaddressable_nodes() -> None:
+    b = CanBus("virtual", "unused")
+    with pytest.raises(DriverError, match="share"):
+        MeteringCanLink(b, [1, 1])
+    with pytest.raises(FieldError):
+        MeteringCanLink(b, [0])
+
+
+def speed_msg(pgn: int, raw: int, direction: int = 1) -> can.Message:
+    data = struct.pack("<HIBB", raw, 0, 0xFF, 0xFC | direction)
+    return can.Message(arbitration_id=ib.build_can_id(pgn, 0xF0), data=data, is_extended_id=True)
+
+
+def hitch_msg(raw_pos: int, in_work_bits: int) -> can.Message:
+    data = bytes([raw_pos, (in_work_bits << 6) | 0x3F, 255, 255, 255, 255, 255, 255])
+    return can.Message(arbitration_id=ib.build_can_id(65093, 0xF0), data=data,
+                       is_extended_id=True)
+
+
+def test_isobus_speed_goes_stale_after_300_ms() -> None:
+    lis = IsobusListener()
+    lis.feed(speed_msg(65097, 1389), now=10.0)
+    s = lis.speed(now=10.25)
+    assert s is not None and s.source == "ground" and s.speed_kmh == pytest.approx(5.0, abs=0.01)
+    assert lis.speed(now=10.31) is None
+
+
+def test_isobus_speed_falls_back_by_priority() -> None:
+    """Machine-selected first; when it stops, ground-based; invalid raw values are skipped."""
+    lis = IsobusListener(priority=("machine_selected", "ground", "wheel"))
+    lis.feed(speed_msg(61474, 2000), now=0.0)
+    lis.feed(speed_msg(65097, 0xFE00), now=0.0)  # radar error
+    lis.feed(speed_msg(65096, 1000), now=0.2)
+    s = lis.speed(now=0.1)
+    assert s is not None and s.source == "machine_selected"
+    s = lis.speed(now=0.4)
+    assert s is not None and s.source == "wheel" and s.speed_kmh == pytest.approx(3.6)
+
+
+def test_isobus_reverse_counts_as_zero_speed() -> None:
+    lis = IsobusListener()
+    lis.feed(speed_msg(61474, 1500, direction=0), now=0.0)
+    s = lis.speed(now=0.0)
+    assert s is not None and s.speed_kmh == 0.0 and s.direction is ib.Direction.REVERSE
+
+
+def test_isobus_hitch_gives_work_state() -> None:
+    lis = IsobusListener(hitch_in_work_below_pct=30.0)
+    lis.feed(hitch_msg(20, 0b01), now=0.0)
+    assert lis.working(now=0.1) is True
+    lis.feed(hitch_msg(200, 0b00), now=0.2)
+    assert lis.working(now=0.3) is False
+    lis.feed(hitch_msg(50, 0b11), now=0.4)  # in-work n/a: position 20 % < 30 % threshold
+    assert lis.working(now=0.5) is True
+    assert lis.working(now=1.0) is None  # stale
+
+
+def test_isobus_listener_ignores_garbage_and_standard_frames() -> None:
+    lis = IsobusListener()
+    lis.feed(can.Message(arbitration_id=ib.build_can_id(65097, 1), data=bytes(3),
+                         is_extended_id=True), now=0.0)
+    lis.feed(can.Message(arbitration_id=0x201, data=bytes(8), is_extended_id=False), now=0.0)
+    assert lis.bad_frames == 1 and lis.speed(now=0.0) is None
+
+
+def test_isobus_unknown_priority_source_is_rejected() -> None:
+    with pytest.raises(DriverError, match="radar"):
+        IsobusListener(priority=("radar",))
+
+
+async def test_isobus_listener_runs_on_the_bus(bus: CanBus, peer: CanBus) -> None:
+    lis = IsobusListener(bus)
+    task = asyncio.create_task(lis.run(), name="isobus-under-test")
+    try:
+        msg = speed_msg(65097, 2500)
+        await peer.send(msg.arbitration_id, bytes(msg.data), extended=True)
+        for _ in range(200):
+            if lis.speed_kmh() is not None:
+                break
+            await asyncio.sleep(0.005)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert lis.speed_kmh() == pytest.approx(9.0)
+
+
+async def test_send_on_a_failed_bus_reports_unavailable_then_recovers(bus: CanBus,
+                                                                      peer: CanBus) -> None:
+    inner = bus._bus
+    assert inner is not None
+    inner.shutdown()
+    with pytest.raises(DeviceUnavailable, match="send failed"):
+        await bus.send(0x201, bytes(8))
+    await bus.send(0x202, bytes(8))  # reopened by the failed send
+    msg = await peer.recv(max_wait_s=2.0)
+    assert msg is not None and msg.arbitration_id == 0x202

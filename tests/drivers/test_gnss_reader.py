@@ -1,0 +1,289 @@
+"""GNSS epochs: assembly from interleaved sentences, and the reader over a real pty."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import math
+import time
+from collections.abc import AsyncIterator, Callable
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import pymap3d
+import pytest
+
+from drivers.backoff import Backoff
+from drivers.gnss_reader import (
+    EpochAssembler,
+    GnssEpoch,
+    GnssReader,
+    fix_from_gga_quality,
+)
+from protocol.gnss import GnssEvent, decode_line
+from protocol.nmea import Rmc, encode_nmea
+from protocol.unicore import encode_headinga, utc_to_gps
+from simulator.plant import Drive, Leg
+from simulator.um982 import Fix, Um982Emulator, um982_sentences
+
+T0 = datetime(2024, 6, 1, 8, 0, 0, tzinfo=UTC)
+
+
+def _events(
+    utc: datetime, fix: Fix = "rtk_fixed", heading_ok: bool = True, heading: float = 91.0
+) -> list[GnssEvent]:
+    return [
+        decode_line(ln)
+        for ln in um982_sentences(utc, 45.0, 7.0, 250.0, 8.0, 90.0, heading, fix, heading_ok)
+    ]
+
+
+def _feed(asm: EpochAssembler, events: list[GnssEvent], t0: float = 100.0) -> list[GnssEpoch]:
+    out: list[GnssEpoch] = []
+    for i, ev in enumerate(events):
+        out += asm.add(ev, t0 + 0.001 * i)
+    return out
+
+
+# -- epoch assembly (pure) -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("order", list(itertools.permutations(range(3))))
+def test_rmc_gga_heading_in_any_order_make_one_complete_epoch(order: tuple[int, ...]) -> None:
+    """The epoch is emitted on the last of its three sentences, whatever the order."""
+    events = _events(T0)
+    asm = EpochAssembler()
+    out: list[GnssEpoch] = []
+    for n, i in enumerate(order):
+        got = asm.add(events[i], 50.0 + n)
+        assert (len(got) == 1) == (n == 2)
+        out += got
+    (epoch,) = out
+    assert epoch.utc == T0 and epoch.t_mono == 50.0  # arrival of the *first* sentence
+    assert epoch.lat == pytest.approx(45.0) and epoch.lon == pytest.approx(7.0)
+    assert epoch.fix == "rtk_fixed" and epoch.num_sv == 28 and epoch.alt_m == 250.0
+    assert epoch.speed_kmh == pytest.approx(8.0, abs=0.002) and epoch.course_deg == 90.0
+    assert epoch.heading_deg == pytest.approx(91.0) and epoch.heading_valid
+
+
+def test_missing_heading_epoch_is_emitted_when_the_next_time_begins() -> None:
+    asm = EpochAssembler()
+    first = _events(T0)[:2]
+    assert _feed(asm, first) == []
+    out = asm.add(_events(T0 + timedelta(seconds=0.1))[0], 101.0)
+    (epoch,) = out
+    assert epoch.utc == T0 and epoch.heading_deg is None and not epoch.heading_valid
+    assert epoch.speed_kmh is not None  # what it had is kept
+
+
+def test_heading_arriving_after_a_newer_epoch_began_is_late_and_dropped() -> None:
+    asm = EpochAssembler()
+    rmc, gga, hdg = _events(T0)
+    _feed(asm, [rmc, gga])
+    asm.add(_events(T0 + timedelta(seconds=0.1))[0], 101.0)
+    assert asm.add(hdg, 101.01) == []
+    assert asm.counts["late"] == 1
+
+
+def test_float_heading_is_carried_but_not_valid_and_no_solution_means_no_heading() -> None:
+    asm = EpochAssembler()
+    rmc, gga, _ = _events(T0)
+    week, tow = utc_to_gps(T0)
+    float_hdg = decode_line(encode_headinga(week, tow, 33.0, pos_type="NARROW_FLOAT"))
+    (epoch,) = _feed(asm, [rmc, gga, float_hdg])
+    assert epoch.heading_deg == 33.0 and not epoch.heading_valid
+    (epoch,) = _feed(asm, _events(T0 + timedelta(seconds=0.1), heading_ok=False))
+    assert epoch.heading_deg is None and not epoch.heading_valid
+
+
+@pytest.mark.parametrize(
+    ("quality", "fix"),
+    [(4, "rtk_fixed"), (5, "rtk_float"), (2, "dgps"), (1, "single"), (0, "none"), (6, "none")],
+)
+def test_gga_quality_mapping(quality: int, fix: str) -> None:
+    assert fix_from_gga_quality(quality) == fix
+
+
+@pytest.mark.parametrize("fix", ["rtk_fixed", "rtk_float", "dgps", "single"])
+def test_epoch_fix_follows_gga_quality(fix: Fix) -> None:
+    (epoch,) = _feed(EpochAssembler(), _events(T0, fix=fix))
+    assert epoch.fix == fix
+
+
+@pytest.mark.parametrize("fix", ["rtk_fixed", "rtk_float", "dgps", "single"])
+def test_without_gga_the_rmc_mode_gives_the_fix(fix: Fix) -> None:
+    rmc, _, hdg = _events(T0, fix=fix)
+    (epoch,) = _feed(EpochAssembler(required={"RMC", "HEADING"}), [rmc, hdg])
+    assert epoch.fix == fix and epoch.alt_m is None and epoch.num_sv is None
+
+
+def test_no_fix_epoch_has_no_position_and_is_not_emitted() -> None:
+    asm = EpochAssembler()
+    assert _feed(asm, _events(T0, fix="none")) == []
+    assert asm.counts["no_position"] == 1
+
+
+def test_time_rollover_at_midnight_keeps_order_and_advances_the_date() -> None:
+    """GGA comes first in the new day, before any RMC carries the new date."""
+    asm = EpochAssembler(required={"GGA", "RMC"})
+    late = datetime(2024, 6, 1, 23, 59, 59, 900_000, tzinfo=UTC)
+    rmc, gga, _ = _events(late)
+    out = _feed(asm, [rmc, gga])
+    next_gga = _events(late + timedelta(seconds=0.1))[1]
+    out += asm.add(next_gga, 200.0)
+    out += asm.flush()
+    assert [e.utc for e in out] == [late, datetime(2024, 6, 2, tzinfo=UTC)]
+
+
+def test_hdt_and_ths_attach_to_the_epoch_in_progress() -> None:
+    asm = EpochAssembler()
+    rmc, gga, _ = _events(T0)
+    out = _feed(asm, [rmc, gga, decode_line(encode_nmea("GNTHS,12.5000,A"))])
+    (epoch,) = out
+    assert epoch.heading_deg == 12.5 and epoch.heading_valid
+    rmc2, gga2, _ = _events(T0 + timedelta(seconds=0.1))
+    (epoch2,) = _feed(asm, [rmc2, gga2, decode_line(encode_nmea("GPHDT,13.25,T"))])
+    assert epoch2.heading_deg == 13.25 and epoch2.heading_valid
+
+
+def test_untimed_sentence_with_nothing_open_is_counted() -> None:
+    asm = EpochAssembler()
+    assert asm.add(decode_line(encode_nmea("GPHDT,13.25,T")), 1.0) == []
+    assert asm.counts["untimed"] == 1
+
+
+def test_expire_emits_epochs_whose_first_sentence_is_old_enough() -> None:
+    asm = EpochAssembler()
+    _feed(asm, _events(T0)[:2], t0=10.0)
+    assert asm.expire(older_than_mono=9.0) == []
+    (epoch,) = asm.expire(older_than_mono=10.5)
+    assert epoch.utc == T0
+
+
+def test_rmc_without_time_is_counted_untimed() -> None:
+    asm = EpochAssembler()
+    rmc = decode_line(encode_nmea("GNRMC,,V,,,,,,,,,,N,V"))
+    assert isinstance(rmc, Rmc)
+    assert asm.add(rmc, 1.0) == []
+    assert asm.counts["untimed"] == 1
+
+
+# -- the reader over a real pty, fed by the emulator ---------------------------------------
+
+ORIGIN = (48.0, 11.0)
+
+
+def _straight_drive() -> Drive:
+    return Drive([Leg(60.0, 8.0)], start_heading_deg=30.0)
+
+
+@pytest.fixture
+async def emulator(tmp_path: Path) -> AsyncIterator[Um982Emulator]:
+    drive = _straight_drive()
+    async with Um982Emulator(
+        drive.pose_at, origin_lat=ORIGIN[0], origin_lon=ORIGIN[1], seed=7,
+        link_path=tmp_path / "gnss", output_latency_s=0.02,
+    ) as emu:
+        yield emu
+
+
+async def _wait_for(cond: Callable[[], bool], within_s: float = 5.0) -> None:
+    deadline = time.monotonic() + within_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        await asyncio.sleep(0.02)
+
+
+def _fast_backoff() -> Backoff:
+    return Backoff(initial_s=0.05, cap_s=0.2)
+
+
+async def test_reader_delivers_epochs_matching_ground_truth(emulator: Um982Emulator) -> None:
+    """Positions within a few RTK sigmas of the truth; arrival after the epoch instant."""
+    epochs: list[GnssEpoch] = []
+    async with GnssReader(emulator.device_path, on_epoch=epochs.append) as reader:
+        await _wait_for(lambda: len(epochs) >= 8)
+        assert reader.available
+        assert reader.speed_kmh() is not None
+        stats = reader.stats
+    truth = {t.utc: t for t in emulator.truth}
+    for e in epochs:
+        t = truth[e.utc]
+        east, north, _ = pymap3d.geodetic2enu(e.lat, e.lon, 0.0, t.lat, t.lon, 0.0)
+        assert math.hypot(east, north) < 0.06  # 1 cm sigma per axis
+        assert 0.0 <= e.t_mono - t.t_mono < 0.5  # stamped on arrival, after the epoch instant
+        assert e.fix == "rtk_fixed" and e.heading_valid
+        heading_err = (e.heading_deg - t.pose.heading_deg + 180.0) % 360.0 - 180.0  # type: ignore[operator]
+        assert abs(heading_err) < 0.6
+    assert [e.utc for e in epochs] == sorted({e.utc for e in epochs})
+    assert stats.rejected == {} and stats.reconnects == 0 and stats.connected
+
+
+async def test_reader_stamps_with_the_injected_clock(emulator: Um982Emulator) -> None:
+    epochs: list[GnssEpoch] = []
+
+    def shifted() -> float:
+        return time.monotonic() + 1000.0
+
+    async with GnssReader(emulator.device_path, on_epoch=epochs.append, clock=shifted):
+        await _wait_for(lambda: len(epochs) >= 2)
+    assert all(abs(e.t_mono - shifted()) < 10.0 for e in epochs)
+
+
+async def test_corrupted_lines_and_noise_are_counted_and_skipped(
+    emulator: Um982Emulator,
+) -> None:
+    epochs: list[GnssEpoch] = []
+    async with GnssReader(emulator.device_path, on_epoch=epochs.append) as reader:
+        await _wait_for(lambda: len(epochs) >= 2)
+        emulator.corrupt_next(3)
+        emulator.garbage(40)
+        await _wait_for(lambda: reader.stats.rejected.get("checksum", 0) >= 3)
+        n = len(epochs)
+        await _wait_for(lambda: len(epochs) >= n + 3)
+        stats = reader.stats
+    assert stats.rejected["checksum"] == 3
+    assert sum(stats.rejected.values()) > 3  # the noise is counted too
+    assert epochs[-1].heading_valid
+
+
+async def test_dropped_heading_still_gives_epochs_without_heading(
+    emulator: Um982Emulator,
+) -> None:
+    epochs: list[GnssEpoch] = []
+    async with GnssReader(emulator.device_path, on_epoch=epochs.append):
+        await _wait_for(lambda: len(epochs) >= 2)
+        emulator.drop_heading(True)
+        await _wait_for(lambda: sum(e.heading_deg is None for e in epochs) >= 3)
+        emulator.drop_heading(False)
+        await _wait_for(lambda: epochs[-1].heading_valid)
+
+
+async def test_port_vanishing_is_survived_by_reconnecting(emulator: Um982Emulator) -> None:
+    epochs: list[GnssEpoch] = []
+    async with GnssReader(
+        emulator.device_path, on_epoch=epochs.append, stale_after_s=0.3, backoff=_fast_backoff()
+    ) as reader:
+        await _wait_for(lambda: len(epochs) >= 3)
+        emulator.unplug()
+        await _wait_for(lambda: not reader.stats.connected)
+        await _wait_for(lambda: not reader.available)
+        assert reader.speed_kmh() is None
+        before = epochs[-1].utc
+        emulator.replug()
+        await _wait_for(lambda: reader.stats.reconnects >= 1 and epochs[-1].utc > before)
+        await _wait_for(lambda: reader.available)
+        assert reader.stats.last_error is not None
+
+
+async def test_missing_port_is_retried_until_it_appears(tmp_path: Path) -> None:
+    epochs: list[GnssEpoch] = []
+    link = tmp_path / "late-gnss"
+    reader = GnssReader(str(link), on_epoch=epochs.append, backoff=_fast_backoff())
+    async with reader:
+        await asyncio.sleep(0.3)
+        assert not reader.stats.connected and "cannot open" in (reader.stats.last_error or "")
+        drive = _straight_drive()
+        async with Um982Emulator(drive.pose_at, origin_lat=1.0, origin_lon=2.0, link_path=link):
+            await _wait_for(lambda: len(epochs) >= 2)

@@ -1,0 +1,297 @@
+"""Seed-tube sensors behind one interface: serial over a real pty, GPIO over a fake request."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import time
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import pytest
+
+from drivers.backoff import Backoff
+from drivers.errors import DeviceUnavailable
+from drivers.seed_sensors import (
+    GpioSeedSensors,
+    SeedEdgeEvent,
+    SeedSensorSource,
+    SerialSeedSensors,
+    gpiod_request,
+)
+from simulator.pty_link import PtyPair
+
+FAST = Backoff(initial_s=0.02, cap_s=0.05)
+
+
+WAIT_S = 3.0
+
+
+async def wait_for(cond: Callable[[], bool]) -> None:
+    deadline = time.monotonic() + WAIT_S
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        await asyncio.sleep(0.01)
+
+
+@contextlib.asynccontextmanager
+async def running(source: SeedSensorSource) -> AsyncIterator[None]:
+    task = asyncio.create_task(source.run(), name="seed-sensors-under-test")
+    try:
+        yield
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        await asyncio.sleep(0.05)  # let the serial transport close its fd
+
+
+@pytest.fixture
+def pty(tmp_path: Path) -> Iterator[PtyPair]:
+    with PtyPair(tmp_path / "ttySEED") as pair:
+        yield pair
+
+
+# ---------------------------------------------------------------- serial
+
+
+async def test_serial_lines_become_edges_stamped_on_arrival(pty: PtyPair) -> None:
+    got: list[SeedEdgeEvent] = []
+    ticks = iter(range(1000, 100000))
+    src = SerialSeedSensors(
+        pty.device_path, 115200, 6, got.append, clock=lambda: float(next(ticks)), backoff=FAST
+    )
+    async with running(src):
+        await wait_for(lambda: src.available)
+        os.write(pty.master_fd, b"D,1\r\n")
+        await wait_for(lambda: len(got) == 1)
+        os.write(pty.master_fd, b"D,6\r\n")
+        await wait_for(lambda: len(got) == 2)
+    assert [e.row for e in got] == [1, 6]
+    assert got[0].t_mono < got[1].t_mono  # each stamped by the clock when it arrived
+    assert src.stats.edges == 2
+
+
+async def test_serial_stamps_are_the_monotonic_arrival_time(pty: PtyPair) -> None:
+    got: list[SeedEdgeEvent] = []
+    src = SerialSeedSensors(pty.device_path, 115200, rows=6, on_edge=got.append, backoff=FAST)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        before = time.monotonic()
+        os.write(pty.master_fd, b"D,3\r\n")
+        await wait_for(lambda: bool(got))
+        after = time.monotonic()
+    assert before <= got[0].t_mono <= after
+
+
+async def test_serial_bad_lines_are_counted_and_reading_continues(pty: PtyPair) -> None:
+    got: list[SeedEdgeEvent] = []
+    src = SerialSeedSensors(pty.device_path, 115200, rows=4, on_edge=got.append, backoff=FAST)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        os.write(pty.master_fd, b"D,9\r\n\xff\xfe\r\nD,2\r\n")
+        await wait_for(lambda: len(got) == 1)
+    assert got[0].row == 2
+    assert src.stats.rejected == 2
+    assert src.stats.last_rejected is not None and "not ASCII" in src.stats.last_rejected
+
+
+async def test_serial_a_failing_callback_does_not_stop_the_reader(pty: PtyPair) -> None:
+    seen: list[int] = []
+
+    def flaky(ev: SeedEdgeEvent) -> None:
+        seen.append(ev.row)
+        if ev.row == 1:
+            raise RuntimeError("consumer bug")
+
+    src = SerialSeedSensors(pty.device_path, 115200, rows=6, on_edge=flaky, backoff=FAST)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        os.write(pty.master_fd, b"D,1\r\nD,2\r\n")
+        await wait_for(lambda: seen == [1, 2])
+
+
+async def test_serial_reconnects_when_the_port_vanishes_and_returns(tmp_path: Path) -> None:
+    link = tmp_path / "ttySEED"
+    got: list[SeedEdgeEvent] = []
+    first = PtyPair(link)
+    src = SerialSeedSensors(str(link), 115200, rows=6, on_edge=got.append, backoff=FAST)
+    try:
+        async with running(src):
+            await wait_for(lambda: src.available)
+            first.close()  # unplugged
+            await wait_for(lambda: not src.available)
+            assert src.stats.last_error is not None
+            with PtyPair(link) as second:  # plugged back in
+                await wait_for(lambda: src.available)
+                os.write(second.master_fd, b"D,5\r\n")
+                await wait_for(lambda: bool(got))
+    finally:
+        first.close()
+    assert got[0].row == 5
+    assert src.stats.reconnects >= 1
+
+
+async def test_serial_a_missing_port_is_retried_not_fatal(tmp_path: Path) -> None:
+    src = SerialSeedSensors(str(tmp_path / "nope"), 115200, 6, lambda e: None, backoff=FAST)
+    async with running(src):
+        await wait_for(lambda: src.stats.last_error is not None)
+        assert not src.available
+    assert "cannot open" in (src.stats.last_error or "")
+
+
+def test_serial_refuses_an_impossible_row_count() -> None:
+    with pytest.raises(ValueError, match="rows must be"):
+        SerialSeedSensors("/dev/null", 115200, rows=0, on_edge=lambda e: None)
+
+
+# ---------------------------------------------------------------- gpio (fake line request)
+
+
+class FakeEdgeType(Enum):
+    RISING_EDGE = 1
+    FALLING_EDGE = 2
+
+
+@dataclass(frozen=True)
+class FakeEdgeEvent:
+    event_type: FakeEdgeType
+    timestamp_ns: int
+    line_offset: int
+
+
+@dataclass
+class FakeLineRequest:
+    """Stands in for gpiod.LineRequest: a real fd that becomes readable when events queue."""
+
+    offsets: Sequence[int]
+    bias: str
+    fail_reads: bool = False
+    queue: list[FakeEdgeEvent] = field(default_factory=list)
+    released: bool = False
+
+    def __post_init__(self) -> None:
+        self._r, self._w = os.pipe()
+        os.set_blocking(self._r, False)
+
+    @property
+    def fd(self) -> int:
+        return self._r
+
+    def push(self, *events: FakeEdgeEvent) -> None:
+        self.queue.extend(events)
+        os.write(self._w, b"x")
+
+    def read_edge_events(self) -> list[FakeEdgeEvent]:
+        with contextlib.suppress(BlockingIOError):
+            os.read(self._r, 64)
+        if self.fail_reads:
+            raise OSError(5, "Input/output error")
+        out, self.queue = self.queue, []
+        return out
+
+    def release(self) -> None:
+        if not self.released:
+            self.released = True
+            os.close(self._r)
+            os.close(self._w)
+
+
+class FakeChip:
+    def __init__(self, fail_opens: int = 0) -> None:
+        self.requests: list[FakeLineRequest] = []
+        self.fail_opens = fail_opens
+        self.calls = 0
+
+    def __call__(self, chip: str, offsets: Sequence[int], bias: str) -> FakeLineRequest:
+        self.calls += 1
+        if self.calls <= self.fail_opens:
+            raise FileNotFoundError(2, "No such file or directory", chip)
+        req = FakeLineRequest(list(offsets), bias)
+        self.requests.append(req)
+        return req
+
+
+def falling(offset: int, t_s: float) -> FakeEdgeEvent:
+    return FakeEdgeEvent(FakeEdgeType.FALLING_EDGE, round(t_s * 1e9), offset)
+
+
+async def test_gpio_falling_edges_map_lines_to_rows_with_kernel_timestamps() -> None:
+    got: list[SeedEdgeEvent] = []
+    chip = FakeChip()
+    src = GpioSeedSensors("/dev/gpiochip0", [17, 27, 22], 2.0, got.append, request_factory=chip)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        assert chip.requests[0].offsets == [17, 27, 22]
+        assert chip.requests[0].bias == "pull_up"
+        chip.requests[0].push(falling(27, 100.5), falling(22, 100.6))
+        await wait_for(lambda: len(got) == 2)
+    assert got == [SeedEdgeEvent(2, 100.5), SeedEdgeEvent(3, 100.6)]
+    assert chip.requests[0].released
+
+
+async def test_gpio_bounces_within_the_debounce_time_are_dropped_per_row() -> None:
+    got: list[SeedEdgeEvent] = []
+    src = GpioSeedSensors("chip", [5, 6], 2.0, got.append, request_factory=FakeChip())
+    src.handle_event(falling(5, 10.0))
+    src.handle_event(falling(5, 10.0015))  # bounce, 1.5 ms later
+    src.handle_event(falling(6, 10.0015))  # other row: not a bounce
+    src.handle_event(falling(5, 10.0025))  # 2.5 ms after the first: a new seed
+    assert [(e.row, e.t_mono) for e in got] == [(1, 10.0), (2, 10.0015), (1, 10.0025)]
+    assert src.stats.debounced == 1
+
+
+def test_gpio_rising_edges_are_ignored_and_unknown_lines_counted() -> None:
+    got: list[SeedEdgeEvent] = []
+    src = GpioSeedSensors("chip", [5], 1.0, got.append, request_factory=FakeChip())
+    src.handle_event(FakeEdgeEvent(FakeEdgeType.RISING_EDGE, 1, 5))
+    src.handle_event(falling(9, 1.0))
+    assert got == []
+    assert src.stats.rejected == 1
+
+
+async def test_gpio_a_missing_chip_is_retried_until_it_appears() -> None:
+    chip = FakeChip(fail_opens=2)
+    src = GpioSeedSensors("chip", [5], 1.0, lambda e: None, request_factory=chip, backoff=FAST)
+    async with running(src):
+        await wait_for(lambda: src.available)
+    assert chip.calls == 3
+    assert "cannot request lines" in (src.stats.last_error or "")
+
+
+async def test_gpio_a_read_error_releases_and_requests_again() -> None:
+    chip = FakeChip()
+    src = GpioSeedSensors("chip", [5], 1.0, lambda e: None, request_factory=chip, backoff=FAST)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        chip.requests[0].fail_reads = True
+        chip.requests[0].push(falling(5, 1.0))
+        await wait_for(lambda: len(chip.requests) == 2 and src.available)
+        assert chip.requests[0].released
+    assert src.stats.reconnects == 1
+
+
+@pytest.mark.parametrize(
+    ("lines", "debounce", "message"),
+    [([], 1.0, "one GPIO line per row"), ([4, 4], 1.0, "used twice"), ([4], -1.0, ">= 0")],
+)
+def test_gpio_bad_configuration_is_refused(
+    lines: list[int], debounce: float, message: str
+) -> None:
+    with pytest.raises(ValueError, match=message):
+        GpioSeedSensors("chip", lines, debounce, lambda e: None)
+
+
+def test_gpio_without_libgpiod_says_how_to_install_it() -> None:
+    try:
+        import gpiod  # noqa: F401
+    except ImportError:
+        with pytest.raises(DeviceUnavailable, match=r"sowgate\[gpio\]"):
+            gpiod_request("/dev/gpiochip0", [1], "pull_up")
+    else:  # pragma: no cover - only where the optional extra is installed
+        with pytest.raises(OSError):
+            gpiod_request("/nonexistent/gpiochip", [1], "pull_up")

@@ -1,0 +1,222 @@
+"""Calibration fits from synthetic weighings with known answers, the file, and the CLI."""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+
+from gateway import calibration as cal
+from gateway.calibration_cli import add_calibration_commands, run_calibration
+
+# paper B table 2 results (g/rev) and small weighing errors that average out
+PAPER_B_G_PER_REV = {"shallow": 16.97, "deep": 29.31, "seed": 11.20}
+STABLE_ERRORS = {20.0: 0.012, 30.0: -0.008, 40.0: 0.004, 50.0: -0.010, 60.0: 0.002}
+
+
+def paper_b_runs(g_per_rev: float) -> list[cal.RotationRun]:
+    """30 s runs at 10..60 r/min; the 10 r/min run is way off (unstable, must be excluded)."""
+    runs = [cal.RotationRun(10.0, 30.0, g_per_rev * 10 / 2 * 1.35)]
+    runs += [cal.RotationRun(n, 30.0, g_per_rev * n / 2 * (1 + e))
+             for n, e in STABLE_ERRORS.items()]
+    return runs
+
+
+@pytest.mark.parametrize(("channel", "expected"), sorted(PAPER_B_G_PER_REV.items()))
+def test_paper_b_table_2_is_reproduced(channel: str, expected: float) -> None:
+    fit = cal.grams_per_rev(paper_b_runs(expected))
+    assert round(fit.grams_per_rev, 2) == expected
+    assert [r.rpm for r in fit.excluded] == [10.0]
+    assert len(fit.used) == 5
+    assert fit.r2 > 0.999
+    assert 0 < fit.cv_pct < 2
+
+
+def test_thirty_second_runs_are_m_equals_2M_over_n() -> None:
+    run = cal.RotationRun(40.0, 30.0, 339.4)
+    assert run.grams_per_rev == pytest.approx(2 * 339.4 / 40)
+    assert cal.RotationRun(40.0, 60.0, 678.8).grams_per_rev == pytest.approx(16.97)
+
+
+def test_too_few_stable_runs_are_refused() -> None:
+    with pytest.raises(cal.CalibrationError, match="at least 2 runs"):
+        cal.grams_per_rev([cal.RotationRun(10, 30, 80), cal.RotationRun(25, 30, 210)])
+    with pytest.raises(cal.CalibrationError, match="> 0"):
+        cal.grams_per_rev([cal.RotationRun(0, 30, 80), cal.RotationRun(25, 30, 210)])
+
+
+def test_paper_a_motor_line_is_recovered_with_r2_and_residuals() -> None:
+    """Rapeseed R = 0.5330 K - 5.7088 (paper A eq. 5) plus +-0.2 r/min reading noise."""
+    duty = [20.0, 30.0, 40.0, 50.0, 60.0, 70.0]
+    noise = [0.2, -0.2, 0.1, -0.1, 0.2, -0.2]
+    rpm = [0.5330 * k - 5.7088 + e for k, e in zip(duty, noise, strict=True)]
+    fit = cal.fit_motor_line(duty, rpm)
+    assert fit.slope == pytest.approx(0.5330, abs=0.01)
+    assert fit.intercept == pytest.approx(-5.7088, abs=0.5)
+    assert fit.r2 > 0.99
+    assert len(fit.residuals) == 6 and max(abs(r) for r in fit.residuals) < 0.3
+
+
+def test_paper_a_meter_quadratic_is_recovered_exactly() -> None:
+    """Wheat Q = -0.644 w^2 + 132.212 w - 398.316 (paper A eq. 6) over w 20..45."""
+    w = [20.0, 25.0, 30.0, 35.0, 40.0, 45.0]
+    q = [-0.644 * x * x + 132.212 * x - 398.316 for x in w]
+    fit = cal.fit_meter_quadratic(w, q, (20.0, 45.0))
+    assert (fit.a, fit.b, fit.c) == pytest.approx((-0.644, 132.212, -398.316), rel=1e-6)
+    assert fit.r2 == pytest.approx(1.0)
+
+
+def test_a_fit_that_turns_over_inside_the_working_range_is_refused() -> None:
+    w = [20.0, 25.0, 30.0, 35.0, 40.0, 45.0]
+    q = [-0.5 * x * x + 30 * x for x in w]  # peaks at 30 r/min
+    with pytest.raises(cal.CalibrationError, match=r"not increasing over 20\.\.45"):
+        cal.fit_meter_quadratic(w, q, (20.0, 45.0))
+    assert cal.fit_meter_quadratic(w, q, (20.0, 28.0)).a == pytest.approx(-0.5)
+
+
+def test_a_motor_that_slows_with_duty_is_refused() -> None:
+    with pytest.raises(cal.CalibrationError, match="does not rise"):
+        cal.fit_motor_line([20, 40, 60], [30, 20, 10])
+
+
+def test_fits_need_distinct_set_points() -> None:
+    with pytest.raises(cal.CalibrationError, match="distinct"):
+        cal.fit_quadratic([10, 10, 20], [1, 2, 3])
+    with pytest.raises(cal.CalibrationError, match="y values"):
+        cal.fit_line([1, 2], [1])
+
+
+def test_speed_calibration_over_paper_a_50_m() -> None:
+    samples = [(t * 0.1, 3.6 * 0.97) for t in range(0, 501)]  # reads 3 % slow for 50 s
+    integrated = cal.integrate_distance(samples)
+    assert integrated == pytest.approx(48.5)
+    res = cal.speed_correction("radar", 50.0, integrated)
+    assert res.factor == pytest.approx(50 / 48.5)
+
+
+def test_implausible_speed_factor_is_refused() -> None:
+    with pytest.raises(cal.CalibrationError, match="outside"):
+        cal.speed_correction("radar", 50.0, 20.0)
+    with pytest.raises(cal.CalibrationError, match="at least"):
+        cal.speed_correction("radar", 5.0, 5.0)
+
+
+def test_paper_a_level_ground_zero() -> None:
+    """Raw -1.25° on level ground becomes 0° after zeroing (zeroed = raw - offset)."""
+    res = cal.tilt_level_zero([-1.25, -1.26, -1.24])
+    assert res.zero_offset_deg is not None
+    assert res.zero_offset_deg == pytest.approx(-1.25)
+    assert -1.25 - res.zero_offset_deg == pytest.approx(0.0)
+
+
+def test_paper_b_lowered_critical_angle_is_mean_of_3_readings() -> None:
+    res = cal.tilt_lowered_critical([5.2, 5.4, 5.3])
+    assert res.critical_angle_deg == pytest.approx(5.3)
+    with pytest.raises(cal.CalibrationError, match="at least 3"):
+        cal.tilt_lowered_critical([5.2, 5.4])
+    with pytest.raises(cal.CalibrationError, match="keep the machine still"):
+        cal.tilt_lowered_critical([5.2, 9.4, 5.3])
+
+
+def test_store_keeps_previous_values_for_undo(tmp_path: Path) -> None:
+    store = cal.CalibrationStore(tmp_path)
+    store.save("rotation.seed", {"v": 1})
+    store.save("speed.radar", {"v": 9})
+    store.save("rotation.seed", {"v": 2})
+    assert store.get("rotation.seed") == {"v": 2}
+    assert store.undo("rotation.seed") == ("rotation.seed", {"v": 1})
+    assert store.get("rotation.seed") == {"v": 1}
+    assert store.undo() == ("speed.radar", None)  # most recent remaining save
+    assert store.get("speed.radar") is None and store.get("rotation.seed") == {"v": 1}
+    assert store.undo() == ("rotation.seed", None)
+    with pytest.raises(cal.CalibrationError, match="nothing to undo"):
+        store.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json"]  # no temp files
+
+
+def test_corrupt_calibration_file_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / "calibration.json").write_text("{truncated")
+    with pytest.raises(cal.CalibrationError, match="move it aside"):
+        cal.CalibrationStore(tmp_path).save("x", {})
+    assert (tmp_path / "calibration.json").read_text() == "{truncated"  # not overwritten
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    root = argparse.ArgumentParser(prog="sowgate")
+    add_calibration_commands(root.add_subparsers(dest="command"))
+    return root.parse_args(argv)
+
+
+def run(argv: list[str], answers: list[float] | None = None) -> tuple[int, str]:
+    out = io.StringIO()
+    console = Console(file=out, width=120)
+    queue = list(answers or [])
+    code = run_calibration(parse(argv), console=console, ask=lambda _q: queue.pop(0))
+    return code, out.getvalue()
+
+
+def test_cli_rotation_with_mass_flags_saves_paper_b_result(tmp_path: Path) -> None:
+    masses = ",".join(f"{r.mass_g:.4f}" for r in paper_b_runs(29.31))
+    code, out = run(["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "deep",
+                     "--mass", masses, "--no-wait"])
+    assert code == 0, out
+    assert "29.31" in out and "excluded" in out
+    doc = json.loads((tmp_path / "calibration.json").read_text())
+    assert round(doc["current"]["rotation.deep"]["result"]["grams_per_rev"], 2) == 29.31
+
+
+def test_cli_timed_runs_prompt_for_each_mass(tmp_path: Path) -> None:
+    code, out = run(["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "seed",
+                     "--speeds", "20,40", "--seconds", "0.2"],
+                    answers=[11.2 * 20 * 0.2 / 60, 11.2 * 40 * 0.2 / 60])
+    assert code == 0, out
+    assert "g/rev = 11.20" in out
+
+
+def test_cli_paper_a_rotation_and_refusal(tmp_path: Path) -> None:
+    w = [20.0, 25.0, 30.0, 35.0, 40.0, 45.0]
+    duty = [(x + 19.8309) / 0.6671 for x in w]
+    masses = [-0.644 * x * x + 132.212 * x - 398.316 for x in w]  # 60 s runs: g == g/min
+    base = ["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "wheat",
+            "--model", "paper_a", "--no-wait", "--duties", ",".join(map(str, duty)),
+            "--rpm", ",".join(map(str, w))]
+    code, out = run([*base, "--mass", ",".join(map(str, masses))])
+    assert code == 0, out
+    saved = cal.CalibrationStore(tmp_path).get("rotation.wheat")
+    assert saved is not None
+    assert saved["result"]["motor"]["slope"] == pytest.approx(0.6671)
+    bad = [-0.5 * x * x + 30 * x + 500 for x in w]
+    code, out = run([*base, "--mass", ",".join(map(str, bad))])
+    assert code == 1 and "not increasing" in out
+    assert cal.CalibrationStore(tmp_path).get("rotation.wheat") == saved  # unchanged
+
+
+def test_cli_speed_from_a_logged_run(tmp_path: Path) -> None:
+    log = tmp_path / "run.csv"
+    log.write_text("time_s,speed_kmh\n" + "".join(f"{t / 10},{3.6 * 1.02}\n" for t in range(501)))
+    code, out = run(["calibrate", "--state-dir", str(tmp_path), "speed", "--source", "gnss",
+                     "--samples", str(log)])
+    assert code == 0, out
+    saved = cal.CalibrationStore(tmp_path).get("speed.gnss")
+    assert saved is not None and saved["result"]["factor"] == pytest.approx(1 / 1.02)
+
+
+def test_cli_tilt_undo_and_show(tmp_path: Path) -> None:
+    sd = ["calibrate", "--state-dir", str(tmp_path)]
+    assert run([*sd, "tilt", "--mode", "lowered"], answers=[5.3, 5.2, 5.4])[0] == 0
+    assert run([*sd, "tilt", "--mode", "lowered", "--readings", "6,6,6"])[0] == 0
+    code, out = run([*sd, "show"])
+    assert code == 0 and '"critical_angle_deg": 6.0' in out
+    assert run([*sd, "undo", "--key", "tilt.inclinometer"])[0] == 0
+    saved = cal.CalibrationStore(tmp_path).get("tilt.inclinometer")
+    assert saved is not None and saved["result"]["critical_angle_deg"] == pytest.approx(5.3)
+
+
+def test_cli_wrong_mass_count_is_refused(tmp_path: Path) -> None:
+    code, out = run(["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "x",
+                     "--mass", "1,2", "--no-wait"])
+    assert code == 1 and "--mass has 2 values for 6 runs" in out

@@ -1,0 +1,101 @@
+"""The config file is the fitter's contract: every mistake names its key and the allowed range."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from gateway.config import ConfigError, load_config, parse_config, state_dir
+
+CONTRACT = """
+[machine]
+id = "seeder-01"
+working_width_m = 2.0
+rows = 6
+[rs485]
+port = "/dev/ttyUSB0"
+baudrate = 9600
+parity = "N"
+poll_hz = 3.0
+timeout_s = 0.3
+[radar]
+device_id = 1
+register = 0
+data_type = "uint16"
+scale = 0.01
+unit = "km/h"
+[inclinometer]
+device_id = 0x50
+axis = "pitch"
+layout = "witmotion16"
+zero_offset_deg = 0.0
+critical_angle_deg = 0.0
+hysteresis_deg = 0.5
+[actuators]
+device_id = 3
+motor_register = 0
+fan_register = 1
+[hmi]
+port = "/dev/ttyS1"
+baudrate = 9600
+"""
+
+
+def test_the_documented_contract_loads(tmp_path: Path) -> None:
+    f = tmp_path / "sowgate.toml"
+    f.write_text(CONTRACT)
+    s = load_config(f)
+    assert s.inclinometer.device_id == 0x50
+    assert s.radar.address == 0
+    assert s.control.crops["wheat"].meter_b == pytest.approx(132.212)
+
+
+def test_missing_file_is_an_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.toml")
+
+
+def test_bad_toml_is_an_error(tmp_path: Path) -> None:
+    f = tmp_path / "bad.toml"
+    f.write_text("[machine\nid=1")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(f)
+
+
+def test_each_problem_names_its_key_and_value() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"rs485": {"baudrate": 5, "prity": "N"}, "radar": {"unit": "mph"}})
+    problems = info.value.problems
+    assert any(
+        p.startswith("rs485.baudrate: ") and "1200" in p and "(got 5)" in p for p in problems
+    )
+    assert any(p.startswith("rs485.prity: ") and "Extra inputs" in p for p in problems)
+    assert any(p.startswith("radar.unit: ") and "'mph'" in p for p in problems)
+
+
+def test_rate_outside_crop_range_is_rejected() -> None:
+    with pytest.raises(ConfigError, match=r"control: .*outside wheat range 120.0..225.0"):
+        parse_config({"control": {"crop": "wheat", "rate_kg_ha": 300}})
+
+
+def test_devices_on_one_bus_need_distinct_ids() -> None:
+    with pytest.raises(ConfigError, match="distinct device_id"):
+        parse_config({"radar": {"device_id": 3}})
+
+
+def test_environment_overrides_the_file(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SOWGATE_RS485__PORT", "/dev/ttyAMA0")
+    s = parse_config({"rs485": {"port": "/dev/ttyUSB0", "baudrate": 19200}})
+    assert s.rs485.port == "/dev/ttyAMA0"
+    assert s.rs485.baudrate == 19200
+
+
+def test_state_dir_precedence(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("SOWGATE_STATE_DIR", raising=False)
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    assert state_dir() == Path("sowgate-state")
+    monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/sowgate")
+    assert state_dir() == Path("/var/lib/sowgate")
+    monkeypatch.setenv("SOWGATE_STATE_DIR", "/tmp/x")
+    assert state_dir() == Path("/tmp/x")

@@ -1,0 +1,334 @@
+"""The MQTT link against a real mosquitto: no record lost, retained status/state, commands acked."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import aiomqtt
+import pytest
+
+from gateway.alarms import AlarmBoard
+from gateway.commands import Command, SetRate, Start
+from gateway.config import Settings, parse_config
+from gateway.errors import CommandError
+from gateway.mqtt_link import MqttLink
+from gateway.payloads import StatePayload
+from gateway.records import SeedDrop
+from gateway.store import RecordStore
+from tests.mosquitto import Mosquitto, subscriber
+
+MACHINE = "seeder-t"
+BASE = f"sowgate/{MACHINE}"
+REPO = Path(__file__).resolve().parents[2]
+T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
+
+
+def make_settings(port: int, enabled: list[str] | None = None) -> Settings:
+    return parse_config({
+        "machine": {"id": MACHINE},
+        "mqtt": {
+            "enabled": True, "host": "127.0.0.1", "port": port, "keepalive": 5,
+            "reconnect_max_s": 0.5, "batch_max_records": 200, "batch_max_ms": 100,
+            "max_inflight_batches": 4, "state_hz": 2,
+        },
+        "commands": {"enabled": enabled or [], "max_payload_bytes": 256},
+    })
+
+
+def drops(n: int) -> list[SeedDrop]:
+    return [
+        SeedDrop(row=1 + i % 6, utc=T0 + timedelta(milliseconds=i), lat=52.0, lon=13.0,
+                 fix="rtk_fixed", speed_kmh=8.0)
+        for i in range(n)
+    ]
+
+
+CROP_RANGES = {"wheat": (50.0, 400.0), "maize": (10.0, 60.0)}
+
+
+class StubController:
+    """A CommandSink that validates like the HMI path: known crop, rate within its range."""
+
+    def __init__(self) -> None:
+        self.executed: list[Command] = []
+
+    def execute(self, command: Command, source: str) -> str:
+        assert source == "mqtt"
+        if isinstance(command, SetRate):
+            if command.crop not in CROP_RANGES:
+                raise CommandError(f"unknown crop {command.crop!r}")
+            lo, hi = CROP_RANGES[command.crop]
+            if not lo <= command.rate_kg_ha <= hi:
+                raise CommandError(
+                    f"rate {command.rate_kg_ha:g} kg/ha outside {lo:g}–{hi:g} for {command.crop}"
+                )
+        self.executed.append(command)
+        return "done"
+
+
+def state_now() -> StatePayload:
+    return StatePayload(machine_id=MACHINE, utc=datetime.now(UTC), work_state="working",
+                        speed_kmh=8.0, speed_source="radar", area_ha=1.5, seed_mass_kg=300.0)
+
+
+@dataclass
+class Running:
+    link: MqttLink
+    store: RecordStore
+    alarms: AlarmBoard
+    sink: StubController
+
+
+@contextlib.asynccontextmanager
+async def running_link(settings: Settings, db: Path) -> AsyncIterator[Running]:
+    store = RecordStore(db, MACHINE, commit_interval_s=0.05, backlog_alarm_records=100_000)
+    alarms = AlarmBoard(MACHINE)
+    sink = StubController()
+    link = MqttLink(settings, store, sink, state_now, alarms)
+    store_task = asyncio.create_task(store.run(), name="test-store")
+    link_task = asyncio.create_task(link.run(), name="test-link")
+    try:
+        yield Running(link, store, alarms, sink)
+    finally:
+        link_task.cancel()
+        await asyncio.gather(link_task, return_exceptions=True)
+        store_task.cancel()
+        await asyncio.gather(store_task, return_exceptions=True)
+        store.close()
+
+
+async def eventually(check: Callable[[], bool], timeout: float = 15.0, what: str = "") -> None:
+    deadline = time.monotonic() + timeout
+    while not check():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what or check}")
+        await asyncio.sleep(0.05)
+
+
+async def send(port: int, topic: str, payload: bytes, retain: bool = False) -> None:
+    async with aiomqtt.Client("127.0.0.1", port, identifier="operator") as client:
+        await client.publish(topic, payload, qos=1, retain=retain)
+
+
+async def test_records_alarms_state_and_status_reach_the_broker(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """Birth, retained state, every seed id once, one alarm message per event, offline at stop."""
+    async with subscriber(mosquitto.port, BASE) as sub:
+        async with running_link(make_settings(mosquitto.port), tmp_path / "r.db") as run:
+            run.store.add_seeds(drops(1000))
+            run.alarms.raise_("radar.lost", "radar not answering", "critical")
+            run.alarms.clear("radar.lost")
+            await eventually(lambda: len(sub.seed_ids()) >= 1000, what="1000 seed ids")
+            await eventually(lambda: len(sub.on("alarms")) == 2, what="2 alarms")
+            await eventually(lambda: run.store.backlog() == 0, what="outbox drained")
+            assert sorted(set(sub.seed_ids())) == list(range(1, 1001))
+            assert all(len(json.loads(p)["records"]) <= 200 for p in sub.on("seeds"))
+            assert sub.on("status")[0] == b"online"
+            state = json.loads(sub.on("state")[-1])
+            assert state["work_state"] == "working" and state["area_ha"] == 1.5
+            raised, cleared = (json.loads(p) for p in sub.on("alarms"))
+            assert (raised["code"], raised["active"], cleared["active"]) == (
+                "radar.lost", True, False)
+            assert raised["id"] < cleared["id"]
+            assert run.link.connected and run.link.stats.seeds_published >= 1000
+        await eventually(lambda: sub.on("status")[-1] == b"offline", 5, "offline on shutdown")
+    retained = [r for t, _, r in sub.messages if t == f"{BASE}/status"]
+    assert retained  # status is retained on the broker
+
+
+async def test_bad_commands_get_precise_error_acks_and_change_nothing(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    settings = make_settings(mosquitto.port, enabled=["rate", "start", "zero_tilt"])
+    cases: list[tuple[str, bytes, str | None]] = [
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": 225.0, "request_id": "r1"}', None),
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": "lots"}', "rate_kg_ha"),
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": 900}', "outside 50–400"),
+        ("rate", b'{"crop": "barley", "rate_kg_ha": 100}', "unknown crop"),
+        ("rate", b'{"crop": "wheat"}', "rate_kg_ha: Field required"),
+        ("rate", b"[1, 2]", "JSON object"),
+        ("rate", b"not json", "not valid JSON"),
+        ("rate", b'{"crop": "' + b"w" * 300 + b'", "rate_kg_ha": 1}', "too large"),
+        ("fly", b"{}", "unknown command 'fly'"),
+        ("stop", b"{}", "disabled"),
+        ("start", b'{"force": true}', "Extra inputs"),
+        ("start", b"", None),
+    ]
+    # A stale retained command would replay on every reconnect: it must be refused.
+    await send(mosquitto.port, f"{BASE}/cmd/zero_tilt", b"{}", retain=True)
+    async with (
+        subscriber(mosquitto.port, BASE) as sub,
+        running_link(settings, tmp_path / "r.db") as run,
+    ):
+        await eventually(lambda: run.link.connected, what="link connected")
+        await eventually(lambda: bool(sub.on("cmd/zero_tilt/ack")), what="retained refused")
+        await eventually(lambda: bool(sub.on("status")), what="birth")
+        for name, payload, expected_error in cases:
+            before = len(sub.on(f"cmd/{name}/ack"))
+            await send(mosquitto.port, f"{BASE}/cmd/{name}", payload)
+            await eventually(lambda n=name, b=before: len(sub.on(f"cmd/{n}/ack")) > b,
+                             what=f"ack for {name} {payload[:40]!r}")
+            ack = json.loads(sub.on(f"cmd/{name}/ack")[-1])
+            if expected_error is None:
+                assert ack["ok"] is True, ack
+            else:
+                assert ack["ok"] is False and expected_error in ack["error"], ack
+        assert json.loads(sub.on("cmd/rate/ack")[0]) == {"ok": True, "request_id": "r1"}
+        # the retained command left on the broker before the link came up is not executed
+        assert "retained" in json.loads(sub.on("cmd/zero_tilt/ack")[0])["error"]
+        assert run.sink.executed == [SetRate("wheat", 225.0), Start()]
+        assert run.link.stats.commands_ok == 2
+
+
+async def test_broker_restart_mid_stream_loses_no_record(
+    persistent_mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """Broker down 3 s while seeds keep coming: afterwards every id arrived (dedup by id)."""
+    broker = persistent_mosquitto
+    async with subscriber(broker.port, BASE) as sub, \
+            running_link(make_settings(broker.port), tmp_path / "r.db") as run:
+        added = 0
+
+        async def feed(seconds: float) -> None:
+            nonlocal added
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                added += len(run.store.add_seeds(drops(20)))
+                await asyncio.sleep(0.02)
+
+        await eventually(lambda: run.link.connected, what="connected")
+        await feed(0.6)
+        broker.stop()
+        await feed(3.0)
+        assert not run.link.connected
+        assert run.store.backlog() > 0  # the outage piles up in the outbox, nothing dropped
+        broker.start()
+        await feed(0.5)
+        await eventually(lambda: set(sub.seed_ids()) >= set(range(1, added + 1)), 20,
+                         "every id after the restart")
+        assert sorted(set(sub.seed_ids())) == list(range(1, added + 1))
+        assert run.link.stats.connects >= 2
+
+
+async def test_broker_unreachable_at_start_records_wait_then_flow(
+    stopped_mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    broker = stopped_mosquitto
+    async with running_link(make_settings(broker.port), tmp_path / "r.db") as run:
+        run.store.add_seeds(drops(500))
+        await asyncio.sleep(1.0)
+        assert not run.link.connected
+        assert run.store.backlog() == 500
+        assert run.link.stats.last_error  # the reason is kept for diagnostics
+        broker.start()
+        async with subscriber(broker.port, BASE) as sub:
+            # the subscriber may come up after the first batches: the retained state and
+            # a full drain of the outbox are what matter here
+            await eventually(lambda: run.store.backlog() == 0, what="outbox drained")
+            await eventually(lambda: bool(sub.on("state")), what="retained state")
+            assert run.link.stats.seeds_published >= 500
+
+
+DAEMON = textwrap.dedent(
+    """
+    import asyncio, sys
+    from datetime import UTC, datetime, timedelta
+    from gateway.alarms import AlarmBoard
+    from gateway.config import parse_config
+    from gateway.mqtt_link import MqttLink
+    from gateway.payloads import StatePayload
+    from gateway.records import SeedDrop
+    from gateway.store import RecordStore
+
+    port, db, mode = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+    settings = parse_config({"machine": {"id": "seeder-t"}, "mqtt": {
+        "enabled": True, "port": port, "keepalive": 5, "reconnect_max_s": 0.5,
+        "batch_max_records": 200, "batch_max_ms": 100, "max_inflight_batches": 4}})
+
+    class Sink:
+        def execute(self, command, source):
+            return "ok"
+
+    def state():
+        return StatePayload(machine_id="seeder-t", utc=datetime.now(UTC), work_state="working")
+
+    async def main():
+        store = RecordStore(db, "seeder-t", commit_interval_s=0.05)
+        link = MqttLink(settings, store, Sink(), state, AlarmBoard("seeder-t"))
+        t0 = datetime(2026, 4, 20, tzinfo=UTC)
+        batch = [SeedDrop(row=1, utc=t0 + timedelta(milliseconds=i), lat=52.0, lon=13.0,
+                          fix="rtk_fixed", speed_kmh=8.0) for i in range(50)]
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(store.run())
+            tg.create_task(link.run())
+            while mode == "feed":
+                store.add_seeds(batch)
+                await asyncio.sleep(0.01)
+
+    asyncio.run(main())
+    """
+)
+
+
+def _spawn(port: int, db: Path, mode: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-c", DAEMON, str(port), str(db), mode], cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+    )
+
+
+def _reap(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait(timeout=5)
+
+
+async def test_sigkill_mid_stream_resends_unacked_and_the_will_says_offline(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """A daemon killed mid-stream: broker publishes the will; the restart resends the rest."""
+    db = tmp_path / "daemon.db"
+    async with subscriber(mosquitto.port, BASE) as sub:
+        proc = _spawn(mosquitto.port, db, "feed")
+        try:
+            await eventually(lambda: len(sub.seed_ids()) >= 2000, 20, "seeds from the daemon")
+            assert sub.on("status")[-1] == b"online"
+            kill_index = len(sub.messages)
+            proc.send_signal(signal.SIGKILL)
+            await asyncio.to_thread(proc.wait, 5)
+        finally:
+            _reap(proc)
+        await eventually(
+            lambda: any(t == f"{BASE}/status" and p == b"offline"
+                        for t, p, _ in sub.messages[kill_index:]),
+            10, "last will 'offline'",
+        )
+        with RecordStore.open_readonly(db, MACHINE) as ro:
+            stored = [r.id for r in ro.query_seeds()]
+            unacked = ro.backlog()
+        assert stored == list(range(1, len(stored) + 1))
+        assert unacked > 0 or set(sub.seed_ids()) == set(stored)
+        proc = _spawn(mosquitto.port, db, "drain")
+        try:
+            await eventually(lambda: set(sub.seed_ids()) >= set(stored), 20, "resent records")
+            # the restarted process announced itself after the will (the broker may deliver
+            # the will and the new birth in either order if it notices the dead socket late)
+            after_kill = [p for t, p, _ in sub.messages[kill_index:] if t == f"{BASE}/status"]
+            assert b"online" in after_kill
+        finally:
+            _reap(proc)
+        assert sorted(set(sub.seed_ids())) == stored

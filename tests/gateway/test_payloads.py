@@ -1,0 +1,109 @@
+"""MQTT payload models: the documented schemas match the code, and the wire shapes are stable."""
+
+from __future__ import annotations
+
+import json
+from datetime import UTC, datetime
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from gateway.payloads import (
+    SCHEMA_MODELS,
+    CommandAck,
+    EmptyCommand,
+    RateCommand,
+    SeedBatch,
+    StatePayload,
+    StatusPayload,
+    main,
+    render_schemas,
+)
+from gateway.records import SeedRecord
+
+SCHEMA_DIR = Path(__file__).resolve().parents[2] / "docs" / "schemas"
+T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
+
+
+def test_docs_schemas_are_up_to_date() -> None:
+    """Fails when a payload model changed without `make schemas` (docs would lie)."""
+    expected = render_schemas()
+    on_disk = {p.name: p.read_text(encoding="utf-8") for p in SCHEMA_DIR.glob("*.json")}
+    stale = sorted(n for n in expected if on_disk.get(n) != expected[n])
+    extra = sorted(set(on_disk) - set(expected))
+    assert not stale and not extra, (
+        f"docs/schemas is stale (changed: {stale}, unexpected: {extra}); "
+        "run `python -m gateway.payloads --write docs/schemas`"
+    )
+
+
+def test_schema_writer_cli_writes_every_model(tmp_path: Path) -> None:
+    assert main(["--write", str(tmp_path)]) == 0
+    assert sorted(p.stem for p in tmp_path.glob("*.json")) == sorted(SCHEMA_MODELS)
+    schema = json.loads((tmp_path / "rate_command.json").read_text())
+    assert set(schema["required"]) == {"crop", "rate_kg_ha"}
+
+
+def test_ack_wire_shape_is_the_contract() -> None:
+    assert json.loads(CommandAck(ok=True).to_json()) == {"ok": True}
+    assert json.loads(CommandAck(ok=False, error="too fast").to_json()) == {
+        "ok": False, "error": "too fast"
+    }
+    assert json.loads(CommandAck(ok=True, request_id="r1").to_json()) == {
+        "ok": True, "request_id": "r1"
+    }
+
+
+def test_rate_command_accepts_the_documented_example() -> None:
+    cmd = RateCommand.model_validate_json('{"crop": "wheat", "rate_kg_ha": 225.0}')
+    assert (cmd.crop, cmd.rate_kg_ha) == ("wheat", 225.0)
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        {"crop": "wheat"},
+        {"crop": "wheat", "rate_kg_ha": "lots"},
+        {"crop": "wheat", "rate_kg_ha": -5},
+        {"crop": "", "rate_kg_ha": 100},
+        {"crop": "wheat", "rate_kg_ha": 100, "unexpected": 1},
+        {"crop": 7, "rate_kg_ha": 100},
+    ],
+)
+def test_rate_command_rejects_bad_shapes(payload: dict[str, object]) -> None:
+    with pytest.raises(ValidationError):
+        RateCommand.model_validate(payload)
+
+
+def test_rate_command_rejects_infinity() -> None:
+    with pytest.raises(ValidationError, match="finite"):
+        RateCommand.model_validate_json('{"crop": "wheat", "rate_kg_ha": Infinity}')
+
+
+def test_empty_command_refuses_unknown_keys() -> None:
+    assert EmptyCommand.model_validate({}).request_id is None
+    with pytest.raises(ValidationError):
+        EmptyCommand.model_validate({"force": True})
+
+
+def test_state_change_detection_ignores_the_timestamp() -> None:
+    a = StatePayload(machine_id="m", utc=T0, work_state="working", speed_kmh=8.0)
+    b = a.model_copy(update={"utc": datetime(2026, 4, 20, 9, tzinfo=UTC)})
+    c = a.model_copy(update={"speed_kmh": 9.0})
+    assert a.same_as(b)
+    assert not a.same_as(c)
+    assert not a.same_as(None)
+
+
+def test_seed_batch_carries_record_ids() -> None:
+    rec = SeedRecord(id=7, machine_id="m", row=1, utc=T0, lat=52.0, lon=13.0, fix="rtk_fixed",
+                     speed_kmh=8.0)
+    batch = json.loads(SeedBatch(machine_id="m", records=[rec]).model_dump_json())
+    assert batch["records"][0]["id"] == 7
+
+
+def test_status_is_a_bare_string_enum() -> None:
+    assert StatusPayload("online").root == "online"
+    with pytest.raises(ValidationError):
+        StatusPayload("maybe")  # type: ignore[arg-type]

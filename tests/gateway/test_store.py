@@ -1,0 +1,274 @@
+"""The record store keeps every seed and alarm, hands out ids once, and feeds the outbox."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import pytest
+
+from gateway.payloads import SeedBatch
+from gateway.records import AlarmEvent, SeedDrop, SeedRecord
+from gateway.store import RecordStore, StoreError
+
+T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
+REPO = Path(__file__).resolve().parents[2]
+
+
+def drops(n: int, start: datetime = T0, row: int = 1) -> list[SeedDrop]:
+    return [
+        SeedDrop(
+            row=row, utc=start + timedelta(milliseconds=10 * i), lat=52.0 + i * 1e-7,
+            lon=13.0, fix="rtk_fixed", speed_kmh=8.0, heading_deg=90.0,
+            heading_source="dual_antenna", spacing_m=0.05,
+        )
+        for i in range(n)
+    ]
+
+
+def alarm(code: str = "radar.lost", active: bool = True) -> AlarmEvent:
+    return AlarmEvent(code=code, active=active, message="radar not answering", utc=T0)
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> RecordStore:
+    s = RecordStore(tmp_path / "records.sqlite3", "seeder-01", retention_days=1,
+                    backlog_alarm_records=10)
+    yield s
+    s.close()
+
+
+def test_ids_are_assigned_in_order_and_records_round_trip(store: RecordStore) -> None:
+    """Stored records come back field for field, with ids 1..n and the machine id."""
+    recs = store.add_seeds(drops(3))
+    assert [r.id for r in recs] == [1, 2, 3]
+    store.flush()
+    back = list(store.query_seeds())
+    assert back == recs
+    assert back[0].machine_id == "seeder-01"
+    assert back[1].utc == T0 + timedelta(milliseconds=10)
+
+
+def test_uncommitted_records_are_invisible_to_the_outbox(store: RecordStore) -> None:
+    """Nothing reaches MQTT before it is committed: a crash could take it back."""
+    store.add_seeds(drops(5))
+    assert store.pending_seeds(100) == []
+    assert store.backlog() == 0
+    store.flush()
+    assert [r.id for r in store.pending_seeds(100)] == [1, 2, 3, 4, 5]
+    assert store.backlog() == 5
+
+
+def test_outbox_pages_by_cursor_and_forgets_delivered(store: RecordStore) -> None:
+    store.add_seeds(drops(10))
+    store.flush()
+    first = store.pending_seeds(4)
+    second = store.pending_seeds(4, after_id=first[-1].id)
+    assert [r.id for r in second] == [5, 6, 7, 8]
+    store.mark_seeds_delivered([r.id for r in second])
+    assert [r.id for r in store.pending_seeds(100)] == [1, 2, 3, 4, 9, 10]
+    assert store.backlog() == 6
+    store.mark_seeds_delivered([5, 6])  # a duplicate PUBACK changes nothing
+    assert store.backlog() == 6
+
+
+def test_delivery_marks_survive_a_reopen(tmp_path: Path) -> None:
+    path = tmp_path / "r.sqlite3"
+    with RecordStore(path, "m") as s:
+        s.add_seeds(drops(4))
+        s.flush()
+        s.mark_seeds_delivered([1, 3])
+    with RecordStore(path, "m") as s:
+        assert [r.id for r in s.pending_seeds(10)] == [2, 4]
+        assert s.backlog() == 2
+
+
+def test_ids_never_repeat_after_pruning_the_newest_records(tmp_path: Path) -> None:
+    """AUTOINCREMENT: a pruned id is gone for good, even across a restart."""
+    path = tmp_path / "r.sqlite3"
+    with RecordStore(path, "m", retention_days=1) as s:
+        recs = s.add_seeds(drops(3))
+        s.flush()
+        s.mark_seeds_delivered([r.id for r in recs])
+        assert s.prune(T0 + timedelta(days=2)) == 3
+        assert list(s.query_seeds()) == []
+    with RecordStore(path, "m") as s:
+        assert [r.id for r in s.add_seeds(drops(2))] == [4, 5]
+
+
+def test_prune_keeps_undelivered_and_recent_records(store: RecordStore) -> None:
+    """Nothing is dropped to save space: only delivered records past retention go."""
+    old = store.add_seeds(drops(3, start=T0))
+    new = store.add_seeds(drops(2, start=T0 + timedelta(days=3)))
+    store.flush()
+    store.mark_seeds_delivered([old[0].id, old[1].id, new[0].id])
+    store.prune(T0 + timedelta(days=3, hours=1))
+    assert [r.id for r in store.query_seeds()] == [old[2].id, new[0].id, new[1].id]
+
+
+def test_query_filters_by_time_and_row(store: RecordStore) -> None:
+    store.add_seeds(drops(5, row=1))
+    store.add_seeds(drops(5, row=2))
+    store.flush()
+    since = T0 + timedelta(milliseconds=20)
+    until = T0 + timedelta(milliseconds=40)
+    got = list(store.query_seeds(since=since, until=until, rows=[2]))
+    assert [(r.row, r.utc) for r in got] == [(2, since), (2, since + timedelta(milliseconds=10))]
+    assert list(store.query_seeds(rows=[])) == []
+
+
+def test_alarms_get_ids_and_are_committed_at_once(store: RecordStore) -> None:
+    stored = store.add_alarm(alarm())
+    assert stored.id == 1 and stored.machine_id == "seeder-01"
+    pending = store.pending_alarms(10)
+    assert pending == [stored]
+    store.mark_alarms_delivered([1])
+    assert store.pending_alarms(10) == []
+
+
+def test_backlog_callback_fires_once_per_crossing(store: RecordStore) -> None:
+    """The operator hears about a growing backlog once, and again when it drains."""
+    calls: list[tuple[int, bool]] = []
+    store.on_backlog = lambda n, over: calls.append((n, over))
+    store.add_seeds(drops(8))
+    store.flush()
+    assert calls == []
+    store.add_seeds(drops(5))
+    store.flush()
+    store.add_seeds(drops(5))
+    store.flush()
+    assert calls == [(13, True)]
+    store.mark_seeds_delivered(list(range(1, 15)))
+    assert calls == [(13, True), (4, False)]
+    assert len(list(store.query_seeds())) == 18  # nothing was dropped
+
+
+def test_readonly_store_reads_while_the_writer_is_open(store: RecordStore) -> None:
+    store.add_seeds(drops(3))
+    store.flush()
+    with RecordStore.open_readonly(store.path, "seeder-01") as ro:
+        assert [r.id for r in ro.query_seeds()] == [1, 2, 3]
+        with pytest.raises(StoreError, match="read-only"):
+            ro.add_seeds(drops(1))
+
+
+def test_readonly_open_of_a_missing_store_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(StoreError, match="no record store"):
+        RecordStore.open_readonly(tmp_path / "nope.sqlite3", "m")
+
+
+async def test_run_commits_periodically(store: RecordStore) -> None:
+    """The daemon only appends; the run() loop makes records visible within the interval."""
+    store.commit_interval_s = 0.05
+    committed = asyncio.Event()
+    store.add_commit_listener(committed.set)
+    task = asyncio.create_task(store.run(), name="store-run")
+    try:
+        store.add_seeds(drops(2))
+        assert store.pending_seeds(10) == []
+        await asyncio.wait_for(committed.wait(), 5)
+        assert len(store.pending_seeds(10)) == 2
+    finally:
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+
+WRITER = textwrap.dedent(
+    """
+    import sys
+    from datetime import UTC, datetime, timedelta
+    from gateway.records import SeedDrop
+    from gateway.store import RecordStore
+    store = RecordStore(sys.argv[1], "m")
+    t0 = datetime(2026, 4, 20, tzinfo=UTC)
+    batch = [SeedDrop(row=1 + i % 6, utc=t0 + timedelta(milliseconds=i), lat=52.0, lon=13.0,
+                      fix="rtk_fixed", speed_kmh=8.0) for i in range(50)]
+    while True:
+        for _ in range(4):
+            records = store.add_seeds(batch)
+        store.flush()
+        print(records[-1].id, flush=True)
+    """
+)
+
+
+def test_sigkill_during_writes_leaves_an_intact_contiguous_store(tmp_path: Path) -> None:
+    """A crash mid-write loses only uncommitted records; ids stay contiguous and unique."""
+    path = tmp_path / "crash.sqlite3"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    assert proc.stdout is not None
+    committed = 0
+    try:
+        deadline = time.monotonic() + 15
+        while committed < 20_000 and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            assert line, "writer died"
+            committed = int(line)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
+    assert committed >= 20_000
+    with RecordStore(path, "m") as s:
+        assert s.integrity_check() == "ok"
+        ids = [r.id for r in s.query_seeds()]
+        assert ids == list(range(1, len(ids) + 1))  # strictly increasing, no gap
+        assert len(ids) >= committed  # everything reported committed survived
+        assert s.backlog() == len(ids)
+        assert [r.id for r in s.add_seeds(drops(1))] == [len(ids) + 1]
+
+
+def test_fast_records_equal_validated_ones(store: RecordStore) -> None:
+    """The store skips re-validation for speed; the records must still be exact models."""
+    recs = store.add_seeds(drops(2))
+    store.flush()
+    for rec in [*recs, *store.pending_seeds(10)]:
+        validated = SeedRecord.model_validate(rec.model_dump())
+        assert rec == validated
+        assert rec.model_dump_json() == validated.model_dump_json()
+
+
+def test_outbox_json_matches_the_seed_batch_model(store: RecordStore) -> None:
+    """The SQL-built MQTT payload parses to exactly the records the models describe."""
+    odd = SeedDrop(row=48, utc=T0 + timedelta(microseconds=123), lat=-33.8688197, lon=151.2092955,
+                   fix="rtk_float", speed_kmh=11.25, heading_deg=None, heading_source="course",
+                   extrapolated=True, method="paper", spacing_m=None)
+    store.add_seeds([*drops(3), odd])
+    store.flush()
+    batch = store.pending_seed_batch(10, after_id=1)
+    assert batch is not None and batch.ids == [2, 3, 4]
+    parsed = SeedBatch.model_validate_json(batch.payload)
+    assert parsed == SeedBatch(machine_id="seeder-01", records=store.pending_seeds(10, after_id=1))
+    assert store.count_pending_seeds(after_id=1, cap=2) == 2
+    assert store.pending_seed_batch(10, after_id=4) is None
+
+
+def test_append_seeds_hands_out_the_same_ids_as_add_seeds(store: RecordStore) -> None:
+    """The ids-only append continues the one id sequence and stores the same rows."""
+    first = store.add_seeds(drops(2))
+    ids = store.append_seeds(drops(3, row=7))
+    assert [r.id for r in first] == [1, 2] and list(ids) == [3, 4, 5]
+    assert store.append_seeds([]) == range(0)
+    assert store.pending_seeds(10) == []  # not committed yet: invisible to the outbox
+    store.flush()
+    stored = store.pending_seeds(10)
+    assert [r.id for r in stored] == [1, 2, 3, 4, 5]
+    assert [r.row for r in stored[2:]] == [7, 7, 7]
+    assert stored[2:] == [
+        SeedRecord(**d.model_dump(), id=i, machine_id="seeder-01")
+        for i, d in zip(ids, drops(3, row=7), strict=True)
+    ]

@@ -1,0 +1,113 @@
+"""``sowgate run`` as the separate process systemd starts, against the simulated machine."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import sys
+from pathlib import Path
+
+from simulator.machine import SimulatedMachine
+from tests.integration.conftest import steady_drive
+
+
+async def _wait(predicate: object, timeout: float) -> None:
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not predicate():  # type: ignore[operator]
+        assert loop.time() < deadline, "timed out"
+        await asyncio.sleep(0.05)
+
+
+async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
+    tmp_path: Path,
+) -> None:
+    async with SimulatedMachine(drive=steady_drive()) as machine:
+        cfg = machine.write_config(tmp_path / "sowgate.toml", control={"start_working": True})
+        env = {**os.environ, "SOWGATE_STATE_DIR": str(tmp_path / "state")}
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-m",
+            "gateway.cli",
+            "run",
+            "--config",
+            str(cfg),
+            env=env,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        try:
+            sim = machine.rs485
+            assert sim is not None
+            await _wait(lambda: sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0, 20.0)
+            proc.send_signal(signal.SIGTERM)
+            _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+        assert proc.returncode == 0, stderr.decode()
+        assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
+
+
+async def test_demo_runs_and_reports_the_applied_rate() -> None:
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "gateway.cli",
+        "demo",
+        "--no-tui",
+        "--duration",
+        "4",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    out, err = await asyncio.wait_for(proc.communicate(), 60.0)
+    assert proc.returncode == 0, err.decode()
+    assert b"demo finished: applied" in out
+
+
+async def test_systemd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
+    import socket
+
+    sock_path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(sock_path))
+    sock.setblocking(False)
+    received: list[str] = []
+    loop = asyncio.get_running_loop()
+    loop.add_reader(sock.fileno(), lambda: received.append(sock.recv(4096).decode()))
+    try:
+        async with SimulatedMachine(drive=steady_drive()) as machine:
+            cfg = machine.write_config(tmp_path / "sowgate.toml")
+            env = {
+                **os.environ,
+                "SOWGATE_STATE_DIR": str(tmp_path / "state"),
+                "NOTIFY_SOCKET": str(sock_path),
+                "WATCHDOG_USEC": "1000000",  # pings every 0.5 s while the loop runs
+            }
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable,
+                "-m",
+                "gateway.cli",
+                "run",
+                "--config",
+                str(cfg),
+                env=env,
+                stdout=asyncio.subprocess.DEVNULL,
+                stderr=asyncio.subprocess.PIPE,
+            )
+            try:
+                await _wait(lambda: any("READY=1" in m for m in received), 20.0)
+                await _wait(lambda: sum("WATCHDOG=1" in m for m in received) >= 3, 10.0)
+                proc.send_signal(signal.SIGTERM)
+                await asyncio.wait_for(proc.wait(), 10.0)
+            finally:
+                if proc.returncode is None:
+                    proc.kill()
+                    await proc.wait()
+            await _wait(lambda: any("STOPPING=1" in m for m in received), 5.0)
+    finally:
+        loop.remove_reader(sock.fileno())
+        sock.close()

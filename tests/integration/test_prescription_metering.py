@@ -1,0 +1,111 @@
+"""Prescription maps drive the CAN channels from the GNSS position; a bad map never stops
+the drill (default rates, and an alarm that says why)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import uuid
+from pathlib import Path
+
+import pymap3d
+
+from drivers.can_bus import CanBus
+from simulator.can_pid import MeteringControllerSim, MeterPlant
+from simulator.machine import ORIGIN_LAT, ORIGIN_LON, SimulatedMachine
+from simulator.plant import Drive, Leg
+from tests.integration.conftest import running
+
+
+def _zone(north_from: float, north_to: float, rate: float) -> dict[str, object]:
+    corners = [(-50.0, north_from), (50.0, north_from), (50.0, north_to), (-50.0, north_to)]
+    ring = []
+    for e, n in [*corners, corners[0]]:
+        lat, lon, _ = pymap3d.enu2geodetic(e, n, 0.0, ORIGIN_LAT, ORIGIN_LON, 100.0)
+        ring.append([lon, lat])
+    return {
+        "type": "Feature",
+        "properties": {"seed_rate": rate},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+
+
+def _config(can_channel: str, map_path: Path) -> dict[str, object]:
+    return {
+        "control": {"start_working": True},
+        "can": {"enabled": True, "interface": "virtual", "channel": can_channel},
+        "channel": [
+            {
+                "name": "seed",
+                "product": "wheat",
+                "target_rate_kg_ha": 225.0,
+                "node_id": 1,
+                "grams_per_rev": 11.2,
+                "prescription_attribute": "seed_rate",
+            },
+        ],
+        "prescription": {"enabled": True, "path": str(map_path), "lookahead_s": 0.5},
+    }
+
+
+async def test_target_rate_follows_the_map_zone_under_the_outlets(tmp_path: Path) -> None:
+    # drive north from the origin: zone A (150 kg/ha) up to 12 m, zone B (300 kg/ha) beyond
+    fmap = tmp_path / "rx.geojson"
+    fmap.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [_zone(-20.0, 12.0, 150.0), _zone(12.0, 200.0, 300.0)],
+            }
+        )
+    )
+    can_channel = f"rx-{uuid.uuid4().hex[:8]}"
+    drive = Drive(legs=[Leg(1.0, 0.0), Leg(120.0, 7.0)], dt=0.02)
+    plant = MeterPlant(grams_per_rev=11.2)
+    async with CanBus("virtual", can_channel) as bus:
+        sim_task = asyncio.create_task(MeteringControllerSim(bus, {1: plant}).run(), name="pid")
+        try:
+            machine = SimulatedMachine(drive=drive, with_gnss=True)
+            async with running(tmp_path, machine, **_config(can_channel, fmap)) as rig:
+
+                def target() -> float | None:
+                    snap = rig.daemon.components["metering"].snapshot()
+                    return snap["channels"]["seed"]["target_rate_kg_ha"]
+
+                await rig.until(lambda: target() == 150.0, timeout=10.0, what="zone A rate")
+                await rig.until(lambda: target() == 300.0, timeout=15.0, what="zone B rate")
+                assert machine.pose().north > 8.0  # switched near the border, not at the start
+            applied = (tmp_path / "state" / "as_applied.csv").read_text().splitlines()
+            assert len(applied) > 3 and applied[0].startswith("time,lon,lat")
+        finally:
+            sim_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sim_task
+
+
+async def test_a_bad_map_alarms_and_the_channels_use_their_default_rate(tmp_path: Path) -> None:
+    fmap = tmp_path / "bad.geojson"
+    fmap.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {"other": 1},
+                        "geometry": {"type": "Point", "coordinates": [125.3, 43.8]},
+                    }
+                ],
+            }
+        )
+    )
+    can_channel = f"rx-{uuid.uuid4().hex[:8]}"
+    async with CanBus("virtual", can_channel):
+        machine = SimulatedMachine(drive=Drive(legs=[Leg(1.0, 0.0), Leg(60.0, 5.0)], dt=0.02))
+        async with running(tmp_path, machine, **_config(can_channel, fmap)) as rig:
+            await rig.until(lambda: rig.daemon.outputs is not None)
+            alarm = [a for a in rig.daemon.alarms.active if a.code == "prescription.invalid"]
+            assert alarm and "prescription map not used" in alarm[0].message
+            snap = rig.daemon.components["metering"].snapshot()
+            assert snap["channels"]["seed"]["target_rate_kg_ha"] == 225.0

@@ -1,0 +1,141 @@
+"""The daemon against the simulated machine: what the operator and the drill experience."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from gateway.rate_model import plan_duty
+from gateway.work_state import WorkState
+from simulator.machine import SimulatedMachine
+from tests.integration.conftest import metering, running
+
+
+async def test_seeding_follows_speed_and_the_drill_receives_the_duty(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with running(tmp_path, make_machine(crop="wheat")) as rig:
+        hmi = rig.machine.hmi
+        assert hmi is not None
+        await rig.until(lambda: rig.daemon.outputs is not None, what="first tick")
+        # nothing runs before the operator starts work
+        assert rig.machine.rs485 is not None
+        assert rig.machine.rs485.duty_pct == {"motor": 0.0, "fan": 0.0}
+        hmi.select(2, 200.0)
+        hmi.press_start()
+        await rig.until(lambda: rig.state() is WorkState.SEEDING, what="seeding")
+        await rig.until(lambda: rig.machine.rs485.duty_pct["motor"] > 0, what="motor duty")
+        out = rig.daemon.outputs
+        assert out is not None and out.speed_kmh is not None
+        expected = plan_duty(200.0, 2.0, out.speed_kmh, rig.daemon.controller.crop_model)
+        assert out.motor_pct == pytest.approx(expected.duty_pct, abs=0.01)
+        await rig.until(
+            lambda: abs(rig.machine.rs485.duty_pct["motor"] - rig.daemon.outputs.motor_pct) < 1.5,
+            what="duty on the PWM module",
+        )
+        assert rig.machine.rs485.duty_pct["fan"] == rig.daemon.controller.crop_model.fan_high_pct
+        await hmi.wait_text("t_state", lambda s: s == "SEEDING")
+        await hmi.wait_text("t_crop", lambda s: s == "wheat")
+
+
+async def test_invalid_rate_on_the_screen_is_refused_and_explained(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with running(tmp_path, make_machine(crop="wheat")) as rig:
+        hmi = rig.machine.hmi
+        assert hmi is not None
+        await rig.until(lambda: rig.daemon.outputs is not None)
+        hmi.select(2, 300.0)
+        text = await hmi.wait_text("t_msg", lambda s: "refused" in s)
+        assert "120-225" in text
+        assert rig.daemon.controller.rate_kg_ha == 180.0
+        hmi.send_raw(b"\x00\x13garbage\x55\x55\x09\x00\x00\x00\x0d\x0a")
+        await hmi.wait_text("t_msg", lambda s: "bad frame" in s)
+        hmi.select(2, 150.0)
+        await hmi.wait_text("t_rate", lambda s: s == "150 kg/ha")
+
+
+async def test_silent_radar_stops_metering_within_two_seconds_and_recovers(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with metering(tmp_path, make_machine()) as (rig, sim):
+        sim.set_silent(rig.daemon.settings.radar.device_id, True)
+        await rig.until(lambda: rig.daemon.alarms.is_active("speed.lost"), timeout=6.0)
+        await rig.until(lambda: sim.duty_pct["motor"] == 0.0, timeout=3.0, what="motor off")
+        assert rig.daemon.alarms.is_active("radar.unavailable")
+        sim.set_silent(rig.daemon.settings.radar.device_id, False)
+        await rig.until(lambda: sim.duty_pct["motor"] > 0, timeout=6.0, what="metering again")
+        assert not rig.daemon.alarms.is_active("speed.lost")
+
+
+async def test_lost_inclinometer_is_treated_as_raised(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with metering(tmp_path, make_machine()) as (rig, sim):
+        sim.set_silent(rig.daemon.settings.inclinometer.device_id, True)
+        await rig.until(lambda: rig.daemon.alarms.is_active("inclinometer.lost"), timeout=6.0)
+        await rig.until(lambda: sim.duty_pct["motor"] == 0.0, timeout=3.0)
+        assert rig.daemon.outputs is not None and rig.daemon.outputs.raised
+
+
+async def test_unreachable_pwm_module_alarms_and_is_rewritten_when_back(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with metering(tmp_path, make_machine()) as (rig, sim):
+        sim.set_silent(rig.daemon.settings.actuators.device_id, True)
+        await rig.until(lambda: rig.daemon.alarms.is_active("pwm.unavailable"), timeout=6.0)
+        sim.duty_pct["motor"] = -1.0  # mark: the next write the module sees must be fresh
+        sim.set_silent(rig.daemon.settings.actuators.device_id, False)
+        await rig.until(lambda: sim.duty_pct["motor"] > 0, timeout=6.0)
+        await rig.until(lambda: not rig.daemon.alarms.is_active("pwm.unavailable"))
+
+
+async def test_line_noise_and_crc_errors_do_not_stop_the_daemon(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with metering(tmp_path, make_machine()) as (rig, sim):
+        for _ in range(3):
+            sim.corrupt_next_crc(2)
+            sim.inject_garbage(7)
+            await rig.until(lambda: True)
+        stats = rig.daemon.bus.stats
+        await rig.until(
+            lambda: sum(s.garbled + s.timeouts for s in stats.values()) > 0, what="errors counted"
+        )
+        await rig.until(lambda: rig.state() is WorkState.SEEDING)
+        assert not rig.task.done()
+
+
+async def test_vanished_port_is_reopened_by_itself(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with metering(tmp_path, make_machine()) as (rig, sim):
+        sim.vanish()
+        await rig.until(lambda: rig.daemon.alarms.is_active("speed.lost"), timeout=6.0)
+        sim.restore()
+        sim.duty_pct["motor"] = 0.0
+        await rig.until(lambda: sim.duty_pct["motor"] > 0, timeout=10.0, what="reconnect")
+
+
+async def test_stop_request_sets_motor_and_fan_to_zero_before_exit(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with metering(tmp_path, make_machine()) as (rig, sim):
+        await rig.until(lambda: sim.duty_pct["fan"] > 0)
+        await rig.stop()
+        assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
+
+
+async def test_raised_while_moving_is_turning_with_motor_stopped(tmp_path: Path) -> None:
+    from simulator.plant import Drive, Leg
+
+    drive = Drive(legs=[Leg(0.5, 0.0), Leg(4.0, 5.0), Leg(600.0, 5.0, raised=True)], dt=0.02)
+    async with running(
+        tmp_path, SimulatedMachine(drive=drive), control={"start_working": True}
+    ) as rig:
+        await rig.until(lambda: rig.state() is WorkState.SEEDING, timeout=8)
+        await rig.until(lambda: rig.state() is WorkState.TURNING, timeout=10)
+        assert rig.machine.rs485 is not None
+        await rig.until(lambda: rig.machine.rs485.duty_pct["motor"] == 0.0)
