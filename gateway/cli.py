@@ -86,6 +86,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     return int(main_export(args) or 0)
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from gateway.calibration_cli import run_calibration
+
+    return run_calibration(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sowgate", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -130,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     except ImportError:  # pragma: no cover - calibration module is part of the package
         pass
     else:
-        add_calibration_commands(sub)
+        add_calibration_commands(sub).set_defaults(func=cmd_calibrate)
     return p
 
 

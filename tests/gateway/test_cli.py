@@ -64,3 +64,21 @@ def test_every_command_has_working_help(
         main([*argv, "--help"])
     assert info.value.code == 0
     assert "usage: sowgate" in capsys.readouterr().out
+
+
+def test_calibrate_runs_from_the_real_command_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`sowgate calibrate ...` dispatches (it used to fail with "no attribute func")."""
+    # paper B: 30 s runs, m = 2M/n; the 10 r/min run is unstable and excluded
+    masses = [11.2 * n / 2 for n in (10, 20, 30, 40, 50, 60)]
+    masses[0] *= 1.4
+    argv = ["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "seed",
+            "--mass", ",".join(f"{m:.3f}" for m in masses), "--no-wait"]
+    assert main(argv) == 0
+    assert "g/rev = 11.20" in capsys.readouterr().out
+    assert main(["calibrate", "--state-dir", str(tmp_path), "show"]) == 0
+    assert '"rotation.seed"' in capsys.readouterr().out
+    assert main(["calibrate", "--state-dir", str(tmp_path), "undo"]) == 0
+    assert main(["calibrate", "--state-dir", str(tmp_path), "undo"]) == 1  # nothing left
+    assert "nothing to undo" in capsys.readouterr().out
