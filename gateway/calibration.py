@@ -256,6 +256,29 @@ def tilt_lowered_critical(readings: Sequence[float]) -> TiltCalibration:
     return TiltCalibration("lowered_critical", r, None, sum(r) / len(r))
 
 
+TILT_FIELDS = ("zero_offset_deg", "critical_angle_deg")
+
+
+def save_tilt(store: CalibrationStore, key: str, result: TiltCalibration,
+              **extra: Any) -> dict[str, Any]:
+    """Save a zero or a critical angle without losing the other half of the sensor's record.
+
+    Both live under one key (``tilt.<sensor>``); a level-ground zero after a lowered
+    critical angle (or the HMI "zero" button) must not silently drop the critical angle back
+    to the config value, nor the reverse. The saved entry carries both; ``undo`` restores the
+    entry as it was before. Returns the entry saved.
+    """
+    entry = to_entry(result, **extra)
+    prev = store.get(key)
+    old = prev.get("result") if isinstance(prev, dict) else None
+    if isinstance(old, dict):
+        for name in TILT_FIELDS:
+            if entry["result"].get(name) is None and old.get(name) is not None:
+                entry["result"][name] = old[name]
+    store.save(key, entry)
+    return entry
+
+
 # ---- persistence ---------------------------------------------------------------------------
 
 

@@ -243,7 +243,12 @@ def _tilt(args: argparse.Namespace, console: Console, ask: Callable[[str], float
         console.print(f"zero offset {res.zero_offset_deg:+.2f}° (zeroed = raw − offset)")
     if res.critical_angle_deg is not None:
         console.print(f"critical angle {res.critical_angle_deg:+.2f}° (below → working)")
-    _store(args).save(f"tilt.{args.sensor}", cal.to_entry(res))
+    entry = cal.save_tilt(_store(args), f"tilt.{args.sensor}", res)
+    kept = entry["result"]
+    if res.zero_offset_deg is None and kept.get("zero_offset_deg") is not None:
+        console.print(f"kept the stored zero offset {kept['zero_offset_deg']:+.2f}°")
+    if res.critical_angle_deg is None and kept.get("critical_angle_deg") is not None:
+        console.print(f"kept the stored critical angle {kept['critical_angle_deg']:+.2f}°")
     return EXIT_OK
 
 

@@ -192,7 +192,14 @@ class Controller:
                     raise CommandError("cannot zero: no inclinometer reading")
                 self.zero_offset_deg = self._tilt_raw
                 self._attitude.forget()
-                self._save_zero()
+                critical_raw = self._save_zero()
+                if critical_raw is not None:
+                    # a stored (paper B) critical angle is a raw reading: keep it where it
+                    # was on the sensor, as the next start-up will (see calibration_apply)
+                    self._attitude = AttitudeBand(
+                        zeroed_tilt(critical_raw, self.zero_offset_deg),
+                        self.settings.inclinometer.hysteresis_deg,
+                    )
                 reply = f"tilt zeroed at raw {self._tilt_raw:.2f} deg"
             case _:
                 raise CommandError(f"unsupported command {command!r}")
@@ -238,19 +245,24 @@ class Controller:
             f"{r.source} {r.integrated_m:.1f} m -> x{r.factor:.4f}" for r in results
         )
 
-    def _save_zero(self) -> None:
-        """Persist as a paper-A level-ground calibration, with undo like any other."""
+    def _save_zero(self) -> float | None:
+        """Persist as a paper-A level-ground calibration, with undo like any other.
+
+        Returns the stored raw critical angle, if a lowered-critical calibration exists.
+        """
         if self.state_dir is None:
-            return
+            return None
         from gateway import calibration as cal
 
         result = cal.tilt_level_zero([self.zero_offset_deg])
         try:
-            cal.CalibrationStore(self.state_dir).save(
-                "tilt.inclinometer", cal.to_entry(result, source="hmi")
+            entry = cal.save_tilt(
+                cal.CalibrationStore(self.state_dir), "tilt.inclinometer", result, source="hmi"
             )
         except (cal.CalibrationError, OSError) as exc:
             raise CommandError(f"zeroed, but could not be saved: {exc}") from exc
+        critical = entry["result"].get("critical_angle_deg")
+        return None if critical is None else float(critical)
 
     # ---- the control step ----------------------------------------------------------------
     def _attitude_now(self, now: float) -> tuple[Attitude, float | None]:

@@ -11,7 +11,9 @@ import pytest
 from rich.console import Console
 
 from gateway import calibration as cal
+from gateway.calibration_apply import apply_calibrations
 from gateway.calibration_cli import add_calibration_commands, run_calibration
+from gateway.config import parse_config
 
 # paper B table 2 results (g/rev) and small weighing errors that average out
 PAPER_B_G_PER_REV = {"shallow": 16.97, "deep": 29.31, "seed": 11.20}
@@ -214,6 +216,33 @@ def test_cli_tilt_undo_and_show(tmp_path: Path) -> None:
     assert run([*sd, "undo", "--key", "tilt.inclinometer"])[0] == 0
     saved = cal.CalibrationStore(tmp_path).get("tilt.inclinometer")
     assert saved is not None and saved["result"]["critical_angle_deg"] == pytest.approx(5.3)
+
+
+@pytest.mark.parametrize("order", ["zero_first", "critical_first"])
+def test_cli_zero_and_critical_angle_do_not_erase_each_other(tmp_path: Path, order: str) -> None:
+    sd = ["calibrate", "--state-dir", str(tmp_path), "tilt"]
+    zero = [*sd, "--mode", "level", "--readings", "-1.25"]
+    critical = [*sd, "--mode", "lowered", "--readings", "5.2,5.3,5.4"]
+    steps = [zero, critical] if order == "zero_first" else [critical, zero]
+    for argv in steps:
+        code, out = run(argv)
+        assert code == 0, out
+    assert "kept the stored" in out
+    saved = cal.CalibrationStore(tmp_path).get("tilt.inclinometer")
+    assert saved is not None
+    assert saved["result"]["zero_offset_deg"] == pytest.approx(-1.25)
+    assert saved["result"]["critical_angle_deg"] == pytest.approx(5.3)
+    settings = parse_config({})
+    apply_calibrations(settings, tmp_path)
+    assert settings.inclinometer.zero_offset_deg == pytest.approx(-1.25)
+    assert settings.inclinometer.critical_angle_deg == pytest.approx(6.55)  # 5.3 - (-1.25)
+    # undo goes back to the record before the second step, which had only the first half
+    assert run(["calibrate", "--state-dir", str(tmp_path), "undo"])[0] == 0
+    first = cal.CalibrationStore(tmp_path).get("tilt.inclinometer")
+    assert first is not None
+    kept = "zero_offset_deg" if order == "zero_first" else "critical_angle_deg"
+    dropped = "critical_angle_deg" if order == "zero_first" else "zero_offset_deg"
+    assert first["result"][kept] is not None and first["result"][dropped] is None
 
 
 def test_cli_wrong_mass_count_is_refused(tmp_path: Path) -> None:
