@@ -18,12 +18,15 @@ from gateway.attitude import zeroed_tilt
 from gateway.config import CropModel, Settings
 from gateway.errors import CommandError, OutsideCalibrationError, TooFastError
 from gateway.rate_model import flow_at, omega_for_duty, plan_duty, rate_for_flow
+from gateway.records import AlarmSeverity
 from gateway.speed import Hysteresis, MovingAverage, TrendFilter
 from gateway.work_state import Attitude, Fan, Mode, Motion, Motor, WorkState, decide
 
 log = logging.getLogger(__name__)
 
 TILT_STALE_S = 2.0
+WORK_STATE_SOURCES = ("inclinometer", "hitch")
+WORK_STATE_LABEL = {"inclinometer": "inclinometer", "hitch": "ISOBUS rear hitch status"}
 OTHER_SOURCE_FILTER_SAMPLES = 5
 
 
@@ -134,16 +137,17 @@ class Controller:
         self._hitch_working = in_work
         self._hitch_t = t
 
+    def stale_after_s(self, source: str) -> float:
+        """How long a source's last value counts; ISOBUS keeps the standard's 300 ms."""
+        s = self.settings
+        if source == "isobus":
+            return min(s.speed.stale_after_s, s.isobus.stale_after_s)
+        return s.speed.stale_after_s
+
     def speed(self, now: float) -> tuple[float | None, str | None]:
-        order = {
-            "radar": ("radar",),
-            "gnss": ("gnss",),
-            "isobus": ("isobus",),
-            "radar_then_gnss": ("radar", "gnss"),
-            "isobus_then_radar": ("isobus", "radar"),
-        }[self.settings.speed.source]
-        for name in order:
-            v = self.sources[name].value(now, self.settings.speed.stale_after_s)
+        """The first fresh source in ``[speed] source`` priority order."""
+        for name in self.settings.speed.source:
+            v = self.sources[name].value(now, self.stale_after_s(name))
             if v is not None:
                 return v, name
         return None, None
@@ -266,20 +270,39 @@ class Controller:
 
     # ---- the control step ----------------------------------------------------------------
     def _attitude_now(self, now: float) -> tuple[Attitude, float | None]:
+        """Raised or working from the first fresh source in ``isobus.work_state_source``.
+
+        The inclinometer's band is kept up to date whenever it reads, so falling back to it
+        starts from its real state. No fresh source at all -> raised (every meter stops).
+        """
         tilt = self.tilt(now)
-        src = self.settings.isobus.work_state_source
-        hitch_fresh = self._hitch_t is not None and now - self._hitch_t <= TILT_STALE_S
-        if src in ("hitch", "hitch_then_inclinometer") and hitch_fresh:
-            self.alarms.clear("inclinometer.lost")
-            return (Attitude.LOWERED if self._hitch_working else Attitude.RAISED), tilt
         if tilt is None:
             self._attitude.forget()
-            self.alarms.raise_(
-                "inclinometer.lost", "inclinometer lost: treated as raised", "critical"
-            )
-            return Attitude.RAISED, None
-        self.alarms.clear("inclinometer.lost")
-        return (Attitude.RAISED if self._attitude.update(tilt) else Attitude.LOWERED), tilt
+            incl_raised = None
+        else:
+            incl_raised = self._attitude.update(tilt)
+        hitch_fresh = (
+            self._hitch_t is not None
+            and self._hitch_working is not None
+            and now - self._hitch_t <= self.settings.isobus.stale_after_s
+        )
+        verdicts = {
+            "inclinometer": incl_raised,
+            "hitch": (not self._hitch_working) if hitch_fresh else None,
+        }
+        order = self.settings.isobus.work_state_source
+        chosen = next((src for src in order if verdicts[src] is not None), None)
+        for src in WORK_STATE_SOURCES:
+            lost = src in order and verdicts[src] is None
+            sev: AlarmSeverity
+            if chosen is None:
+                msg, sev = f"{WORK_STATE_LABEL[src]} lost: treated as raised", "critical"
+            else:
+                msg, sev = f"{WORK_STATE_LABEL[src]} lost: work state from {chosen}", "warning"
+            self.alarms.set(f"{src}.lost", lost, msg, sev)
+        if chosen is None:
+            return Attitude.RAISED, tilt
+        return (Attitude.RAISED if verdicts[chosen] else Attitude.LOWERED), tilt
 
     def tick(self, now: float) -> ControlOutputs:
         dt = 0.0 if self._last_tick is None else max(0.0, now - self._last_tick)
