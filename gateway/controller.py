@@ -8,6 +8,7 @@ moving a number, not by sleeping. The daemon polls the bus and calls ``tick``.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from gateway import commands as cmd
 from gateway.alarms import AlarmBoard
 from gateway.attitude import Attitude as AttitudeBand
 from gateway.attitude import zeroed_tilt
-from gateway.config import CropModel, Settings
+from gateway.config import ChannelSection, CropModel, Settings
 from gateway.errors import CommandError, OutsideCalibrationError, TooFastError
 from gateway.rate_model import flow_at, omega_for_duty, plan_duty, rate_for_flow
 from gateway.records import AlarmSeverity
@@ -54,6 +55,11 @@ class SpeedSource:
         return self.filter.value
 
 
+def pwm_channel(settings: Settings) -> ChannelSection | None:
+    """The ``pwm_modbus`` channel (paper A's motor on the RS485 PWM module), if declared."""
+    return next((c for c in settings.channel if c.drive == "pwm_modbus"), None)
+
+
 @dataclass
 class ControlOutputs:
     state: WorkState
@@ -65,6 +71,7 @@ class ControlOutputs:
     raised: bool
     commanded_rate_kg_ha: float
     message: str | None = None
+    target_rate_kg_ha: float | None = None  # the rate aimed at this tick (map or operator)
 
 
 @dataclass
@@ -82,12 +89,17 @@ class Controller:
     mode: Mode = Mode.STOPPED
     counters: Counters = field(default_factory=Counters)
     seed_level_monitoring: bool = False
+    # the rate to aim at now (a prescription map under the outlets), None -> the operator's
+    rate_provider: Callable[[], float | None] | None = None
 
     def __post_init__(self) -> None:
         s = self.settings
         self.crop = s.control.crop
         model = s.control.crops[self.crop]
         self.rate_kg_ha = s.control.rate_kg_ha or model.default_rate_kg_ha
+        pwm = pwm_channel(s)
+        if pwm is not None:  # a declared pwm_modbus channel sets paper A's crop and rate
+            self.crop, self.rate_kg_ha = pwm.product, pwm.target_rate_kg_ha
         self.zero_offset_deg = s.inclinometer.zero_offset_deg
         corr = s.speed.correction
         self.sources: dict[str, SpeedSource] = {
@@ -337,11 +349,16 @@ class Controller:
 
         out = decide(self.mode, motion, attitude)
         model = self.crop_model
+        target_rate = self.rate_kg_ha
+        if self.rate_provider is not None:
+            prescribed = self.rate_provider()
+            if prescribed is not None:
+                target_rate = prescribed
         motor = 0.0
         commanded_rate = 0.0
         too_fast = outside = False
         if out.motor is Motor.FOLLOW and speed is not None:
-            plan = plan_duty(self.rate_kg_ha, self.settings.machine.working_width_m, speed, model)
+            plan = plan_duty(target_rate, self.settings.machine.working_width_m, speed, model)
             motor = plan.duty_pct
             too_fast = isinstance(plan.problem, TooFastError)
             outside = isinstance(plan.problem, OutsideCalibrationError)
@@ -376,6 +393,7 @@ class Controller:
             raised=attitude is Attitude.RAISED,
             commanded_rate_kg_ha=commanded_rate,
             message=self._message,
+            target_rate_kg_ha=target_rate,
         )
         return self.last
 

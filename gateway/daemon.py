@@ -237,7 +237,11 @@ class Daemon:
             "tilt_deg": out.tilt_deg if out else None,
             "raised": out.raised if out else True,
             "crop": c.crop,
-            "target_rate_kg_ha": c.rate_kg_ha,
+            "target_rate_kg_ha": (
+                out.target_rate_kg_ha
+                if out is not None and out.target_rate_kg_ha is not None
+                else c.rate_kg_ha
+            ),
             "commanded_rate_kg_ha": out.commanded_rate_kg_ha if out else 0.0,
             "motor_duty_pct": out.motor_pct if out else 0.0,
             "fan_duty_pct": out.fan_pct if out else 0.0,

@@ -85,8 +85,7 @@ def attach(daemon: Daemon) -> None:
         _attach_seed_recording(daemon, store)
     if s.mqtt.enabled and store is not None:
         _attach_mqtt(daemon, store)
-    if s.can.enabled and any(c.drive == "can_pid" for c in s.channel):
-        _attach_metering(daemon)
+    _attach_channels(daemon)
     if s.isobus.enabled:
         _attach_isobus(daemon)
 
@@ -198,9 +197,123 @@ def _gnss_pose(daemon: Daemon) -> Any:
     return Pose(lon=e.lon, lat=e.lat, heading_deg=heading or 0.0, speed_kmh=e.speed_kmh or 0.0)
 
 
-def _attach_metering(daemon: Daemon) -> None:
+def _load_prescription(daemon: Daemon) -> Any:
+    """The prescription map, or None when disabled or unusable (alarm says why: a bad map
+    must not keep the drill from sowing at the default rates)."""
+    from gateway.prescription import PrescriptionError, PrescriptionMap
+
+    p = daemon.settings.prescription
+    if not p.enabled:
+        return None
+    attrs = [c.prescription_attribute for c in daemon.settings.channel if c.prescription_attribute]
+    try:
+        if p.path is None:
+            raise PrescriptionError("prescription.path: required when prescription.enabled")
+        return PrescriptionMap.load(p.path, attrs)
+    except PrescriptionError as exc:
+        log.error("prescription map not used: %s", exc)
+        daemon.alarms.raise_(
+            "prescription.invalid", f"prescription map not used: {exc}", "critical"
+        )
+        return None
+
+
+def _attach_channels(daemon: Daemon) -> None:
+    """Metering channels: ``can_pid`` ones on the CAN bus, the ``pwm_modbus`` one through the
+    RS485 control loop; one prescription map and one as-applied log for all of them."""
+    from gateway.controller import pwm_channel
+    from gateway.prescription import AsAppliedLog
+
+    s = daemon.settings
+    can_pid = [c for c in s.channel if c.drive == "can_pid"]
+    pwm = pwm_channel(s)
+    if can_pid and not s.can.enabled:
+        names = ", ".join(c.name for c in can_pid)
+        log.error("can_pid channels %s configured but [can] is not enabled", names)
+        daemon.alarms.raise_(
+            "channel.can_disabled",
+            f"channel(s) {names} not driven: [can] enabled = false",
+            "critical",
+        )
+        can_pid = []
+    if not can_pid and pwm is None:
+        if s.prescription.enabled:
+            daemon.alarms.raise_(
+                "prescription.unused", "prescription map enabled but no metering channel uses it"
+            )
+        return
+    p = s.prescription
+    as_applied = AsAppliedLog(
+        Path(p.as_applied_path) if p.as_applied_path else daemon.state_dir / "as_applied.csv"
+    )
+    prescription = _load_prescription(daemon)
+    if can_pid:
+        _attach_metering(daemon, prescription, as_applied)
+    if pwm is not None:
+        part = PwmChannelPart(daemon, pwm, prescription, as_applied)
+        daemon.components["pwm_channel"] = part
+        daemon.controller.rate_provider = part.prescribed_rate
+        daemon.tick_hooks.append(part.on_tick)
+
+
+class PwmChannelPart:
+    """Paper A's motor as a channel: its rate from the map under its outlets, as-applied log.
+
+    The controller asks ``prescribed_rate`` every tick; outside the map (or without a GNSS
+    position) it gets None and sows the operator's rate, which starts as the channel's
+    ``target_rate_kg_ha``.
+    """
+
+    def __init__(self, daemon: Daemon, channel: Any, prescription: Any, as_applied: Any) -> None:
+        self.daemon = daemon
+        self.channel = channel
+        self.prescription = prescription if channel.prescription_attribute else None
+        self.as_applied = as_applied
+        self._last_logged = float("-inf")
+        self.last_target: float | None = None
+        self.last_commanded: float | None = None
+
+    def prescribed_rate(self) -> float | None:
+        if self.prescription is None:
+            return None
+        pose = _gnss_pose(self.daemon)
+        if pose is None:
+            return None
+        ch = self.channel
+        rate: float = self.prescription.rate_ahead(
+            pose, ch.prescription_attribute, self.daemon.controller.rate_kg_ha,
+            self.daemon.settings.prescription.lookahead_s, ch.outlet_behind_m,
+            ch.outlet_lateral_m,
+        )
+        return rate
+
+    def on_tick(self, out: ControlOutputs) -> None:
+        from gateway.channels import AS_APPLIED_PERIOD_S
+
+        self.last_target, self.last_commanded = out.target_rate_kg_ha, out.commanded_rate_kg_ha
+        now = self.daemon.clock()
+        if out.state.value != "seeding" or now - self._last_logged < AS_APPLIED_PERIOD_S:
+            return
+        pose = _gnss_pose(self.daemon)
+        if pose is None:
+            return
+        self._last_logged = now
+        self.as_applied.record_channel(
+            pose, self.channel, out.target_rate_kg_ha or 0.0, out.commanded_rate_kg_ha
+        )
+
+    def snapshot(self) -> dict[str, Any]:
+        return {
+            "name": self.channel.name,
+            "product": self.channel.product,
+            "prescription": self.prescription is not None,
+            "target_rate_kg_ha": self.last_target,
+            "commanded_rate_kg_ha": self.last_commanded,
+        }
+
+
+def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None:
     from gateway.channels import ChannelAlarm, MeteringComponent
-    from gateway.prescription import AsAppliedLog, PrescriptionError, PrescriptionMap
 
     def speed() -> float | None:
         out = daemon.outputs
@@ -218,24 +331,9 @@ def _attach_metering(daemon: Daemon) -> None:
             f"channel.{alarm.channel}.{alarm.kind}", alarm.active, alarm.message, severity
         )
 
-    p = daemon.settings.prescription
-    as_applied = AsAppliedLog(
-        Path(p.as_applied_path) if p.as_applied_path else daemon.state_dir / "as_applied.csv"
-    )
-    prescription = None
-    if p.enabled:
-        # a bad map must not keep the drill from sowing: default rates, and say why
-        attrs = [c.prescription_attribute for c in daemon.settings.channel]
-        try:
-            if p.path is None:
-                raise PrescriptionError("prescription.path: required when prescription.enabled")
-            prescription = PrescriptionMap.load(p.path, [a for a in attrs if a])
-        except PrescriptionError as exc:
-            log.error("prescription map not used: %s", exc)
-            daemon.alarms.raise_(
-                "prescription.invalid", f"prescription map not used: {exc}", "critical"
-            )
-            p.enabled = False
+    if prescription is None:
+        # do not let the component load the (absent or rejected) map a second time
+        daemon.settings.prescription.enabled = False
     component = MeteringComponent(
         daemon.settings,
         speed,

@@ -28,6 +28,7 @@ import os
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -339,6 +340,17 @@ class AsAppliedLog:
                 if new:
                     w.writeheader()
                 w.writerow(asdict(row))
+
+    def record_channel(
+        self, pose: Pose, channel: Any, target_kg_ha: float, applied_kg_ha: float | None
+    ) -> AsAppliedRow:
+        """Log one channel's rates at ``pose`` (``channel``: a ``[[channel]]`` section)."""
+        row = AsAppliedRow(
+            datetime.now(UTC).isoformat(timespec="milliseconds"), pose.lon, pose.lat,
+            channel.name, channel.product, target_kg_ha, applied_kg_ha,
+        )
+        self.record(row)
+        return row
 
     def to_csv(self) -> str:
         return rows_to_csv(self.rows)

@@ -240,3 +240,21 @@ def test_can_channel_needs_an_addressable_node_id() -> None:
     raw["channel"][0]["node_id"] = 0
     with pytest.raises(ConfigError, match=r"channel\[0\].*node_id 1\.\.15"):
         parse_config(raw)
+
+
+def test_can_channels_without_the_can_bus_enabled_alarm_instead_of_doing_nothing(
+    tmp_path: Path,
+) -> None:
+    from gateway.daemon import Daemon
+
+    settings = parse_config({
+        "hmi": {"enabled": False},
+        "channel": [{"name": "deep", "target_rate_kg_ha": 300.0}],
+        "prescription": {"enabled": True, "path": str(tmp_path / "rx.geojson")},
+    })
+    daemon = Daemon(settings, tmp_path / "state")
+    active = {a.code: a for a in daemon.alarms.active}
+    assert active["channel.can_disabled"].severity == "critical"
+    assert "deep" in active["channel.can_disabled"].message
+    assert "prescription.unused" in active
+    assert "metering" not in daemon.components
