@@ -25,7 +25,7 @@ from drivers.can_bus import CanBus, MeteringCanLink
 from drivers.errors import DriverError
 from gateway.config import ChannelSection, Settings
 from gateway.errors import ConfigError, RateError
-from gateway.prescription import AsAppliedLog, AsAppliedRow, Pose, PrescriptionMap
+from gateway.prescription import AsAppliedLog, Pose, PrescriptionMap
 from protocol.can_metering import MeterStatus
 
 log = logging.getLogger(__name__)
@@ -290,10 +290,9 @@ class MeteringComponent:
             stamp = datetime.now(UTC).isoformat(timespec="milliseconds")
             for ch in self.channels:
                 st = self.state[ch.name]
-                self.as_applied.record(AsAppliedRow(
-                    stamp, pose.lon, pose.lat, ch.name, ch.product, st.target_rate_kg_ha,
-                    st.applied_rate_kg_ha,
-                ))
+                self.as_applied.record_channel(
+                    pose, ch, st.target_rate_kg_ha, st.applied_rate_kg_ha, time=stamp
+                )
         return targets
 
     async def _control_loop(self) -> None:

@@ -243,8 +243,15 @@ def _attach_channels(daemon: Daemon) -> None:
             )
         return
     p = s.prescription
+
+    def on_write_error(error: str | None) -> None:
+        daemon.alarms.set(
+            "as_applied.write_failed", error is not None, f"as-applied log not written: {error}"
+        )
+
     as_applied = AsAppliedLog(
-        Path(p.as_applied_path) if p.as_applied_path else daemon.state_dir / "as_applied.csv"
+        Path(p.as_applied_path) if p.as_applied_path else daemon.state_dir / "as_applied.csv",
+        on_error=on_write_error,
     )
     prescription = _load_prescription(daemon)
     if can_pid:
