@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from gateway.config import EXIT_CONFIG, ConfigError, load_config, state_dir
+from gateway.config import EXIT_CONFIG, ConfigError, Settings, load_config, state_dir
 
 log = logging.getLogger("sowgate")
 
@@ -22,11 +22,57 @@ def _setup_logging(verbose: bool, quiet: bool = False) -> None:
     )
 
 
+def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
+    """What the schema cannot see: the prescription map's content, unused tables.
+
+    Returns (problems, warnings). The daemon survives all of these (a bad map means default
+    rates and an alarm), but a fitter checking a config wants to hear about them now.
+    """
+    problems: list[str] = []
+    warnings: list[str] = []
+    p = settings.prescription
+    channels = settings.channel
+    can_pid = [c.name for c in channels if c.drive == "can_pid"]
+    if can_pid and not settings.can.enabled:
+        warnings.append(
+            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but [can] enabled = false; "
+            "they will not be driven"
+        )
+    attrs = [c.prescription_attribute for c in channels if c.prescription_attribute]
+    if p.enabled:
+        from gateway.prescription import PrescriptionError, PrescriptionMap
+
+        if p.path is None:
+            problems.append("prescription.path: required when prescription.enabled")
+        elif not attrs:
+            problems.append(
+                "prescription.enabled: no [[channel]] has a prescription_attribute to read"
+            )
+        else:
+            try:
+                rx = PrescriptionMap.load(p.path, attrs)
+            except PrescriptionError as exc:
+                problems.append(f"prescription.path: {exc}")
+            else:
+                zones = len(rx.zones)
+                warnings.append(f"prescription map {p.path}: {zones} zones, rates {attrs} ok")
+    elif attrs:
+        warnings.append("channel: prescription_attribute set but prescription.enabled = false")
+    return problems, warnings
+
+
 def cmd_check_config(args: argparse.Namespace) -> int:
     try:
         settings = load_config(args.file)
     except ConfigError as exc:
         for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    problems, warnings = check_settings(settings)
+    for line in warnings:
+        print(f"note: {line}", file=sys.stderr)
+    if problems:
+        for line in problems:
             print(line, file=sys.stderr)
         return EXIT_CONFIG
     print(f"{args.file}: ok (machine {settings.machine.id}, {settings.machine.rows} rows)")
