@@ -33,6 +33,12 @@ class ZeroTilt:
 
 
 @dataclass(frozen=True)
+class CriticalTilt:
+    """Paper B's attitude calibration, live: with the implement lowered to the ground, the
+    mean of the last 3 inclinometer readings becomes the critical angle."""
+
+
+@dataclass(frozen=True)
 class EmptySeed:
     pass
 
@@ -51,7 +57,16 @@ class CalibrateSpeed:
     distance_m: float | None = None
 
 
-Command = SetRate | Start | Stop | ZeroTilt | EmptySeed | SeedLevelMonitoring | CalibrateSpeed
+Command = (
+    SetRate
+    | Start
+    | Stop
+    | ZeroTilt
+    | CriticalTilt
+    | EmptySeed
+    | SeedLevelMonitoring
+    | CalibrateSpeed
+)
 
 
 class CommandSink(Protocol):

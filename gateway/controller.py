@@ -8,6 +8,7 @@ moving a number, not by sleeping. The daemon polls the bus and calls ``tick``.
 from __future__ import annotations
 
 import logging
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +27,8 @@ from gateway.work_state import Attitude, Fan, Mode, Motion, Motor, WorkState, de
 log = logging.getLogger(__name__)
 
 TILT_STALE_S = 2.0
+LOWERED_READINGS = 3  # paper B averages 3 readings for the critical angle
+CRITICAL_READINGS_WITHIN_S = 5.0  # ... taken together, not one stale and two new
 WORK_STATE_SOURCES = ("inclinometer", "hitch")
 WORK_STATE_LABEL = {"inclinometer": "inclinometer", "hitch": "ISOBUS rear hitch status"}
 OTHER_SOURCE_FILTER_SAMPLES = 5
@@ -122,6 +125,7 @@ class Controller:
         self._odometer_start: dict[str, float] | None = None
         self._tilt_raw: float | None = None
         self._tilt_t: float | None = None
+        self._tilt_recent: deque[tuple[float, float]] = deque(maxlen=LOWERED_READINGS)
         self._hitch_working: bool | None = None
         self._hitch_t: float | None = None
         self._speed_lost_since: float | None = None
@@ -143,6 +147,7 @@ class Controller:
     def on_tilt(self, raw_deg: float, t: float) -> None:
         self._tilt_raw = raw_deg
         self._tilt_t = t
+        self._tilt_recent.append((t, raw_deg))
 
     def on_hitch(self, in_work: bool, t: float) -> None:
         """ISOBUS rear hitch in-work flag, an alternative attitude source."""
@@ -201,6 +206,8 @@ class Controller:
             case cmd.SeedLevelMonitoring(enabled=on):
                 self.seed_level_monitoring = on
                 reply = f"seed-level monitoring {'on' if on else 'off'}"
+            case cmd.CriticalTilt():
+                reply = self._calibrate_critical(source)
             case cmd.CalibrateSpeed(action=action, distance_m=distance):
                 reply = self._calibrate_speed(action, distance)
             case cmd.ZeroTilt():
@@ -260,6 +267,40 @@ class Controller:
         return "; ".join(
             f"{r.source} {r.integrated_m:.1f} m -> x{r.factor:.4f}" for r in results
         )
+
+    def _calibrate_critical(self, source: str) -> str:
+        """Paper B: implement lowered to the ground, mean of the last 3 readings."""
+        from gateway import calibration as cal
+
+        recent = list(self._tilt_recent)
+        newest = recent[-1][0] if recent else None
+        if (
+            len(recent) < LOWERED_READINGS
+            or newest is None
+            or (self._last_tick is not None and self._last_tick - newest > TILT_STALE_S)
+            or newest - recent[0][0] > CRITICAL_READINGS_WITHIN_S
+        ):
+            raise CommandError(
+                f"need {LOWERED_READINGS} fresh inclinometer readings: lower the implement to "
+                "the ground, wait a moment and try again"
+            )
+        try:
+            result = cal.tilt_lowered_critical([raw for _, raw in recent])
+        except cal.CalibrationError as exc:
+            raise CommandError(str(exc)) from None
+        critical_raw = result.critical_angle_deg
+        assert critical_raw is not None
+        if self.state_dir is not None:
+            try:
+                cal.save_tilt(
+                    cal.CalibrationStore(self.state_dir), "tilt.inclinometer", result,
+                    source=source,
+                )
+            except (cal.CalibrationError, OSError) as exc:
+                raise CommandError(f"critical angle not saved: {exc}") from exc
+        critical = zeroed_tilt(critical_raw, self.zero_offset_deg)
+        self._attitude = AttitudeBand(critical, self.settings.inclinometer.hysteresis_deg)
+        return f"critical angle {critical:+.2f} deg (raw {critical_raw:+.2f}): below -> working"
 
     def _save_zero(self) -> float | None:
         """Persist as a paper-A level-ground calibration, with undo like any other.

@@ -33,7 +33,16 @@ from pydantic import BaseModel, ValidationError
 
 from drivers.backoff import Backoff
 from gateway.alarms import AlarmBoard
-from gateway.commands import CalibrateSpeed, Command, CommandSink, SetRate, Start, Stop, ZeroTilt
+from gateway.commands import (
+    CalibrateSpeed,
+    Command,
+    CommandSink,
+    CriticalTilt,
+    SetRate,
+    Start,
+    Stop,
+    ZeroTilt,
+)
 from gateway.config import Settings
 from gateway.errors import CommandError
 from gateway.payloads import (
@@ -53,6 +62,7 @@ KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
     "start": EmptyCommand,
     "stop": EmptyCommand,
     "zero_tilt": EmptyCommand,
+    "tilt_critical": EmptyCommand,
     "speed_cal": SpeedCalCommand,
 }
 DISCONNECT_TIMEOUT_S = 3.0
@@ -121,7 +131,12 @@ def _to_command(name: str, payload: BaseModel) -> Command:
         return SetRate(crop=payload.crop, rate_kg_ha=payload.rate_kg_ha)
     if isinstance(payload, SpeedCalCommand):
         return CalibrateSpeed(action=payload.action, distance_m=payload.distance_m)
-    simple: dict[str, Command] = {"start": Start(), "stop": Stop(), "zero_tilt": ZeroTilt()}
+    simple: dict[str, Command] = {
+        "start": Start(),
+        "stop": Stop(),
+        "zero_tilt": ZeroTilt(),
+        "tilt_critical": CriticalTilt(),
+    }
     return simple[name]
 
 

@@ -176,6 +176,34 @@ def test_hmi_zero_keeps_a_stored_critical_angle_on_the_same_raw_reading(
     assert restarted.inclinometer.critical_angle_deg == pytest.approx(4.3)
 
 
+def test_live_critical_angle_from_3_lowered_readings(tmp_path: Path) -> None:
+    """Paper B over HMI/MQTT: lowered to the ground, the mean of 3 readings (5.3 deg)."""
+    c, _ = make(tmp_path)
+    c.on_tilt(5.2, 0.0)
+    with pytest.raises(CommandError, match="need 3 fresh inclinometer readings"):
+        c.execute(cmd.CriticalTilt(), "mqtt")
+    c.on_tilt(5.3, 0.33)
+    c.on_tilt(5.4, 0.67)
+    reply = c.execute(cmd.CriticalTilt(), "mqtt")
+    assert "+5.30" in reply
+    c.on_tilt(6.0, 1.0)  # above 5.3 + 0.5 hysteresis
+    assert c.tick(1.0).raised
+    c.on_tilt(5.0, 1.3)
+    assert not c.tick(1.3).raised
+    settings = parse_config({})
+    apply_calibrations(settings, tmp_path)
+    assert settings.inclinometer.critical_angle_deg == pytest.approx(5.3)
+
+
+def test_live_critical_angle_refuses_a_moving_implement(tmp_path: Path) -> None:
+    c, _ = make(tmp_path)
+    for i, raw in enumerate((2.0, 5.3, 8.0)):
+        c.on_tilt(raw, i * 0.33)
+    with pytest.raises(CommandError, match="keep the machine still"):
+        c.execute(cmd.CriticalTilt(), "hmi")
+    assert not (tmp_path / "calibration.json").exists()
+
+
 def test_counters_integrate_area_and_mass_while_seeding() -> None:
     c, _ = make()
     c.execute(cmd.Start(), "t")

@@ -332,3 +332,15 @@ async def test_sigkill_mid_stream_resends_unacked_and_the_will_says_offline(
         finally:
             _reap(proc)
         assert sorted(set(sub.seed_ids())) == stored
+
+
+def test_tilt_critical_topic_maps_to_the_live_critical_angle_command() -> None:
+    from gateway.commands import CriticalTilt
+    from gateway.mqtt_link import KNOWN_COMMANDS, _to_command
+    from gateway.payloads import EmptyCommand
+
+    assert KNOWN_COMMANDS["tilt_critical"] is EmptyCommand
+    assert _to_command("tilt_critical", EmptyCommand()) == CriticalTilt()
+    assert parse_config({"commands": {"enabled": ["tilt_critical"]}}).commands.enabled == [
+        "tilt_critical"
+    ]
