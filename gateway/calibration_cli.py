@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.prompt import FloatPrompt
 from rich.table import Table
@@ -34,6 +35,7 @@ EXIT_FAILED = 1
 DEFAULT_B_SPEEDS = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)  # paper B
 DEFAULT_B_SECONDS = 30.0
 DEFAULT_A_SECONDS = 60.0  # paper A weighs 60 s runs
+SPEED_SOURCES = ("radar", "gnss", "isobus")
 
 
 def _floats(text: str) -> list[float]:
@@ -69,7 +71,7 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     r.add_argument("--no-wait", action="store_true", help="do not time the runs (masses known)")
 
     s = sub.add_parser("speed", help="drive a measured distance, store a correction factor")
-    s.add_argument("--source", required=True, help="radar | gnss | isobus | ...")
+    s.add_argument("--source", required=True, choices=SPEED_SOURCES, help="speed source")
     s.add_argument("--distance", type=float, default=50.0, help="measured distance (m)")
     g = s.add_mutually_exclusive_group(required=True)
     g.add_argument("--integrated-m", type=float, help="distance the source reported (m)")
@@ -164,8 +166,32 @@ def _table(title: str, headers: Sequence[str], rows: Sequence[Sequence[Any]]) ->
     return table
 
 
+def _check_rotation_target(settings: Settings | None, name: str, model: str) -> None:
+    """With a config, refuse a name the daemon would not apply *before* minutes of runs."""
+    if settings is None:
+        return
+    channels = {c.name: c for c in settings.channel}
+    if model == "paper_a":
+        ch = channels.get(name)
+        if name in settings.control.crops or (ch is not None and ch.drive == "pwm_modbus"):
+            return
+        known = sorted({*settings.control.crops, *(
+            c.name for c in settings.channel if c.drive == "pwm_modbus")})
+        raise cal.CalibrationError(
+            f"paper_a rotation of {name!r}: not a crop or pwm_modbus channel ({', '.join(known)})"
+        )
+    if name not in channels:
+        names = ", ".join(sorted(channels)) or "none configured"
+        raise cal.CalibrationError(f"no [[channel]] named {name!r} (channels: {names})")
+    if channels[name].drive != "can_pid":
+        raise cal.CalibrationError(
+            f"channel {name!r} is pwm_modbus: its rotation test is --model paper_a"
+        )
+
+
 def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
     settings = _settings(args)
+    _check_rotation_target(settings, args.channel, args.model)
     store = _store(args)
     if args.model == "grams_per_rev":
         speeds = args.speeds or list(DEFAULT_B_SPEEDS)
@@ -277,8 +303,8 @@ def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
         con.print_json(json.dumps(store.current()))
         return EXIT_OK
     except ConfigError as exc:
-        con.print(f"[red]config error:[/red]\n{exc}")
+        con.print(f"[red]config error:[/red]\n{escape(str(exc))}")
         return EXIT_FAILED
     except (GatewayError, DriverError, OSError) as exc:
-        con.print(f"[red]calibration refused:[/red] {exc}")
+        con.print(f"[red]calibration refused:[/red] {escape(str(exc))}")
         return EXIT_FAILED

@@ -249,3 +249,47 @@ def test_cli_wrong_mass_count_is_refused(tmp_path: Path) -> None:
     code, out = run(["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "x",
                      "--mass", "1,2", "--no-wait"])
     assert code == 1 and "--mass has 2 values for 6 runs" in out
+
+
+def _config_file(tmp_path: Path) -> Path:
+    cfg = tmp_path / "sowgate.toml"
+    cfg.write_text(
+        '[[channel]]\nname = "seed"\ndrive = "pwm_modbus"\nproduct = "wheat"\n'
+        "target_rate_kg_ha = 200\n"
+        '[[channel]]\nname = "deep"\ntarget_rate_kg_ha = 300\nnode_id = 2\n'
+    )
+    return cfg
+
+
+def test_cli_refuses_an_unknown_channel_before_the_runs(tmp_path: Path) -> None:
+    cfg = str(_config_file(tmp_path))
+    code, out = run(["calibrate", "--config", cfg, "--state-dir", str(tmp_path), "rotation",
+                     "--channel", "shallow", "--seconds", "30"])  # would time 6 x 30 s
+    assert code == 1 and "no [[channel]] named 'shallow' (channels: deep, seed)" in out
+    code, out = run(["calibrate", "--config", cfg, "--state-dir", str(tmp_path), "rotation",
+                     "--channel", "seed", "--seconds", "30"])
+    assert code == 1 and "--model paper_a" in out
+    assert not (tmp_path / "calibration.json").exists()
+
+
+def test_paper_a_fit_of_a_pwm_channel_refits_its_crop(tmp_path: Path) -> None:
+    w = [20.0, 25.0, 30.0, 35.0, 40.0, 45.0]
+    duty = [(x + 19.0) / 0.7 for x in w]
+    masses = [-0.6 * x * x + 130.0 * x - 390.0 for x in w]
+    code, out = run(["calibrate", "--config", str(_config_file(tmp_path)), "--state-dir",
+                     str(tmp_path), "rotation", "--channel", "seed", "--model", "paper_a",
+                     "--no-wait", "--duties", ",".join(map(str, duty)),
+                     "--rpm", ",".join(map(str, w)), "--mass", ",".join(map(str, masses))])
+    assert code == 0, out
+    settings = parse_config({"channel": [{"name": "seed", "drive": "pwm_modbus",
+                                          "product": "wheat", "target_rate_kg_ha": 200.0}]})
+    notes = apply_calibrations(settings, tmp_path)
+    assert notes == ["wheat metering model refitted (channel seed)"]
+    assert settings.control.crops["wheat"].motor_slope == pytest.approx(0.7)
+    assert settings.control.crops["wheat"].meter_b == pytest.approx(130.0)
+
+
+def test_cli_speed_source_must_be_a_known_source(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit):
+        parse(["calibrate", "--state-dir", str(tmp_path), "speed", "--source", "raddar",
+               "--integrated-m", "49"])
