@@ -117,7 +117,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _setup_logging(args.verbose, quiet=not args.no_tui)
     from gateway.demo import run_demo
 
-    return asyncio.run(run_demo(duration_s=args.duration, tui=not args.no_tui, crop=args.crop))
+    return asyncio.run(
+        run_demo(
+            duration_s=args.duration, tui=not args.no_tui, crop=args.crop, channels=args.channels
+        )
+    )
 
 
 def cmd_decode_gnss(args: argparse.Namespace) -> int:
@@ -156,6 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--duration", type=float, default=None, help="seconds (default: until ^C)")
     d.add_argument("--no-tui", action="store_true", help="log instead of the live view")
     d.add_argument("--crop", choices=["rapeseed", "wheat"], default="rapeseed")
+    d.add_argument(
+        "--channels",
+        action="store_true",
+        help="add paper B's three CAN metering channels (simulated PID controllers on a "
+        "virtual CAN bus)",
+    )
     d.set_defaults(func=cmd_demo)
 
     g = sub.add_parser("decode-gnss", help="decode receiver output, one JSON object per line")
