@@ -62,6 +62,7 @@ class Daemon:
         self.alarm_log: deque[AlarmEvent] = deque(maxlen=64)
         self.alarms.subscribe(self.alarm_log.append)
         self.controller = Controller(settings, self.alarms, state_dir=state_dir)
+        self.rs485 = settings.rs485.enabled  # False: no radar, inclinometer or PWM module
         self.bus = ModbusBus.from_config(settings.rs485)
         self.radar = Radar(self.bus, settings.radar)
         self.inclinometer = Inclinometer(self.bus, settings.inclinometer)
@@ -113,7 +114,8 @@ class Daemon:
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                 loop.add_signal_handler(sig, self.request_stop)
                 installed.append(sig)
-        await self.bus.start()
+        if self.rs485:
+            await self.bus.start()
         try:
             # both outputs are 0 before anything else happens
             await self._write_outputs(0.0, 0.0, force=True)
@@ -130,7 +132,8 @@ class Daemon:
                 pass
         finally:
             await self._safe_off()
-            await self.bus.close()
+            if self.rs485:
+                await self.bus.close()
             for close in reversed(self.closers):
                 try:
                     close()
@@ -157,18 +160,19 @@ class Daemon:
         next_at = self.clock()
         while True:
             reply_t = None
-            try:
-                kmh = await self.radar.read()
-                reply_t = self.clock()
-                self.controller.on_speed("radar", kmh, reply_t)
-            except DriverError:
-                pass
-            try:
-                tilt = await self.inclinometer.read()
-                reply_t = self.clock()
-                self.controller.on_tilt(tilt, reply_t)
-            except DriverError:
-                pass
+            if self.rs485:
+                try:
+                    kmh = await self.radar.read()
+                    reply_t = self.clock()
+                    self.controller.on_speed("radar", kmh, reply_t)
+                except DriverError:
+                    pass
+                try:
+                    tilt = await self.inclinometer.read()
+                    reply_t = self.clock()
+                    self.controller.on_tilt(tilt, reply_t)
+                except DriverError:
+                    pass
             out = self.controller.tick(self.clock())
             self.outputs = out
             await self._write_outputs(out.motor_pct, out.fan_pct, reply_t=reply_t)
@@ -189,6 +193,8 @@ class Daemon:
     async def _write_outputs(
         self, motor: float, fan: float, *, force: bool = False, reply_t: float | None = None
     ) -> None:
+        if not self.rs485:
+            return
         now = self.clock()
         refresh = now - self._written_at >= self.settings.actuators.refresh_s
         wanted: dict[Channel, float] = {"motor": round(motor, 1), "fan": round(fan, 1)}
@@ -209,6 +215,8 @@ class Daemon:
             self._written_at = now
 
     def _update_device_alarms(self) -> None:
+        if not self.rs485:
+            return
         for name, label in (
             ("radar", "radar"),
             ("inclinometer", "inclinometer"),

@@ -151,6 +151,19 @@ class Settings(BaseSettings):
                     f"channel[{i}].target_rate_kg_ha = {ch.target_rate_kg_ha:g} is outside the "
                     f"{ch.product} range {m.rate_min_kg_ha:g}..{m.rate_max_kg_ha:g} kg/ha"
                 )
+        if not self.rs485.enabled:
+            uses = []
+            if "radar" in self.speed.source:
+                uses.append("speed.source includes radar")
+            if "inclinometer" in self.isobus.work_state_source:
+                uses.append("isobus.work_state_source includes inclinometer")
+            uses += [f"channel {c.name} is pwm_modbus" for c in self.channel
+                     if c.drive == "pwm_modbus"]
+            if uses:
+                raise ValueError(
+                    f"rs485.enabled = false, but {'; '.join(uses)}: those devices are on the "
+                    "RS485 bus (use gnss/isobus speed, the hitch work state, can_pid channels)"
+                )
         ids = [self.radar.device_id, self.inclinometer.device_id, self.actuators.device_id]
         if len(ids) != len(set(ids)):
             raise ValueError(

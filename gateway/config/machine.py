@@ -17,6 +17,9 @@ class MachineSection(Section):
 
 
 class Rs485Section(Section):
+    # false: no RS485 bus at all (a paper-B drill: speed from GNSS/ISOBUS, work state from the
+    # hitch, CAN metering); radar, inclinometer and the PWM module are then not used
+    enabled: bool = True
     port: str = "/dev/ttyUSB0"
     baudrate: int = Field(9600, ge=1200, le=921600)
     parity: Literal["N", "E", "O"] = "N"

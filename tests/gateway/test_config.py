@@ -129,3 +129,14 @@ def test_a_pwm_modbus_channel_sets_paper_a_crop_and_rate() -> None:
     settings = parse_config({"channel": [_pwm()]})
     c = Controller(settings, AlarmBoard())
     assert (c.crop, c.rate_kg_ha) == ("wheat", 200.0)
+
+
+def test_without_rs485_the_sources_on_it_are_refused_by_name() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"rs485": {"enabled": False}})
+    problem = " ".join(info.value.problems)
+    assert "speed.source includes radar" in problem
+    assert "isobus.work_state_source includes inclinometer" in problem
+    ok = parse_config({"rs485": {"enabled": False}, "speed": {"source": "isobus_then_gnss"},
+                       "isobus": {"work_state_source": "hitch"}})
+    assert not ok.rs485.enabled
