@@ -139,9 +139,15 @@ def fit_meter_quadratic(rpm: Sequence[float], rate_g_min: Sequence[float],
 class RotationRun:
     """One timed run of the rotation test: shaft speed, duration, weighed mass."""
 
-    rpm: float
+    rpm: float  # effective shaft speed over the run (turns per minute of run time)
     seconds: float
     mass_g: float
+    set_rpm: float | None = None  # the commanded speed, when it differs (measured turns)
+
+    @property
+    def stability_rpm(self) -> float:
+        """The speed the paper's "below 20 r/min is unstable" rule is about: the set speed."""
+        return self.rpm if self.set_rpm is None else self.set_rpm
 
     @property
     def grams_per_rev(self) -> float:
@@ -167,8 +173,8 @@ def grams_per_rev(runs: Sequence[RotationRun],
             math.isfinite(v) for v in (r.rpm, r.seconds, r.mass_g)
         ):
             raise CalibrationError(f"run {r}: speed and time must be > 0, mass >= 0")
-    used = tuple(r for r in runs if r.rpm >= min_stable_rpm)
-    excluded = tuple(r for r in runs if r.rpm < min_stable_rpm)
+    used = tuple(r for r in runs if r.stability_rpm >= min_stable_rpm)
+    excluded = tuple(r for r in runs if r.stability_rpm < min_stable_rpm)
     if len(used) < 2:
         raise CalibrationError(
             f"need at least 2 runs at or above {min_stable_rpm:g} r/min (slower runs are "

@@ -13,9 +13,12 @@ import argparse
 import asyncio
 import contextlib
 import csv
+import itertools
 import json
+import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +39,7 @@ DEFAULT_B_SPEEDS = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)  # paper B
 DEFAULT_B_SECONDS = 30.0
 DEFAULT_A_SECONDS = 60.0  # paper A weighs 60 s runs
 SPEED_SOURCES = ("radar", "gnss", "isobus")
+RUN_DOWN_MAX_S = 3.0  # after a CAN-driven run, follow the shaft until it stops (at most)
 
 
 def _floats(text: str) -> list[float]:
@@ -107,25 +111,52 @@ def _masses(args: argparse.Namespace, n: int, console: Console,
     return [ask(f"weighed mass of run {i + 1} (g)") for i in range(n)]
 
 
+@dataclass
+class CanRun:
+    """One rotation-test run driven over CAN in a worker thread (the progress bar keeps
+    updating in the main one); ``revolutions`` is the shaft's measured turns, run-down
+    included, integrated from the controller's status frames."""
+
+    thread: threading.Thread | None = None
+    revolutions: float | None = None
+    error: BaseException | None = None
+
+    def join(self) -> None:
+        if self.thread is not None:
+            self.thread.join()
+        if self.error is not None:
+            raise self.error
+
+
 def _timed_runs(labels: Sequence[str], seconds: float, console: Console,
-                drive: Callable[[int, float], Any] | None, wait: bool) -> None:
+                drive: Callable[[int, float], CanRun] | None, wait: bool) -> list[CanRun]:
+    runs: list[CanRun] = []
     if not wait:
-        return
+        return runs
     with Progress(TextColumn("{task.description}"), BarColumn(), TimeRemainingColumn(),
                   console=console, transient=False) as progress:
         for i, label in enumerate(labels):
             task = progress.add_task(f"run {i + 1}: {label}", total=seconds)
             start = time.monotonic()
-            if drive is not None:
-                drive(i, seconds)
+            run = drive(i, seconds) if drive is not None else None
             while (elapsed := time.monotonic() - start) < seconds:
                 progress.update(task, completed=elapsed)
                 time.sleep(min(0.2, seconds - elapsed))
             progress.update(task, completed=seconds)
+            if run is not None:
+                run.join()  # the shaft has run down
+                runs.append(run)
+    return runs
+
+
+def shaft_revolutions(samples: Sequence[tuple[float, float]]) -> float:
+    """Turns from (time s, measured r/min) status samples (trapezoid)."""
+    return sum((t1 - t0) * (r0 + r1) / 2 / 60.0
+               for (t0, r0), (t1, r1) in itertools.pairwise(samples))
 
 
 def _can_driver(settings: Settings | None, channel: str,
-                speeds: Sequence[float]) -> Callable[[int, float], Any]:
+                speeds: Sequence[float]) -> Callable[[int, float], CanRun]:
     """Drive a can_pid channel's controller at each set speed for the run's duration."""
     from drivers.can_bus import CanBus, MeteringCanLink
 
@@ -136,23 +167,46 @@ def _can_driver(settings: Settings | None, channel: str,
         raise cal.CalibrationError(f"no can_pid channel named {channel!r} in the config")
     node = ch.node_id
 
-    async def run(i: int, seconds: float) -> None:
+    async def run(i: int, seconds: float, result: CanRun) -> None:
         can = settings.can
+        loop = asyncio.get_running_loop()
+        samples: list[tuple[float, float]] = []
         async with CanBus(can.interface, can.channel, can.bitrate) as bus:
             link = MeteringCanLink(bus, [node], command_hz=can.command_hz)
             link.set_target(node, speeds[i])
-            task = asyncio.create_task(link.run(), name="calibrate-drive")
+            task = asyncio.create_task(
+                link.run(lambda st, t: samples.append((t, st.measured_rpm))),
+                name="calibrate-drive",
+            )
             try:
                 await asyncio.sleep(seconds)
+                link.stop_all()
+                # what the shaft delivers while running down lands in the catch too
+                stopped_at, deadline = time.monotonic(), loop.time() + RUN_DOWN_MAX_S
+                while loop.time() < deadline:
+                    await asyncio.sleep(0.1)
+                    if samples and samples[-1][0] > stopped_at and samples[-1][1] < 0.5:
+                        break
             finally:
                 task.cancel()
                 await asyncio.gather(task, return_exceptions=True)
                 link.stop_all()
                 with contextlib.suppress(DriverError):
                     await link.send_commands()
+        result.revolutions = shaft_revolutions(samples) if len(samples) >= 2 else None
 
-    def drive(i: int, seconds: float) -> None:
-        asyncio.run(run(i, seconds))
+    def drive(i: int, seconds: float) -> CanRun:
+        result = CanRun()
+
+        def target() -> None:
+            try:
+                asyncio.run(run(i, seconds, result))
+            except BaseException as exc:  # handed to the main thread by join()
+                result.error = exc
+
+        result.thread = threading.Thread(target=target, name=f"calibrate-run-{i + 1}")
+        result.thread.start()
+        return result
 
     return drive
 
@@ -197,10 +251,22 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         speeds = args.speeds or list(DEFAULT_B_SPEEDS)
         seconds = args.seconds or DEFAULT_B_SECONDS
         drive = _can_driver(settings, args.channel, speeds) if args.drive == "can" else None
-        _timed_runs([f"{n:g} r/min for {seconds:g} s" for n in speeds], seconds, console, drive,
-                    not args.no_wait)
+        driven = _timed_runs([f"{n:g} r/min for {seconds:g} s" for n in speeds], seconds,
+                             console, drive, not args.no_wait)
         masses = _masses(args, len(speeds), console, ask)
-        runs = [cal.RotationRun(n, seconds, m) for n, m in zip(speeds, masses, strict=True)]
+        rpm = list(speeds)
+        if driven:
+            # the shaft's measured turns, spin-up and run-down included, not the set point
+            for i, run in enumerate(driven):
+                if not run.revolutions:
+                    raise cal.CalibrationError(
+                        f"run {i + 1}: no shaft feedback from the controller; nothing saved"
+                    )
+                rpm[i] = run.revolutions / (seconds / 60.0)
+            console.print(_table("measured shaft speed", ("set r/min", "effective r/min"),
+                                 list(zip(speeds, rpm, strict=True))))
+        runs = [cal.RotationRun(n, seconds, m, set_rpm=s if driven else None)
+                for n, m, s in zip(rpm, masses, speeds, strict=True)]
         fit = cal.grams_per_rev(runs, args.min_stable_rpm)
         rows: list[tuple[Any, ...]] = [(r.rpm, r.mass_g, g, res) for r, g, res in
                 zip(fit.used, fit.per_run, fit.residuals_g_min, strict=True)]
