@@ -18,6 +18,14 @@ class SetRate:
 
 
 @dataclass(frozen=True)
+class SetChannelRate:
+    """Target rate of one ``[[channel]]`` (the rate outside the prescription map)."""
+
+    channel: str
+    rate_kg_ha: float
+
+
+@dataclass(frozen=True)
 class Start:
     pass
 
@@ -59,6 +67,7 @@ class CalibrateSpeed:
 
 Command = (
     SetRate
+    | SetChannelRate
     | Start
     | Stop
     | ZeroTilt

@@ -95,7 +95,27 @@ class Daemon:
     # ---- command path -----------------------------------------------------------------------
     def execute(self, command: cmd.Command, source: str) -> str:
         """The one command path for HMI and MQTT (see gateway.commands)."""
+        if isinstance(command, cmd.SetChannelRate):
+            return self._set_channel_rate(command, source)
         return self.controller.execute(command, source)
+
+    def _set_channel_rate(self, command: cmd.SetChannelRate, source: str) -> str:
+        """A can_pid channel's rate goes to the metering component; the pwm_modbus channel's
+        is paper A's rate (same crop range checks as the HMI)."""
+        names = [c.name for c in self.settings.channel]
+        ch = next((c for c in self.settings.channel if c.name == command.channel), None)
+        if ch is None:
+            raise CommandError(
+                f"unknown channel {command.channel!r}; known: {', '.join(names) or 'none'}"
+            )
+        if ch.drive == "pwm_modbus":
+            return self.controller.execute(cmd.SetRate(ch.product, command.rate_kg_ha), source)
+        metering = self.components.get("metering")
+        if metering is None:
+            raise CommandError(f"channel {ch.name!r} is not running ([can] not enabled)")
+        reply: str = metering.set_rate(ch.name, command.rate_kg_ha)
+        log.info("command from %s: %s", source, reply)
+        return reply
 
     def try_execute(self, command: cmd.Command, source: str) -> tuple[bool, str]:
         try:

@@ -38,6 +38,7 @@ from gateway.commands import (
     Command,
     CommandSink,
     CriticalTilt,
+    SetChannelRate,
     SetRate,
     Start,
     Stop,
@@ -46,6 +47,7 @@ from gateway.commands import (
 from gateway.config import Settings
 from gateway.errors import CommandError
 from gateway.payloads import (
+    ChannelRateCommand,
     CommandAck,
     EmptyCommand,
     RateCommand,
@@ -59,6 +61,7 @@ log = logging.getLogger(__name__)
 
 KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
     "rate": RateCommand,
+    "channel_rate": ChannelRateCommand,
     "start": EmptyCommand,
     "stop": EmptyCommand,
     "zero_tilt": EmptyCommand,
@@ -129,6 +132,8 @@ def _describe_validation(exc: ValidationError) -> str:
 def _to_command(name: str, payload: BaseModel) -> Command:
     if isinstance(payload, RateCommand):
         return SetRate(crop=payload.crop, rate_kg_ha=payload.rate_kg_ha)
+    if isinstance(payload, ChannelRateCommand):
+        return SetChannelRate(channel=payload.channel, rate_kg_ha=payload.rate_kg_ha)
     if isinstance(payload, SpeedCalCommand):
         return CalibrateSpeed(action=payload.action, distance_m=payload.distance_m)
     simple: dict[str, Command] = {
