@@ -414,6 +414,10 @@ class IsobusListener:
             return None
         return self._hitch[0]
 
+    def hitch_received_at(self) -> float | None:
+        """Local time the latest rear hitch message arrived (None: never)."""
+        return None if self._hitch is None else self._hitch[1]
+
     def working(self, now: float | None = None) -> bool | None:
         """In work from the hitch: the in-work bits, else position below the threshold."""
         h = self.hitch(now)

@@ -139,9 +139,15 @@ def fit_meter_quadratic(rpm: Sequence[float], rate_g_min: Sequence[float],
 class RotationRun:
     """One timed run of the rotation test: shaft speed, duration, weighed mass."""
 
-    rpm: float
+    rpm: float  # effective shaft speed over the run (turns per minute of run time)
     seconds: float
     mass_g: float
+    set_rpm: float | None = None  # the commanded speed, when it differs (measured turns)
+
+    @property
+    def stability_rpm(self) -> float:
+        """The speed the paper's "below 20 r/min is unstable" rule is about: the set speed."""
+        return self.rpm if self.set_rpm is None else self.set_rpm
 
     @property
     def grams_per_rev(self) -> float:
@@ -167,8 +173,8 @@ def grams_per_rev(runs: Sequence[RotationRun],
             math.isfinite(v) for v in (r.rpm, r.seconds, r.mass_g)
         ):
             raise CalibrationError(f"run {r}: speed and time must be > 0, mass >= 0")
-    used = tuple(r for r in runs if r.rpm >= min_stable_rpm)
-    excluded = tuple(r for r in runs if r.rpm < min_stable_rpm)
+    used = tuple(r for r in runs if r.stability_rpm >= min_stable_rpm)
+    excluded = tuple(r for r in runs if r.stability_rpm < min_stable_rpm)
     if len(used) < 2:
         raise CalibrationError(
             f"need at least 2 runs at or above {min_stable_rpm:g} r/min (slower runs are "
@@ -254,6 +260,29 @@ def tilt_lowered_critical(readings: Sequence[float]) -> TiltCalibration:
     """Paper B: implement lowered to the ground; mean of 3 readings is the critical angle."""
     r = _readings(readings, LOWERED_READINGS)
     return TiltCalibration("lowered_critical", r, None, sum(r) / len(r))
+
+
+TILT_FIELDS = ("zero_offset_deg", "critical_angle_deg")
+
+
+def save_tilt(store: CalibrationStore, key: str, result: TiltCalibration,
+              **extra: Any) -> dict[str, Any]:
+    """Save a zero or a critical angle without losing the other half of the sensor's record.
+
+    Both live under one key (``tilt.<sensor>``); a level-ground zero after a lowered
+    critical angle (or the HMI "zero" button) must not silently drop the critical angle back
+    to the config value, nor the reverse. The saved entry carries both; ``undo`` restores the
+    entry as it was before. Returns the entry saved.
+    """
+    entry = to_entry(result, **extra)
+    prev = store.get(key)
+    old = prev.get("result") if isinstance(prev, dict) else None
+    if isinstance(old, dict):
+        for name in TILT_FIELDS:
+            if entry["result"].get(name) is None and old.get(name) is not None:
+                entry["result"][name] = old[name]
+    store.save(key, entry)
+    return entry
 
 
 # ---- persistence ---------------------------------------------------------------------------

@@ -43,6 +43,16 @@ def apply_calibrations(settings: Settings, state_dir: Path) -> list[str]:
     return applied
 
 
+def _paper_a_crop(settings: Settings, name: str) -> str | None:
+    """A paper-A rotation test is stored per crop, or per pwm_modbus channel (its product)."""
+    if name in settings.control.crops:
+        return name
+    for ch in settings.channel:
+        if ch.name == name and ch.drive == "pwm_modbus":
+            return ch.product
+    return None
+
+
 def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict[str, Any]) -> str:
     kind, _, name = key.partition(".")
     if kind == "speed":
@@ -61,8 +71,9 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
         return "tilt " + ", ".join(parts)
     if kind == "rotation":
         model = entry.get("model")
-        if model == "paper_a" and name in settings.control.crops:
-            old = settings.control.crops[name]
+        crop = _paper_a_crop(settings, name) if model == "paper_a" else None
+        if crop is not None:
+            old = settings.control.crops[crop]
             lo, hi = result["omega_range"]
             new = old.model_validate(
                 {
@@ -76,8 +87,9 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
                     "omega_max_rpm": hi,
                 }
             )
-            settings.control.crops = {**settings.control.crops, name: new}
-            return f"{name} metering model refitted"
+            settings.control.crops = {**settings.control.crops, crop: new}
+            via = "" if crop == name else f" (channel {name})"
+            return f"{crop} metering model refitted{via}"
         if model == "grams_per_rev":
             for channel in settings.channel:
                 if channel.name == name:

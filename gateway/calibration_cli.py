@@ -13,13 +13,17 @@ import argparse
 import asyncio
 import contextlib
 import csv
+import itertools
 import json
+import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.prompt import FloatPrompt
 from rich.table import Table
@@ -34,6 +38,8 @@ EXIT_FAILED = 1
 DEFAULT_B_SPEEDS = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)  # paper B
 DEFAULT_B_SECONDS = 30.0
 DEFAULT_A_SECONDS = 60.0  # paper A weighs 60 s runs
+SPEED_SOURCES = ("radar", "gnss", "isobus")
+RUN_DOWN_MAX_S = 3.0  # after a CAN-driven run, follow the shaft until it stops (at most)
 
 
 def _floats(text: str) -> list[float]:
@@ -69,7 +75,7 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     r.add_argument("--no-wait", action="store_true", help="do not time the runs (masses known)")
 
     s = sub.add_parser("speed", help="drive a measured distance, store a correction factor")
-    s.add_argument("--source", required=True, help="radar | gnss | isobus | ...")
+    s.add_argument("--source", required=True, choices=SPEED_SOURCES, help="speed source")
     s.add_argument("--distance", type=float, default=50.0, help="measured distance (m)")
     g = s.add_mutually_exclusive_group(required=True)
     g.add_argument("--integrated-m", type=float, help="distance the source reported (m)")
@@ -105,25 +111,52 @@ def _masses(args: argparse.Namespace, n: int, console: Console,
     return [ask(f"weighed mass of run {i + 1} (g)") for i in range(n)]
 
 
+@dataclass
+class CanRun:
+    """One rotation-test run driven over CAN in a worker thread (the progress bar keeps
+    updating in the main one); ``revolutions`` is the shaft's measured turns, run-down
+    included, integrated from the controller's status frames."""
+
+    thread: threading.Thread | None = None
+    revolutions: float | None = None
+    error: BaseException | None = None
+
+    def join(self) -> None:
+        if self.thread is not None:
+            self.thread.join()
+        if self.error is not None:
+            raise self.error
+
+
 def _timed_runs(labels: Sequence[str], seconds: float, console: Console,
-                drive: Callable[[int, float], Any] | None, wait: bool) -> None:
+                drive: Callable[[int, float], CanRun] | None, wait: bool) -> list[CanRun]:
+    runs: list[CanRun] = []
     if not wait:
-        return
+        return runs
     with Progress(TextColumn("{task.description}"), BarColumn(), TimeRemainingColumn(),
                   console=console, transient=False) as progress:
         for i, label in enumerate(labels):
             task = progress.add_task(f"run {i + 1}: {label}", total=seconds)
             start = time.monotonic()
-            if drive is not None:
-                drive(i, seconds)
+            run = drive(i, seconds) if drive is not None else None
             while (elapsed := time.monotonic() - start) < seconds:
                 progress.update(task, completed=elapsed)
                 time.sleep(min(0.2, seconds - elapsed))
             progress.update(task, completed=seconds)
+            if run is not None:
+                run.join()  # the shaft has run down
+                runs.append(run)
+    return runs
+
+
+def shaft_revolutions(samples: Sequence[tuple[float, float]]) -> float:
+    """Turns from (time s, measured r/min) status samples (trapezoid)."""
+    return sum((t1 - t0) * (r0 + r1) / 2 / 60.0
+               for (t0, r0), (t1, r1) in itertools.pairwise(samples))
 
 
 def _can_driver(settings: Settings | None, channel: str,
-                speeds: Sequence[float]) -> Callable[[int, float], Any]:
+                speeds: Sequence[float]) -> Callable[[int, float], CanRun]:
     """Drive a can_pid channel's controller at each set speed for the run's duration."""
     from drivers.can_bus import CanBus, MeteringCanLink
 
@@ -134,23 +167,46 @@ def _can_driver(settings: Settings | None, channel: str,
         raise cal.CalibrationError(f"no can_pid channel named {channel!r} in the config")
     node = ch.node_id
 
-    async def run(i: int, seconds: float) -> None:
+    async def run(i: int, seconds: float, result: CanRun) -> None:
         can = settings.can
+        loop = asyncio.get_running_loop()
+        samples: list[tuple[float, float]] = []
         async with CanBus(can.interface, can.channel, can.bitrate) as bus:
             link = MeteringCanLink(bus, [node], command_hz=can.command_hz)
             link.set_target(node, speeds[i])
-            task = asyncio.create_task(link.run(), name="calibrate-drive")
+            task = asyncio.create_task(
+                link.run(lambda st, t: samples.append((t, st.measured_rpm))),
+                name="calibrate-drive",
+            )
             try:
                 await asyncio.sleep(seconds)
+                link.stop_all()
+                # what the shaft delivers while running down lands in the catch too
+                stopped_at, deadline = time.monotonic(), loop.time() + RUN_DOWN_MAX_S
+                while loop.time() < deadline:
+                    await asyncio.sleep(0.1)
+                    if samples and samples[-1][0] > stopped_at and samples[-1][1] < 0.5:
+                        break
             finally:
                 task.cancel()
                 await asyncio.gather(task, return_exceptions=True)
                 link.stop_all()
                 with contextlib.suppress(DriverError):
                     await link.send_commands()
+        result.revolutions = shaft_revolutions(samples) if len(samples) >= 2 else None
 
-    def drive(i: int, seconds: float) -> None:
-        asyncio.run(run(i, seconds))
+    def drive(i: int, seconds: float) -> CanRun:
+        result = CanRun()
+
+        def target() -> None:
+            try:
+                asyncio.run(run(i, seconds, result))
+            except BaseException as exc:  # handed to the main thread by join()
+                result.error = exc
+
+        result.thread = threading.Thread(target=target, name=f"calibrate-run-{i + 1}")
+        result.thread.start()
+        return result
 
     return drive
 
@@ -164,17 +220,53 @@ def _table(title: str, headers: Sequence[str], rows: Sequence[Sequence[Any]]) ->
     return table
 
 
+def _check_rotation_target(settings: Settings | None, name: str, model: str) -> None:
+    """With a config, refuse a name the daemon would not apply *before* minutes of runs."""
+    if settings is None:
+        return
+    channels = {c.name: c for c in settings.channel}
+    if model == "paper_a":
+        ch = channels.get(name)
+        if name in settings.control.crops or (ch is not None and ch.drive == "pwm_modbus"):
+            return
+        known = sorted({*settings.control.crops, *(
+            c.name for c in settings.channel if c.drive == "pwm_modbus")})
+        raise cal.CalibrationError(
+            f"paper_a rotation of {name!r}: not a crop or pwm_modbus channel ({', '.join(known)})"
+        )
+    if name not in channels:
+        names = ", ".join(sorted(channels)) or "none configured"
+        raise cal.CalibrationError(f"no [[channel]] named {name!r} (channels: {names})")
+    if channels[name].drive != "can_pid":
+        raise cal.CalibrationError(
+            f"channel {name!r} is pwm_modbus: its rotation test is --model paper_a"
+        )
+
+
 def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
     settings = _settings(args)
+    _check_rotation_target(settings, args.channel, args.model)
     store = _store(args)
     if args.model == "grams_per_rev":
         speeds = args.speeds or list(DEFAULT_B_SPEEDS)
         seconds = args.seconds or DEFAULT_B_SECONDS
         drive = _can_driver(settings, args.channel, speeds) if args.drive == "can" else None
-        _timed_runs([f"{n:g} r/min for {seconds:g} s" for n in speeds], seconds, console, drive,
-                    not args.no_wait)
+        driven = _timed_runs([f"{n:g} r/min for {seconds:g} s" for n in speeds], seconds,
+                             console, drive, not args.no_wait)
         masses = _masses(args, len(speeds), console, ask)
-        runs = [cal.RotationRun(n, seconds, m) for n, m in zip(speeds, masses, strict=True)]
+        rpm = list(speeds)
+        if driven:
+            # the shaft's measured turns, spin-up and run-down included, not the set point
+            for i, run in enumerate(driven):
+                if not run.revolutions:
+                    raise cal.CalibrationError(
+                        f"run {i + 1}: no shaft feedback from the controller; nothing saved"
+                    )
+                rpm[i] = run.revolutions / (seconds / 60.0)
+            console.print(_table("measured shaft speed", ("set r/min", "effective r/min"),
+                                 list(zip(speeds, rpm, strict=True))))
+        runs = [cal.RotationRun(n, seconds, m, set_rpm=s if driven else None)
+                for n, m, s in zip(rpm, masses, speeds, strict=True)]
         fit = cal.grams_per_rev(runs, args.min_stable_rpm)
         rows: list[tuple[Any, ...]] = [(r.rpm, r.mass_g, g, res) for r, g, res in
                 zip(fit.used, fit.per_run, fit.residuals_g_min, strict=True)]
@@ -243,7 +335,12 @@ def _tilt(args: argparse.Namespace, console: Console, ask: Callable[[str], float
         console.print(f"zero offset {res.zero_offset_deg:+.2f}° (zeroed = raw − offset)")
     if res.critical_angle_deg is not None:
         console.print(f"critical angle {res.critical_angle_deg:+.2f}° (below → working)")
-    _store(args).save(f"tilt.{args.sensor}", cal.to_entry(res))
+    entry = cal.save_tilt(_store(args), f"tilt.{args.sensor}", res)
+    kept = entry["result"]
+    if res.zero_offset_deg is None and kept.get("zero_offset_deg") is not None:
+        console.print(f"kept the stored zero offset {kept['zero_offset_deg']:+.2f}°")
+    if res.critical_angle_deg is None and kept.get("critical_angle_deg") is not None:
+        console.print(f"kept the stored critical angle {kept['critical_angle_deg']:+.2f}°")
     return EXIT_OK
 
 
@@ -272,8 +369,8 @@ def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
         con.print_json(json.dumps(store.current()))
         return EXIT_OK
     except ConfigError as exc:
-        con.print(f"[red]config error:[/red]\n{exc}")
+        con.print(f"[red]config error:[/red]\n{escape(str(exc))}")
         return EXIT_FAILED
     except (GatewayError, DriverError, OSError) as exc:
-        con.print(f"[red]calibration refused:[/red] {exc}")
+        con.print(f"[red]calibration refused:[/red] {escape(str(exc))}")
         return EXIT_FAILED

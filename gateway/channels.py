@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -24,14 +25,15 @@ from typing import Any, Literal
 from drivers.can_bus import CanBus, MeteringCanLink
 from drivers.errors import DriverError
 from gateway.config import ChannelSection, Settings
-from gateway.errors import ConfigError, RateError
-from gateway.prescription import AsAppliedLog, AsAppliedRow, Pose, PrescriptionMap
+from gateway.errors import CommandError, ConfigError, RateError
+from gateway.prescription import AsAppliedLog, Pose, PrescriptionMap
 from protocol.can_metering import MeterStatus
 
 log = logging.getLogger(__name__)
 
 HA_FACTOR = 0.6  # kg/ha = 0.6 * g/min / (m * km/h)
 AS_APPLIED_PERIOD_S = 1.0
+MAX_RATE_KG_HA = 2000.0  # as [[channel]] target_rate_kg_ha
 STOP_SEND_TIMEOUT_S = 0.2
 AlarmKind = Literal["feedback_lost", "off_target", "controller_fault", "too_fast"]
 
@@ -226,15 +228,26 @@ class MeteringComponent:
             c.name: ChannelState(c.name, c.product, c.node_id) for c in self.channels
         }
         self._by_node = {c.node_id: c for c in self.channels}
+        self.rates = {c.name: c.target_rate_kg_ha for c in self.channels}  # operator's rates
         self._last_as_applied = -1e9
         self.working = False
         self.speed_kmh: float | None = None
 
+    def set_rate(self, channel: str, rate_kg_ha: float) -> str:
+        """The operator's rate for ``channel`` (used outside the map / without one)."""
+        if channel not in self.rates:
+            raise CommandError(f"{channel!r} is not a can_pid channel")
+        if not (math.isfinite(rate_kg_ha) and 0 < rate_kg_ha <= MAX_RATE_KG_HA):
+            raise CommandError(f"rate must be in 0..{MAX_RATE_KG_HA:g} kg/ha (got {rate_kg_ha})")
+        self.rates[channel] = rate_kg_ha
+        return f"{channel} {rate_kg_ha:g} kg/ha"
+
     def target_rate(self, ch: ChannelSection, pose: Pose | None) -> float:
+        default = self.rates.get(ch.name, ch.target_rate_kg_ha)
         p = self.prescription
         if p is None or ch.prescription_attribute is None or pose is None:
-            return ch.target_rate_kg_ha
-        return p.rate_ahead(pose, ch.prescription_attribute, ch.target_rate_kg_ha,
+            return default
+        return p.rate_ahead(pose, ch.prescription_attribute, default,
                             self.settings.prescription.lookahead_s, ch.outlet_behind_m,
                             ch.outlet_lateral_m)
 
@@ -290,10 +303,9 @@ class MeteringComponent:
             stamp = datetime.now(UTC).isoformat(timespec="milliseconds")
             for ch in self.channels:
                 st = self.state[ch.name]
-                self.as_applied.record(AsAppliedRow(
-                    stamp, pose.lon, pose.lat, ch.name, ch.product, st.target_rate_kg_ha,
-                    st.applied_rate_kg_ha,
-                ))
+                self.as_applied.record_channel(
+                    pose, ch, st.target_rate_kg_ha, st.applied_rate_kg_ha, time=stamp
+                )
         return targets
 
     async def _control_loop(self) -> None:

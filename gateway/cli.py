@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from gateway.config import EXIT_CONFIG, ConfigError, load_config, state_dir
+from gateway.config import EXIT_CONFIG, ConfigError, Settings, load_config, state_dir
 
 log = logging.getLogger("sowgate")
 
@@ -22,11 +22,57 @@ def _setup_logging(verbose: bool, quiet: bool = False) -> None:
     )
 
 
+def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
+    """What the schema cannot see: the prescription map's content, unused tables.
+
+    Returns (problems, warnings). The daemon survives all of these (a bad map means default
+    rates and an alarm), but a fitter checking a config wants to hear about them now.
+    """
+    problems: list[str] = []
+    warnings: list[str] = []
+    p = settings.prescription
+    channels = settings.channel
+    can_pid = [c.name for c in channels if c.drive == "can_pid"]
+    if can_pid and not settings.can.enabled:
+        warnings.append(
+            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but [can] enabled = false; "
+            "they will not be driven"
+        )
+    attrs = [c.prescription_attribute for c in channels if c.prescription_attribute]
+    if p.enabled:
+        from gateway.prescription import PrescriptionError, PrescriptionMap
+
+        if p.path is None:
+            problems.append("prescription.path: required when prescription.enabled")
+        elif not attrs:
+            problems.append(
+                "prescription.enabled: no [[channel]] has a prescription_attribute to read"
+            )
+        else:
+            try:
+                rx = PrescriptionMap.load(p.path, attrs)
+            except PrescriptionError as exc:
+                problems.append(f"prescription.path: {exc}")
+            else:
+                zones = len(rx.zones)
+                warnings.append(f"prescription map {p.path}: {zones} zones, rates {attrs} ok")
+    elif attrs:
+        warnings.append("channel: prescription_attribute set but prescription.enabled = false")
+    return problems, warnings
+
+
 def cmd_check_config(args: argparse.Namespace) -> int:
     try:
         settings = load_config(args.file)
     except ConfigError as exc:
         for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    problems, warnings = check_settings(settings)
+    for line in warnings:
+        print(f"note: {line}", file=sys.stderr)
+    if problems:
+        for line in problems:
             print(line, file=sys.stderr)
         return EXIT_CONFIG
     print(f"{args.file}: ok (machine {settings.machine.id}, {settings.machine.rows} rows)")
@@ -71,7 +117,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _setup_logging(args.verbose, quiet=not args.no_tui)
     from gateway.demo import run_demo
 
-    return asyncio.run(run_demo(duration_s=args.duration, tui=not args.no_tui, crop=args.crop))
+    return asyncio.run(
+        run_demo(
+            duration_s=args.duration, tui=not args.no_tui, crop=args.crop, channels=args.channels
+        )
+    )
 
 
 def cmd_decode_gnss(args: argparse.Namespace) -> int:
@@ -84,6 +134,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     from gateway.export import main_export
 
     return int(main_export(args) or 0)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from gateway.calibration_cli import run_calibration
+
+    return run_calibration(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -104,6 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--duration", type=float, default=None, help="seconds (default: until ^C)")
     d.add_argument("--no-tui", action="store_true", help="log instead of the live view")
     d.add_argument("--crop", choices=["rapeseed", "wheat"], default="rapeseed")
+    d.add_argument(
+        "--channels",
+        action="store_true",
+        help="add paper B's three CAN metering channels (simulated PID controllers on a "
+        "virtual CAN bus)",
+    )
     d.set_defaults(func=cmd_demo)
 
     g = sub.add_parser("decode-gnss", help="decode receiver output, one JSON object per line")
@@ -130,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     except ImportError:  # pragma: no cover - calibration module is part of the package
         pass
     else:
-        add_calibration_commands(sub)
+        add_calibration_commands(sub).set_defaults(func=cmd_calibrate)
     return p
 
 

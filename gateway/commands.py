@@ -18,6 +18,14 @@ class SetRate:
 
 
 @dataclass(frozen=True)
+class SetChannelRate:
+    """Target rate of one ``[[channel]]`` (the rate outside the prescription map)."""
+
+    channel: str
+    rate_kg_ha: float
+
+
+@dataclass(frozen=True)
 class Start:
     pass
 
@@ -30,6 +38,12 @@ class Stop:
 @dataclass(frozen=True)
 class ZeroTilt:
     pass
+
+
+@dataclass(frozen=True)
+class CriticalTilt:
+    """Paper B's attitude calibration, live: with the implement lowered to the ground, the
+    mean of the last 3 inclinometer readings becomes the critical angle."""
 
 
 @dataclass(frozen=True)
@@ -51,7 +65,17 @@ class CalibrateSpeed:
     distance_m: float | None = None
 
 
-Command = SetRate | Start | Stop | ZeroTilt | EmptySeed | SeedLevelMonitoring | CalibrateSpeed
+Command = (
+    SetRate
+    | SetChannelRate
+    | Start
+    | Stop
+    | ZeroTilt
+    | CriticalTilt
+    | EmptySeed
+    | SeedLevelMonitoring
+    | CalibrateSpeed
+)
 
 
 class CommandSink(Protocol):

@@ -8,6 +8,8 @@ moving a number, not by sleeping. The daemon polls the bus and calls ``tick``.
 from __future__ import annotations
 
 import logging
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,15 +17,20 @@ from gateway import commands as cmd
 from gateway.alarms import AlarmBoard
 from gateway.attitude import Attitude as AttitudeBand
 from gateway.attitude import zeroed_tilt
-from gateway.config import CropModel, Settings
+from gateway.config import ChannelSection, CropModel, Settings
 from gateway.errors import CommandError, OutsideCalibrationError, TooFastError
 from gateway.rate_model import flow_at, omega_for_duty, plan_duty, rate_for_flow
+from gateway.records import AlarmSeverity
 from gateway.speed import Hysteresis, MovingAverage, TrendFilter
 from gateway.work_state import Attitude, Fan, Mode, Motion, Motor, WorkState, decide
 
 log = logging.getLogger(__name__)
 
 TILT_STALE_S = 2.0
+LOWERED_READINGS = 3  # paper B averages 3 readings for the critical angle
+CRITICAL_READINGS_WITHIN_S = 5.0  # ... taken together, not one stale and two new
+WORK_STATE_SOURCES = ("inclinometer", "hitch")
+WORK_STATE_LABEL = {"inclinometer": "inclinometer", "hitch": "ISOBUS rear hitch status"}
 OTHER_SOURCE_FILTER_SAMPLES = 5
 
 
@@ -51,6 +58,11 @@ class SpeedSource:
         return self.filter.value
 
 
+def pwm_channel(settings: Settings) -> ChannelSection | None:
+    """The ``pwm_modbus`` channel (paper A's motor on the RS485 PWM module), if declared."""
+    return next((c for c in settings.channel if c.drive == "pwm_modbus"), None)
+
+
 @dataclass
 class ControlOutputs:
     state: WorkState
@@ -62,6 +74,7 @@ class ControlOutputs:
     raised: bool
     commanded_rate_kg_ha: float
     message: str | None = None
+    target_rate_kg_ha: float | None = None  # the rate aimed at this tick (map or operator)
 
 
 @dataclass
@@ -79,12 +92,17 @@ class Controller:
     mode: Mode = Mode.STOPPED
     counters: Counters = field(default_factory=Counters)
     seed_level_monitoring: bool = False
+    # the rate to aim at now (a prescription map under the outlets), None -> the operator's
+    rate_provider: Callable[[], float | None] | None = None
 
     def __post_init__(self) -> None:
         s = self.settings
         self.crop = s.control.crop
         model = s.control.crops[self.crop]
         self.rate_kg_ha = s.control.rate_kg_ha or model.default_rate_kg_ha
+        pwm = pwm_channel(s)
+        if pwm is not None:  # a declared pwm_modbus channel sets paper A's crop and rate
+            self.crop, self.rate_kg_ha = pwm.product, pwm.target_rate_kg_ha
         self.zero_offset_deg = s.inclinometer.zero_offset_deg
         corr = s.speed.correction
         self.sources: dict[str, SpeedSource] = {
@@ -107,6 +125,7 @@ class Controller:
         self._odometer_start: dict[str, float] | None = None
         self._tilt_raw: float | None = None
         self._tilt_t: float | None = None
+        self._tilt_recent: deque[tuple[float, float]] = deque(maxlen=LOWERED_READINGS)
         self._hitch_working: bool | None = None
         self._hitch_t: float | None = None
         self._speed_lost_since: float | None = None
@@ -128,22 +147,24 @@ class Controller:
     def on_tilt(self, raw_deg: float, t: float) -> None:
         self._tilt_raw = raw_deg
         self._tilt_t = t
+        self._tilt_recent.append((t, raw_deg))
 
     def on_hitch(self, in_work: bool, t: float) -> None:
         """ISOBUS rear hitch in-work flag, an alternative attitude source."""
         self._hitch_working = in_work
         self._hitch_t = t
 
+    def stale_after_s(self, source: str) -> float:
+        """How long a source's last value counts; ISOBUS keeps the standard's 300 ms."""
+        s = self.settings
+        if source == "isobus":
+            return min(s.speed.stale_after_s, s.isobus.stale_after_s)
+        return s.speed.stale_after_s
+
     def speed(self, now: float) -> tuple[float | None, str | None]:
-        order = {
-            "radar": ("radar",),
-            "gnss": ("gnss",),
-            "isobus": ("isobus",),
-            "radar_then_gnss": ("radar", "gnss"),
-            "isobus_then_radar": ("isobus", "radar"),
-        }[self.settings.speed.source]
-        for name in order:
-            v = self.sources[name].value(now, self.settings.speed.stale_after_s)
+        """The first fresh source in ``[speed] source`` priority order."""
+        for name in self.settings.speed.source:
+            v = self.sources[name].value(now, self.stale_after_s(name))
             if v is not None:
                 return v, name
         return None, None
@@ -185,6 +206,8 @@ class Controller:
             case cmd.SeedLevelMonitoring(enabled=on):
                 self.seed_level_monitoring = on
                 reply = f"seed-level monitoring {'on' if on else 'off'}"
+            case cmd.CriticalTilt():
+                reply = self._calibrate_critical(source)
             case cmd.CalibrateSpeed(action=action, distance_m=distance):
                 reply = self._calibrate_speed(action, distance)
             case cmd.ZeroTilt():
@@ -192,7 +215,14 @@ class Controller:
                     raise CommandError("cannot zero: no inclinometer reading")
                 self.zero_offset_deg = self._tilt_raw
                 self._attitude.forget()
-                self._save_zero()
+                critical_raw = self._save_zero()
+                if critical_raw is not None:
+                    # a stored (paper B) critical angle is a raw reading: keep it where it
+                    # was on the sensor, as the next start-up will (see calibration_apply)
+                    self._attitude = AttitudeBand(
+                        zeroed_tilt(critical_raw, self.zero_offset_deg),
+                        self.settings.inclinometer.hysteresis_deg,
+                    )
                 reply = f"tilt zeroed at raw {self._tilt_raw:.2f} deg"
             case _:
                 raise CommandError(f"unsupported command {command!r}")
@@ -238,36 +268,94 @@ class Controller:
             f"{r.source} {r.integrated_m:.1f} m -> x{r.factor:.4f}" for r in results
         )
 
-    def _save_zero(self) -> None:
-        """Persist as a paper-A level-ground calibration, with undo like any other."""
+    def _calibrate_critical(self, source: str) -> str:
+        """Paper B: implement lowered to the ground, mean of the last 3 readings."""
+        from gateway import calibration as cal
+
+        recent = list(self._tilt_recent)
+        newest = recent[-1][0] if recent else None
+        if (
+            len(recent) < LOWERED_READINGS
+            or newest is None
+            or (self._last_tick is not None and self._last_tick - newest > TILT_STALE_S)
+            or newest - recent[0][0] > CRITICAL_READINGS_WITHIN_S
+        ):
+            raise CommandError(
+                f"need {LOWERED_READINGS} fresh inclinometer readings: lower the implement to "
+                "the ground, wait a moment and try again"
+            )
+        try:
+            result = cal.tilt_lowered_critical([raw for _, raw in recent])
+        except cal.CalibrationError as exc:
+            raise CommandError(str(exc)) from None
+        critical_raw = result.critical_angle_deg
+        assert critical_raw is not None
+        if self.state_dir is not None:
+            try:
+                cal.save_tilt(
+                    cal.CalibrationStore(self.state_dir), "tilt.inclinometer", result,
+                    source=source,
+                )
+            except (cal.CalibrationError, OSError) as exc:
+                raise CommandError(f"critical angle not saved: {exc}") from exc
+        critical = zeroed_tilt(critical_raw, self.zero_offset_deg)
+        self._attitude = AttitudeBand(critical, self.settings.inclinometer.hysteresis_deg)
+        return f"critical angle {critical:+.2f} deg (raw {critical_raw:+.2f}): below -> working"
+
+    def _save_zero(self) -> float | None:
+        """Persist as a paper-A level-ground calibration, with undo like any other.
+
+        Returns the stored raw critical angle, if a lowered-critical calibration exists.
+        """
         if self.state_dir is None:
-            return
+            return None
         from gateway import calibration as cal
 
         result = cal.tilt_level_zero([self.zero_offset_deg])
         try:
-            cal.CalibrationStore(self.state_dir).save(
-                "tilt.inclinometer", cal.to_entry(result, source="hmi")
+            entry = cal.save_tilt(
+                cal.CalibrationStore(self.state_dir), "tilt.inclinometer", result, source="hmi"
             )
         except (cal.CalibrationError, OSError) as exc:
             raise CommandError(f"zeroed, but could not be saved: {exc}") from exc
+        critical = entry["result"].get("critical_angle_deg")
+        return None if critical is None else float(critical)
 
     # ---- the control step ----------------------------------------------------------------
     def _attitude_now(self, now: float) -> tuple[Attitude, float | None]:
+        """Raised or working from the first fresh source in ``isobus.work_state_source``.
+
+        The inclinometer's band is kept up to date whenever it reads, so falling back to it
+        starts from its real state. No fresh source at all -> raised (every meter stops).
+        """
         tilt = self.tilt(now)
-        src = self.settings.isobus.work_state_source
-        hitch_fresh = self._hitch_t is not None and now - self._hitch_t <= TILT_STALE_S
-        if src in ("hitch", "hitch_then_inclinometer") and hitch_fresh:
-            self.alarms.clear("inclinometer.lost")
-            return (Attitude.LOWERED if self._hitch_working else Attitude.RAISED), tilt
         if tilt is None:
             self._attitude.forget()
-            self.alarms.raise_(
-                "inclinometer.lost", "inclinometer lost: treated as raised", "critical"
-            )
-            return Attitude.RAISED, None
-        self.alarms.clear("inclinometer.lost")
-        return (Attitude.RAISED if self._attitude.update(tilt) else Attitude.LOWERED), tilt
+            incl_raised = None
+        else:
+            incl_raised = self._attitude.update(tilt)
+        hitch_fresh = (
+            self._hitch_t is not None
+            and self._hitch_working is not None
+            and now - self._hitch_t <= self.settings.isobus.stale_after_s
+        )
+        verdicts = {
+            "inclinometer": incl_raised,
+            "hitch": (not self._hitch_working) if hitch_fresh else None,
+        }
+        order = self.settings.isobus.work_state_source
+        chosen = next((src for src in order if verdicts[src] is not None), None)
+        for src in WORK_STATE_SOURCES:
+            lost = src in order and verdicts[src] is None
+            sev: AlarmSeverity
+            if chosen is None:
+                msg, sev = f"{WORK_STATE_LABEL[src]} lost: treated as raised", "critical"
+            else:
+                msg, sev = f"{WORK_STATE_LABEL[src]} lost: work state from {chosen}", "warning"
+            self.alarms.set(f"{src}.lost", lost, msg, sev)
+        if chosen is None:
+            return Attitude.RAISED, tilt
+        return (Attitude.RAISED if verdicts[chosen] else Attitude.LOWERED), tilt
 
     def tick(self, now: float) -> ControlOutputs:
         dt = 0.0 if self._last_tick is None else max(0.0, now - self._last_tick)
@@ -302,11 +390,16 @@ class Controller:
 
         out = decide(self.mode, motion, attitude)
         model = self.crop_model
+        target_rate = self.rate_kg_ha
+        if self.rate_provider is not None:
+            prescribed = self.rate_provider()
+            if prescribed is not None:
+                target_rate = prescribed
         motor = 0.0
         commanded_rate = 0.0
         too_fast = outside = False
         if out.motor is Motor.FOLLOW and speed is not None:
-            plan = plan_duty(self.rate_kg_ha, self.settings.machine.working_width_m, speed, model)
+            plan = plan_duty(target_rate, self.settings.machine.working_width_m, speed, model)
             motor = plan.duty_pct
             too_fast = isinstance(plan.problem, TooFastError)
             outside = isinstance(plan.problem, OutsideCalibrationError)
@@ -341,6 +434,7 @@ class Controller:
             raised=attitude is Attitude.RAISED,
             commanded_rate_kg_ha=commanded_rate,
             message=self._message,
+            target_rate_kg_ha=target_rate,
         )
         return self.last
 

@@ -62,6 +62,7 @@ class Daemon:
         self.alarm_log: deque[AlarmEvent] = deque(maxlen=64)
         self.alarms.subscribe(self.alarm_log.append)
         self.controller = Controller(settings, self.alarms, state_dir=state_dir)
+        self.rs485 = settings.rs485.enabled  # False: no radar, inclinometer or PWM module
         self.bus = ModbusBus.from_config(settings.rs485)
         self.radar = Radar(self.bus, settings.radar)
         self.inclinometer = Inclinometer(self.bus, settings.inclinometer)
@@ -94,7 +95,27 @@ class Daemon:
     # ---- command path -----------------------------------------------------------------------
     def execute(self, command: cmd.Command, source: str) -> str:
         """The one command path for HMI and MQTT (see gateway.commands)."""
+        if isinstance(command, cmd.SetChannelRate):
+            return self._set_channel_rate(command, source)
         return self.controller.execute(command, source)
+
+    def _set_channel_rate(self, command: cmd.SetChannelRate, source: str) -> str:
+        """A can_pid channel's rate goes to the metering component; the pwm_modbus channel's
+        is paper A's rate (same crop range checks as the HMI)."""
+        names = [c.name for c in self.settings.channel]
+        ch = next((c for c in self.settings.channel if c.name == command.channel), None)
+        if ch is None:
+            raise CommandError(
+                f"unknown channel {command.channel!r}; known: {', '.join(names) or 'none'}"
+            )
+        if ch.drive == "pwm_modbus":
+            return self.controller.execute(cmd.SetRate(ch.product, command.rate_kg_ha), source)
+        metering = self.components.get("metering")
+        if metering is None:
+            raise CommandError(f"channel {ch.name!r} is not running ([can] not enabled)")
+        reply: str = metering.set_rate(ch.name, command.rate_kg_ha)
+        log.info("command from %s: %s", source, reply)
+        return reply
 
     def try_execute(self, command: cmd.Command, source: str) -> tuple[bool, str]:
         try:
@@ -113,7 +134,8 @@ class Daemon:
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                 loop.add_signal_handler(sig, self.request_stop)
                 installed.append(sig)
-        await self.bus.start()
+        if self.rs485:
+            await self.bus.start()
         try:
             # both outputs are 0 before anything else happens
             await self._write_outputs(0.0, 0.0, force=True)
@@ -130,7 +152,8 @@ class Daemon:
                 pass
         finally:
             await self._safe_off()
-            await self.bus.close()
+            if self.rs485:
+                await self.bus.close()
             for close in reversed(self.closers):
                 try:
                     close()
@@ -157,18 +180,19 @@ class Daemon:
         next_at = self.clock()
         while True:
             reply_t = None
-            try:
-                kmh = await self.radar.read()
-                reply_t = self.clock()
-                self.controller.on_speed("radar", kmh, reply_t)
-            except DriverError:
-                pass
-            try:
-                tilt = await self.inclinometer.read()
-                reply_t = self.clock()
-                self.controller.on_tilt(tilt, reply_t)
-            except DriverError:
-                pass
+            if self.rs485:
+                try:
+                    kmh = await self.radar.read()
+                    reply_t = self.clock()
+                    self.controller.on_speed("radar", kmh, reply_t)
+                except DriverError:
+                    pass
+                try:
+                    tilt = await self.inclinometer.read()
+                    reply_t = self.clock()
+                    self.controller.on_tilt(tilt, reply_t)
+                except DriverError:
+                    pass
             out = self.controller.tick(self.clock())
             self.outputs = out
             await self._write_outputs(out.motor_pct, out.fan_pct, reply_t=reply_t)
@@ -189,6 +213,8 @@ class Daemon:
     async def _write_outputs(
         self, motor: float, fan: float, *, force: bool = False, reply_t: float | None = None
     ) -> None:
+        if not self.rs485:
+            return
         now = self.clock()
         refresh = now - self._written_at >= self.settings.actuators.refresh_s
         wanted: dict[Channel, float] = {"motor": round(motor, 1), "fan": round(fan, 1)}
@@ -209,6 +235,8 @@ class Daemon:
             self._written_at = now
 
     def _update_device_alarms(self) -> None:
+        if not self.rs485:
+            return
         for name, label in (
             ("radar", "radar"),
             ("inclinometer", "inclinometer"),
@@ -237,7 +265,11 @@ class Daemon:
             "tilt_deg": out.tilt_deg if out else None,
             "raised": out.raised if out else True,
             "crop": c.crop,
-            "target_rate_kg_ha": c.rate_kg_ha,
+            "target_rate_kg_ha": (
+                out.target_rate_kg_ha
+                if out is not None and out.target_rate_kg_ha is not None
+                else c.rate_kg_ha
+            ),
             "commanded_rate_kg_ha": out.commanded_rate_kg_ha if out else 0.0,
             "motor_duty_pct": out.motor_pct if out else 0.0,
             "fan_duty_pct": out.fan_pct if out else 0.0,

@@ -1,9 +1,16 @@
-"""``sowgate demo``: the daemon driving the simulated machine, with a scripted operator."""
+"""``sowgate demo``: the daemon driving the simulated machine, with a scripted operator.
+
+With ``channels=True`` paper B's three metering channels (shallow and deep fertiliser, seed)
+run as well: simulated PID controllers and hydraulic motors (``simulator.can_pid``) answer on
+a python-can ``virtual`` bus, and the daemon drives them through the DBC like real ones.
+"""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import os
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -13,16 +20,51 @@ from gateway.daemon import Daemon
 
 log = logging.getLogger(__name__)
 
+# paper B: targets at 5 km/h (kg/ha) and the weighed displacement per outlet (g/rev)
+PAPER_B_CHANNELS = (
+    ("shallow", "fertiliser", 150.0, 16.97),
+    ("deep", "fertiliser", 300.0, 29.31),
+    ("seed", "wheat", 225.0, 11.20),
+)
+PAPER_B_OUTLETS = 10  # 10 rows
 
-async def run_demo(duration_s: float | None, tui: bool, crop: str = "rapeseed") -> int:
+
+def paper_b_channel_config(can_channel: str) -> dict[str, Any]:
+    """Config overrides for the three CAN channels on the virtual bus ``can_channel``."""
+    return {
+        "can": {"enabled": True, "interface": "virtual", "channel": can_channel},
+        "channel": [
+            {
+                "name": name,
+                "product": product,
+                "target_rate_kg_ha": rate,
+                "drive": "can_pid",
+                "node_id": node,
+                "grams_per_rev": g_per_rev,
+                "outlets": PAPER_B_OUTLETS,
+            }
+            for node, (name, product, rate, g_per_rev) in enumerate(PAPER_B_CHANNELS, start=1)
+        ],
+    }
+
+
+async def run_demo(
+    duration_s: float | None, tui: bool, crop: str = "rapeseed", channels: bool = False
+) -> int:
     from simulator.machine import SimulatedMachine
 
     code = {"rapeseed": 1, "wheat": 2}[crop]
     with tempfile.TemporaryDirectory(prefix="sowgate-demo-") as tmp:
-        async with SimulatedMachine(
-            crop=crop, loop_drive=True, with_gnss=True, with_seed_tubes=True
-        ) as machine:
-            settings = machine.settings()
+        async with contextlib.AsyncExitStack() as stack:
+            machine = await stack.enter_async_context(
+                SimulatedMachine(crop=crop, loop_drive=True, with_gnss=True, with_seed_tubes=True)
+            )
+            overrides: dict[str, Any] = {}
+            plants: dict[str, Any] = {}
+            if channels:
+                overrides = paper_b_channel_config(f"sowgate-demo-{os.getpid()}")
+                plants = await _start_controllers(stack, overrides["can"]["channel"])
+            settings = machine.settings(**overrides)
             daemon = Daemon(settings, Path(tmp) / "state")
             assert machine.hmi is not None
             model = settings.control.crops[crop]
@@ -61,4 +103,31 @@ async def run_demo(duration_s: float | None, tui: bool, crop: str = "rapeseed") 
                 f"(target {daemon.controller.rate_kg_ha:g}), error "
                 f"{t['rate_error_pct'] or 0:+.2f} %"
             )
+            area_ha = machine.truth.area_m2 / 1e4
+            for name, _product, rate, _g in PAPER_B_CHANNELS if channels else ():
+                mass_kg = plants[name].mass_g / 1000
+                applied_ch = mass_kg / area_ha if area_ha > 0 else 0.0
+                print(f"channel {name}: applied {applied_ch:.1f} kg/ha (target {rate:g})")
     return 0
+
+
+async def _start_controllers(stack: contextlib.AsyncExitStack, can_channel: str) -> dict[str, Any]:
+    """Paper B's PID controllers + hydraulic motors answering on the virtual CAN bus."""
+    from drivers.can_bus import CanBus
+    from simulator.can_pid import MeteringControllerSim, MeterPlant
+
+    bus = await stack.enter_async_context(CanBus("virtual", can_channel))
+    plants = {
+        name: MeterPlant(grams_per_rev=g_per_rev, outlets=PAPER_B_OUTLETS)
+        for name, _product, _rate, g_per_rev in PAPER_B_CHANNELS
+    }
+    sim = MeteringControllerSim(
+        bus, {node: plants[name] for node, (name, *_) in enumerate(PAPER_B_CHANNELS, start=1)}
+    )
+    task = asyncio.create_task(sim.run(), name="demo-can-controllers")
+
+    async def stop() -> None:
+        await cancel_and_wait(task)
+
+    stack.push_async_callback(stop)
+    return plants

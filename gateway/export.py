@@ -207,12 +207,12 @@ def main_export(args: argparse.Namespace) -> int:
     try:
         config = getattr(args, "config", None)
         settings = load_config(config) if config is not None else parse_config({})
-        if getattr(args, "what", "seeds") == "as-applied":
-            return _export_as_applied(settings, args)
         since = parse_time(getattr(args, "since", None), "since")
         until = parse_time(getattr(args, "until", None), "until")
         if since is not None and until is not None and until <= since:
             raise ExportError("--until must be later than --since")
+        if getattr(args, "what", "seeds") == "as-applied":
+            return _export_as_applied(settings, args, since, until)
         rows = parse_rows(getattr(args, "rows", None), settings.machine.rows)
         fmt: ExportFormat = args.format
         path = store_path(settings)
@@ -244,7 +244,12 @@ def main_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _export_as_applied(settings: Settings, args: argparse.Namespace) -> int:
+def _export_as_applied(
+    settings: Settings,
+    args: argparse.Namespace,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> int:
     """The metering channels' as-applied log (paper B: every rate with its position)."""
     from gateway.prescription import (
         PrescriptionError,
@@ -263,10 +268,21 @@ def _export_as_applied(settings: Settings, args: argparse.Namespace) -> int:
     except (OSError, PrescriptionError) as exc:
         print(f"sowgate export: {exc}", file=sys.stderr)
         return EXIT_FAILED
+    if since is not None or until is not None:
+        kept = []
+        for r in rows:
+            stamp = parse_time(r.time, "time")
+            if stamp is None:
+                continue
+            if (since is None or stamp >= since) and (until is None or stamp < until):
+                kept.append(r)
+        rows = kept
     with _atomic_output(args.output) as out:
         if args.format == "csv":
             out.write(rows_to_csv(rows))
         else:
             json.dump(rows_to_geojson(rows), out)
             out.write("\n")
+    if args.output != "-":
+        print(f"wrote {len(rows)} as-applied rows to {args.output}", file=sys.stderr)
     return 0

@@ -33,10 +33,21 @@ from pydantic import BaseModel, ValidationError
 
 from drivers.backoff import Backoff
 from gateway.alarms import AlarmBoard
-from gateway.commands import CalibrateSpeed, Command, CommandSink, SetRate, Start, Stop, ZeroTilt
+from gateway.commands import (
+    CalibrateSpeed,
+    Command,
+    CommandSink,
+    CriticalTilt,
+    SetChannelRate,
+    SetRate,
+    Start,
+    Stop,
+    ZeroTilt,
+)
 from gateway.config import Settings
 from gateway.errors import CommandError
 from gateway.payloads import (
+    ChannelRateCommand,
     CommandAck,
     EmptyCommand,
     RateCommand,
@@ -50,9 +61,11 @@ log = logging.getLogger(__name__)
 
 KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
     "rate": RateCommand,
+    "channel_rate": ChannelRateCommand,
     "start": EmptyCommand,
     "stop": EmptyCommand,
     "zero_tilt": EmptyCommand,
+    "tilt_critical": EmptyCommand,
     "speed_cal": SpeedCalCommand,
 }
 DISCONNECT_TIMEOUT_S = 3.0
@@ -119,9 +132,16 @@ def _describe_validation(exc: ValidationError) -> str:
 def _to_command(name: str, payload: BaseModel) -> Command:
     if isinstance(payload, RateCommand):
         return SetRate(crop=payload.crop, rate_kg_ha=payload.rate_kg_ha)
+    if isinstance(payload, ChannelRateCommand):
+        return SetChannelRate(channel=payload.channel, rate_kg_ha=payload.rate_kg_ha)
     if isinstance(payload, SpeedCalCommand):
         return CalibrateSpeed(action=payload.action, distance_m=payload.distance_m)
-    simple: dict[str, Command] = {"start": Start(), "stop": Stop(), "zero_tilt": ZeroTilt()}
+    simple: dict[str, Command] = {
+        "start": Start(),
+        "stop": Stop(),
+        "zero_tilt": ZeroTilt(),
+        "tilt_critical": CriticalTilt(),
+    }
     return simple[name]
 
 

@@ -85,8 +85,7 @@ def attach(daemon: Daemon) -> None:
         _attach_seed_recording(daemon, store)
     if s.mqtt.enabled and store is not None:
         _attach_mqtt(daemon, store)
-    if s.can.enabled and any(c.drive == "can_pid" for c in s.channel):
-        _attach_metering(daemon)
+    _attach_channels(daemon)
     if s.isobus.enabled:
         _attach_isobus(daemon)
 
@@ -198,9 +197,130 @@ def _gnss_pose(daemon: Daemon) -> Any:
     return Pose(lon=e.lon, lat=e.lat, heading_deg=heading or 0.0, speed_kmh=e.speed_kmh or 0.0)
 
 
-def _attach_metering(daemon: Daemon) -> None:
+def _load_prescription(daemon: Daemon) -> Any:
+    """The prescription map, or None when disabled or unusable (alarm says why: a bad map
+    must not keep the drill from sowing at the default rates)."""
+    from gateway.prescription import PrescriptionError, PrescriptionMap
+
+    p = daemon.settings.prescription
+    if not p.enabled:
+        return None
+    attrs = [c.prescription_attribute for c in daemon.settings.channel if c.prescription_attribute]
+    try:
+        if p.path is None:
+            raise PrescriptionError("prescription.path: required when prescription.enabled")
+        return PrescriptionMap.load(p.path, attrs)
+    except PrescriptionError as exc:
+        log.error("prescription map not used: %s", exc)
+        daemon.alarms.raise_(
+            "prescription.invalid", f"prescription map not used: {exc}", "critical"
+        )
+        return None
+
+
+def _attach_channels(daemon: Daemon) -> None:
+    """Metering channels: ``can_pid`` ones on the CAN bus, the ``pwm_modbus`` one through the
+    RS485 control loop; one prescription map and one as-applied log for all of them."""
+    from gateway.controller import pwm_channel
+    from gateway.prescription import AsAppliedLog
+
+    s = daemon.settings
+    can_pid = [c for c in s.channel if c.drive == "can_pid"]
+    pwm = pwm_channel(s)
+    if can_pid and not s.can.enabled:
+        names = ", ".join(c.name for c in can_pid)
+        log.error("can_pid channels %s configured but [can] is not enabled", names)
+        daemon.alarms.raise_(
+            "channel.can_disabled",
+            f"channel(s) {names} not driven: [can] enabled = false",
+            "critical",
+        )
+        can_pid = []
+    if not can_pid and pwm is None:
+        if s.prescription.enabled:
+            daemon.alarms.raise_(
+                "prescription.unused", "prescription map enabled but no metering channel uses it"
+            )
+        return
+    p = s.prescription
+
+    def on_write_error(error: str | None) -> None:
+        daemon.alarms.set(
+            "as_applied.write_failed", error is not None, f"as-applied log not written: {error}"
+        )
+
+    as_applied = AsAppliedLog(
+        Path(p.as_applied_path) if p.as_applied_path else daemon.state_dir / "as_applied.csv",
+        on_error=on_write_error,
+    )
+    prescription = _load_prescription(daemon)
+    if can_pid:
+        _attach_metering(daemon, prescription, as_applied)
+    if pwm is not None:
+        part = PwmChannelPart(daemon, pwm, prescription, as_applied)
+        daemon.components["pwm_channel"] = part
+        daemon.controller.rate_provider = part.prescribed_rate
+        daemon.tick_hooks.append(part.on_tick)
+
+
+class PwmChannelPart:
+    """Paper A's motor as a channel: its rate from the map under its outlets, as-applied log.
+
+    The controller asks ``prescribed_rate`` every tick; outside the map (or without a GNSS
+    position) it gets None and sows the operator's rate, which starts as the channel's
+    ``target_rate_kg_ha``.
+    """
+
+    def __init__(self, daemon: Daemon, channel: Any, prescription: Any, as_applied: Any) -> None:
+        self.daemon = daemon
+        self.channel = channel
+        self.prescription = prescription if channel.prescription_attribute else None
+        self.as_applied = as_applied
+        self._last_logged = float("-inf")
+        self.last_target: float | None = None
+        self.last_commanded: float | None = None
+
+    def prescribed_rate(self) -> float | None:
+        if self.prescription is None:
+            return None
+        pose = _gnss_pose(self.daemon)
+        if pose is None:
+            return None
+        ch = self.channel
+        rate: float = self.prescription.rate_ahead(
+            pose, ch.prescription_attribute, self.daemon.controller.rate_kg_ha,
+            self.daemon.settings.prescription.lookahead_s, ch.outlet_behind_m,
+            ch.outlet_lateral_m,
+        )
+        return rate
+
+    def on_tick(self, out: ControlOutputs) -> None:
+        from gateway.channels import AS_APPLIED_PERIOD_S
+
+        self.last_target, self.last_commanded = out.target_rate_kg_ha, out.commanded_rate_kg_ha
+        now = self.daemon.clock()
+        if out.state.value != "seeding" or now - self._last_logged < AS_APPLIED_PERIOD_S:
+            return
+        pose = _gnss_pose(self.daemon)
+        if pose is None:
+            return
+        self._last_logged = now
+        self.as_applied.record_channel(
+            pose, self.channel, out.target_rate_kg_ha or 0.0, out.commanded_rate_kg_ha
+        )
+
+    def snapshot(self) -> dict[str, Any]:
+        return {
+            "name": self.channel.name,
+            "product": self.channel.product,
+            "prescription": self.prescription is not None,
+            "target_rate_kg_ha": self.last_target,
+            "commanded_rate_kg_ha": self.last_commanded,
+        }
+
+
+def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None:
     from gateway.channels import ChannelAlarm, MeteringComponent
-    from gateway.prescription import AsAppliedLog, PrescriptionError, PrescriptionMap
 
     def speed() -> float | None:
         out = daemon.outputs
@@ -218,24 +338,9 @@ def _attach_metering(daemon: Daemon) -> None:
             f"channel.{alarm.channel}.{alarm.kind}", alarm.active, alarm.message, severity
         )
 
-    p = daemon.settings.prescription
-    as_applied = AsAppliedLog(
-        Path(p.as_applied_path) if p.as_applied_path else daemon.state_dir / "as_applied.csv"
-    )
-    prescription = None
-    if p.enabled:
-        # a bad map must not keep the drill from sowing: default rates, and say why
-        attrs = [c.prescription_attribute for c in daemon.settings.channel]
-        try:
-            if p.path is None:
-                raise PrescriptionError("prescription.path: required when prescription.enabled")
-            prescription = PrescriptionMap.load(p.path, [a for a in attrs if a])
-        except PrescriptionError as exc:
-            log.error("prescription map not used: %s", exc)
-            daemon.alarms.raise_(
-                "prescription.invalid", f"prescription map not used: {exc}", "critical"
-            )
-            p.enabled = False
+    if prescription is None:
+        # do not let the component load the (absent or rejected) map a second time
+        daemon.settings.prescription.enabled = False
     component = MeteringComponent(
         daemon.settings,
         speed,
@@ -249,7 +354,25 @@ def _attach_metering(daemon: Daemon) -> None:
     daemon.add_task("metering", component.run)
 
 
-ISOBUS_PUMP_S = 0.1
+ISOBUS_PUMP_S = 0.05  # half the tractor's 100 ms, so a value reaches the controller young
+
+
+def isobus_pump_step(daemon: Daemon, listener: Any, fed: dict[str, float]) -> None:
+    """Hand the controller each new ISOBUS speed and hitch value once, stamped with the time
+    its frame arrived, so the controller's own staleness check (``isobus.stale_after_s``,
+    300 ms) runs from the frame and not from this pump."""
+    now = daemon.clock()
+    speed = listener.speed(now)
+    if speed is not None:
+        at = now - speed.age_s
+        if at > fed.get("speed", float("-inf")):
+            fed["speed"] = at
+            daemon.controller.on_speed("isobus", speed.speed_kmh, at)
+    working = listener.working(now)
+    at_hitch = listener.hitch_received_at()
+    if working is not None and at_hitch is not None and at_hitch > fed.get("hitch", float("-inf")):
+        fed["hitch"] = at_hitch
+        daemon.controller.on_hitch(working, at_hitch)
 
 
 def _attach_isobus(daemon: Daemon) -> None:
@@ -260,20 +383,15 @@ def _attach_isobus(daemon: Daemon) -> None:
         priority=cfg.speed_priority,
         stale_after_s=cfg.stale_after_s,
         hitch_in_work_below_pct=cfg.hitch_in_work_below_pct,
+        clock=daemon.clock,
     )
     daemon.components["isobus"] = listener
 
     async def pump() -> None:
-        """ISOBUS values into the controller at the tractor's own 100 ms rate."""
+        fed: dict[str, float] = {}
         while True:
             await asyncio.sleep(ISOBUS_PUMP_S)
-            now = daemon.clock()
-            kmh = listener.speed_kmh()
-            if kmh is not None:
-                daemon.controller.on_speed("isobus", kmh, now)
-            working = listener.working()
-            if working is not None:
-                daemon.controller.on_hitch(working, now)
+            isobus_pump_step(daemon, listener, fed)
 
     async def run() -> None:
         async with CanBus(cfg.interface, cfg.channel) as bus:

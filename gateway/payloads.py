@@ -116,6 +116,21 @@ class RateCommand(_Command):
         return v
 
 
+class ChannelRateCommand(_Command):
+    """``cmd/channel_rate``: a metering channel's target rate, e.g. ``{"channel": "deep",
+    "rate_kg_ha": 280}`` (outside a prescription map, or without one)."""
+
+    channel: str = Field(min_length=1, max_length=32)
+    rate_kg_ha: float = Field(gt=0, le=2000)
+
+    @field_validator("rate_kg_ha")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("must be a finite number")
+        return v
+
+
 class SpeedCalCommand(_Command):
     """``cmd/speed_cal``: ``{"action": "start"}`` at the first marker, then
     ``{"action": "finish", "distance_m": 50}`` at the second (or ``"cancel"``)."""
@@ -148,6 +163,7 @@ SCHEMA_MODELS: dict[str, type[BaseModel]] = {
     "rate_command": RateCommand,
     "empty_command": EmptyCommand,
     "speed_cal_command": SpeedCalCommand,
+    "channel_rate_command": ChannelRateCommand,
     "command_ack": CommandAck,
 }
 

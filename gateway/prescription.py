@@ -23,11 +23,13 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
 import os
 from collections import deque
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +39,8 @@ from shapely.strtree import STRtree
 from shapely.validation import explain_validity
 
 from gateway.errors import GatewayError
+
+log = logging.getLogger(__name__)
 
 METRES_PER_DEG_LAT = 111_320.0
 MAX_FEATURES = 100_000
@@ -322,23 +326,65 @@ def rows_to_geojson(rows: Iterable[AsAppliedRow]) -> dict[str, Any]:
 
 
 class AsAppliedLog:
-    """Keeps the last rows in memory and appends each to a CSV file when one is given."""
+    """Keeps the last rows in memory and appends each to a CSV file when one is given.
+
+    A failing write (disk full, read-only mount, card pulled) must not stop the metering: the
+    row stays in memory, ``write_error`` says why and ``on_error`` is told (None once writing
+    works again), so the daemon can raise an alarm and keep sowing.
+    """
 
     def __init__(
-        self, csv_path: str | os.PathLike[str] | None = None, max_rows: int = AS_APPLIED_MAX_ROWS
+        self,
+        csv_path: str | os.PathLike[str] | None = None,
+        max_rows: int = AS_APPLIED_MAX_ROWS,
+        on_error: Callable[[str | None], None] | None = None,
     ) -> None:
         self.rows: deque[AsAppliedRow] = deque(maxlen=max_rows)
         self.csv_path = Path(csv_path) if csv_path is not None else None
+        self.on_error = on_error
+        self.write_error: str | None = None
 
     def record(self, row: AsAppliedRow) -> None:
         self.rows.append(row)
-        if self.csv_path is not None:
+        if self.csv_path is None:
+            return
+        try:
             new = not self.csv_path.exists()
             with self.csv_path.open("a", encoding="utf-8", newline="") as fh:
                 w = csv.DictWriter(fh, fieldnames=AS_APPLIED_FIELDS, lineterminator="\n")
                 if new:
                     w.writeheader()
                 w.writerow(asdict(row))
+        except OSError as exc:
+            error = f"{self.csv_path}: {exc.strerror or exc}"
+            if error != self.write_error:
+                log.error("as-applied log not written: %s", error)
+                self.write_error = error
+                if self.on_error is not None:
+                    self.on_error(error)
+            return
+        if self.write_error is not None:
+            log.info("as-applied log written again: %s", self.csv_path)
+            self.write_error = None
+            if self.on_error is not None:
+                self.on_error(None)
+
+    def record_channel(
+        self, pose: Pose, channel: Any, target_kg_ha: float, applied_kg_ha: float | None,
+        time: str | None = None,
+    ) -> AsAppliedRow:
+        """Log one channel's rates where its outlets are (``channel``: a ``[[channel]]``
+        section with ``outlet_behind_m``/``outlet_lateral_m`` from the GNSS antenna)."""
+        lon, lat = offset_position(
+            pose.lon, pose.lat, pose.heading_deg, -channel.outlet_behind_m,
+            channel.outlet_lateral_m,
+        )
+        row = AsAppliedRow(
+            time or datetime.now(UTC).isoformat(timespec="milliseconds"), lon, lat,
+            channel.name, channel.product, target_kg_ha, applied_kg_ha,
+        )
+        self.record(row)
+        return row
 
     def to_csv(self) -> str:
         return rows_to_csv(self.rows)

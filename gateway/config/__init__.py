@@ -131,6 +131,39 @@ class Settings(BaseSettings):
         names = [c.name for c in self.channel]
         if len(names) != len(set(names)):
             raise ValueError("channel names must be unique")
+        pwm = [(i, c) for i, c in enumerate(self.channel) if c.drive == "pwm_modbus"]
+        if len(pwm) > 1:
+            raise ValueError(
+                "only one channel may have drive = 'pwm_modbus': the RS485 PWM module drives "
+                f"one metering motor (got {', '.join(c.name for _, c in pwm)})"
+            )
+        for i, ch in pwm:
+            crops = self.control.crops
+            if ch.product not in crops:
+                raise ValueError(
+                    f"channel[{i}].product = {ch.product!r}: a pwm_modbus channel meters one of "
+                    f"the crops in control.crops ({', '.join(sorted(crops))}), whose fitted "
+                    "motor and metering models it uses"
+                )
+            m = crops[ch.product]
+            if not m.rate_min_kg_ha <= ch.target_rate_kg_ha <= m.rate_max_kg_ha:
+                raise ValueError(
+                    f"channel[{i}].target_rate_kg_ha = {ch.target_rate_kg_ha:g} is outside the "
+                    f"{ch.product} range {m.rate_min_kg_ha:g}..{m.rate_max_kg_ha:g} kg/ha"
+                )
+        if not self.rs485.enabled:
+            uses = []
+            if "radar" in self.speed.source:
+                uses.append("speed.source includes radar")
+            if "inclinometer" in self.isobus.work_state_source:
+                uses.append("isobus.work_state_source includes inclinometer")
+            uses += [f"channel {c.name} is pwm_modbus" for c in self.channel
+                     if c.drive == "pwm_modbus"]
+            if uses:
+                raise ValueError(
+                    f"rs485.enabled = false, but {'; '.join(uses)}: those devices are on the "
+                    "RS485 bus (use gnss/isobus speed, the hitch work state, can_pid channels)"
+                )
         ids = [self.radar.device_id, self.inclinometer.device_id, self.actuators.device_id]
         if len(ids) != len(set(ids)):
             raise ValueError(

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from typing import Any
+
 from pydantic import BaseModel, ConfigDict
 
 
@@ -9,3 +12,28 @@ class Section(BaseModel):
     """A config table. ``extra="forbid"`` turns a typo in the TOML into a named error."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+def source_chain(value: Any) -> Any:
+    """A priority list of sources, also written as one string ``"a_then_b_then_c"``.
+
+    ``"isobus_then_gnss"`` and ``["isobus", "gnss"]`` mean the same: the first source with a
+    fresh value wins, the next ones are the fallback. Anything else is left for pydantic to
+    reject with the allowed names.
+    """
+    if isinstance(value, str):
+        text = value.strip()
+        if text.startswith("["):  # a list given as JSON (environment override)
+            try:
+                return json.loads(text)
+            except json.JSONDecodeError:
+                return value
+        return [part.strip() for part in text.split("_then_")]
+    return value
+
+
+def check_unique(value: list[str]) -> list[str]:
+    dupes = sorted({v for v in value if value.count(v) > 1})
+    if dupes:
+        raise ValueError(f"each source may appear once (repeated: {', '.join(dupes)})")
+    return value

@@ -34,7 +34,9 @@ class MqttSection(Section):
     state_hz: float = Field(1.0, gt=0, le=10)
 
 
-CommandName = Literal["rate", "start", "stop", "zero_tilt", "speed_cal"]
+CommandName = Literal[
+    "rate", "channel_rate", "start", "stop", "zero_tilt", "tilt_critical", "speed_cal"
+]
 
 
 class CommandsSection(Section):

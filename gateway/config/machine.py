@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
+from pydantic_settings import NoDecode
 
-from gateway.config._base import Section
+from gateway.config._base import Section, check_unique, source_chain
 
 
 class MachineSection(Section):
@@ -16,6 +17,9 @@ class MachineSection(Section):
 
 
 class Rs485Section(Section):
+    # false: no RS485 bus at all (a paper-B drill: speed from GNSS/ISOBUS, work state from the
+    # hitch, CAN metering); radar, inclinometer and the PWM module are then not used
+    enabled: bool = True
     port: str = "/dev/ttyUSB0"
     baudrate: int = Field(9600, ge=1200, le=921600)
     parity: Literal["N", "E", "O"] = "N"
@@ -123,12 +127,26 @@ class HmiSection(Section):
         return self
 
 
+SpeedSourceName = Literal["radar", "gnss", "isobus"]
+
+
+def _radar_only() -> list[SpeedSourceName]:
+    return ["radar"]
+
+
 class SpeedSection(Section):
-    source: Literal["radar", "gnss", "radar_then_gnss", "isobus", "isobus_then_radar"] = "radar"
+    # priority order, first fresh source wins: ["isobus", "gnss", "radar"], or as one string
+    # "isobus_then_gnss_then_radar" ("radar", "radar_then_gnss", ... as before)
+    source: Annotated[list[SpeedSourceName], NoDecode] = Field(
+        default_factory=_radar_only, min_length=1
+    )
     moving_threshold_kmh: float = Field(0.3, ge=0, le=5)
     moving_hysteresis_kmh: float = Field(0.1, ge=0, le=5)
     stale_after_s: float = Field(2.0, gt=0, le=30)
     correction: dict[str, float] = Field(default_factory=dict)
+
+    _chain = field_validator("source", mode="before")(source_chain)
+    _unique = field_validator("source")(check_unique)
 
 
 class CropModel(Section):

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
+from pydantic_settings import NoDecode
 
-from gateway.config._base import Section
+from gateway.config._base import Section, check_unique, source_chain
 
 
 class CanSection(Section):
@@ -48,14 +49,28 @@ def _default_priority() -> list[SpeedSource]:
     return ["machine_selected", "ground", "wheel"]
 
 
+WorkStateSourceName = Literal["inclinometer", "hitch"]
+
+
+def _inclinometer_only() -> list[WorkStateSourceName]:
+    return ["inclinometer"]
+
+
 class IsobusSection(Section):
     enabled: bool = False
     interface: str = "socketcan"
     channel: str = "can1"
-    work_state_source: Literal["inclinometer", "hitch", "hitch_then_inclinometer"] = "inclinometer"
+    # priority order, first fresh source decides raised/working: ["hitch", "inclinometer"]
+    # or "hitch_then_inclinometer"; none fresh -> raised (every channel stops)
+    work_state_source: Annotated[list[WorkStateSourceName], NoDecode] = Field(
+        default_factory=_inclinometer_only, min_length=1
+    )
     hitch_in_work_below_pct: float | None = Field(None, ge=0, le=100)
     speed_priority: list[SpeedSource] = Field(default_factory=_default_priority, min_length=1)
     stale_after_s: float = Field(0.3, gt=0, le=5)  # ISO 11783-7 sends at 100 ms
+
+    _chain = field_validator("work_state_source", mode="before")(source_chain)
+    _unique = field_validator("work_state_source", "speed_priority")(check_unique)
 
 
 class PrescriptionSection(Section):

@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import argparse
 import io
+import itertools
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from rich.console import Console
 
 from gateway import calibration as cal
+from gateway.calibration_apply import apply_calibrations
 from gateway.calibration_cli import add_calibration_commands, run_calibration
+from gateway.config import parse_config
 
 # paper B table 2 results (g/rev) and small weighing errors that average out
 PAPER_B_G_PER_REV = {"shallow": 16.97, "deep": 29.31, "seed": 11.20}
@@ -151,11 +155,12 @@ def parse(argv: list[str]) -> argparse.Namespace:
     return root.parse_args(argv)
 
 
-def run(argv: list[str], answers: list[float] | None = None) -> tuple[int, str]:
+def run(argv: list[str], answers: list[float] | None = None,
+        ask: Callable[[str], float] | None = None) -> tuple[int, str]:
     out = io.StringIO()
     console = Console(file=out, width=120)
     queue = list(answers or [])
-    code = run_calibration(parse(argv), console=console, ask=lambda _q: queue.pop(0))
+    code = run_calibration(parse(argv), console=console, ask=ask or (lambda _q: queue.pop(0)))
     return code, out.getvalue()
 
 
@@ -216,7 +221,143 @@ def test_cli_tilt_undo_and_show(tmp_path: Path) -> None:
     assert saved is not None and saved["result"]["critical_angle_deg"] == pytest.approx(5.3)
 
 
+@pytest.mark.parametrize("order", ["zero_first", "critical_first"])
+def test_cli_zero_and_critical_angle_do_not_erase_each_other(tmp_path: Path, order: str) -> None:
+    sd = ["calibrate", "--state-dir", str(tmp_path), "tilt"]
+    zero = [*sd, "--mode", "level", "--readings", "-1.25"]
+    critical = [*sd, "--mode", "lowered", "--readings", "5.2,5.3,5.4"]
+    steps = [zero, critical] if order == "zero_first" else [critical, zero]
+    for argv in steps:
+        code, out = run(argv)
+        assert code == 0, out
+    assert "kept the stored" in out
+    saved = cal.CalibrationStore(tmp_path).get("tilt.inclinometer")
+    assert saved is not None
+    assert saved["result"]["zero_offset_deg"] == pytest.approx(-1.25)
+    assert saved["result"]["critical_angle_deg"] == pytest.approx(5.3)
+    settings = parse_config({})
+    apply_calibrations(settings, tmp_path)
+    assert settings.inclinometer.zero_offset_deg == pytest.approx(-1.25)
+    assert settings.inclinometer.critical_angle_deg == pytest.approx(6.55)  # 5.3 - (-1.25)
+    # undo goes back to the record before the second step, which had only the first half
+    assert run(["calibrate", "--state-dir", str(tmp_path), "undo"])[0] == 0
+    first = cal.CalibrationStore(tmp_path).get("tilt.inclinometer")
+    assert first is not None
+    kept = "zero_offset_deg" if order == "zero_first" else "critical_angle_deg"
+    dropped = "critical_angle_deg" if order == "zero_first" else "zero_offset_deg"
+    assert first["result"][kept] is not None and first["result"][dropped] is None
+
+
 def test_cli_wrong_mass_count_is_refused(tmp_path: Path) -> None:
     code, out = run(["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "x",
                      "--mass", "1,2", "--no-wait"])
     assert code == 1 and "--mass has 2 values for 6 runs" in out
+
+
+def _config_file(tmp_path: Path) -> Path:
+    cfg = tmp_path / "sowgate.toml"
+    cfg.write_text(
+        '[[channel]]\nname = "seed"\ndrive = "pwm_modbus"\nproduct = "wheat"\n'
+        "target_rate_kg_ha = 200\n"
+        '[[channel]]\nname = "deep"\ntarget_rate_kg_ha = 300\nnode_id = 2\n'
+    )
+    return cfg
+
+
+def test_cli_refuses_an_unknown_channel_before_the_runs(tmp_path: Path) -> None:
+    cfg = str(_config_file(tmp_path))
+    code, out = run(["calibrate", "--config", cfg, "--state-dir", str(tmp_path), "rotation",
+                     "--channel", "shallow", "--seconds", "30"])  # would time 6 x 30 s
+    assert code == 1 and "no [[channel]] named 'shallow' (channels: deep, seed)" in out
+    code, out = run(["calibrate", "--config", cfg, "--state-dir", str(tmp_path), "rotation",
+                     "--channel", "seed", "--seconds", "30"])
+    assert code == 1 and "--model paper_a" in out
+    assert not (tmp_path / "calibration.json").exists()
+
+
+def test_paper_a_fit_of_a_pwm_channel_refits_its_crop(tmp_path: Path) -> None:
+    w = [20.0, 25.0, 30.0, 35.0, 40.0, 45.0]
+    duty = [(x + 19.0) / 0.7 for x in w]
+    masses = [-0.6 * x * x + 130.0 * x - 390.0 for x in w]
+    code, out = run(["calibrate", "--config", str(_config_file(tmp_path)), "--state-dir",
+                     str(tmp_path), "rotation", "--channel", "seed", "--model", "paper_a",
+                     "--no-wait", "--duties", ",".join(map(str, duty)),
+                     "--rpm", ",".join(map(str, w)), "--mass", ",".join(map(str, masses))])
+    assert code == 0, out
+    settings = parse_config({"channel": [{"name": "seed", "drive": "pwm_modbus",
+                                          "product": "wheat", "target_rate_kg_ha": 200.0}]})
+    notes = apply_calibrations(settings, tmp_path)
+    assert notes == ["wheat metering model refitted (channel seed)"]
+    assert settings.control.crops["wheat"].motor_slope == pytest.approx(0.7)
+    assert settings.control.crops["wheat"].meter_b == pytest.approx(130.0)
+
+
+def test_cli_speed_source_must_be_a_known_source(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit):
+        parse(["calibrate", "--state-dir", str(tmp_path), "speed", "--source", "raddar",
+               "--integrated-m", "49"])
+
+
+async def test_can_driven_rotation_test_uses_the_measured_shaft_turns(tmp_path: Path) -> None:
+    """--drive can: the CLI commands the controller over CAN (progress bar live meanwhile),
+    and g/rev is mass over the turns the encoder reported, spin-up and run-down included."""
+    import asyncio
+    import time
+    import uuid
+
+    from drivers.can_bus import CanBus
+    from simulator.can_pid import MeteringControllerSim, MeterPlant
+
+    can_channel = f"cal-{uuid.uuid4().hex[:8]}"
+    cfg = tmp_path / "sowgate.toml"
+    cfg.write_text(
+        f'[can]\nenabled = true\ninterface = "virtual"\nchannel = "{can_channel}"\n'
+        '[[channel]]\nname = "seed"\ntarget_rate_kg_ha = 225\nnode_id = 3\n'
+    )
+    plant = MeterPlant(grams_per_rev=11.2)
+    boundaries: list[tuple[float, float]] = []  # (mass, revs) each time the shaft has stopped
+
+    async def watch() -> None:
+        running = False
+        while True:
+            await asyncio.sleep(0.02)
+            if plant.rpm > 1.0:
+                running = True
+            elif running and plant.target_rpm == 0.0 and plant.rpm < 0.5:
+                running = False
+                boundaries.append((plant.mass_g, plant.revs))
+
+    def masses() -> list[float]:
+        cumulative = [0.0] + [m for m, _ in boundaries]
+        return [b - a for a, b in itertools.pairwise(cumulative)]
+
+    answers: list[float] = []
+
+    def ask(_question: str) -> float:  # the "scale": runs in the CLI's thread
+        deadline = time.monotonic() + 3.0
+        while len(boundaries) < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if not answers:
+            answers.extend(masses())
+        return answers.pop(0)
+
+    async with CanBus("virtual", can_channel) as bus:
+        sim = asyncio.create_task(MeteringControllerSim(bus, {3: plant}).run())
+        watcher = asyncio.create_task(watch())
+        try:
+            argv = ["calibrate", "--config", str(cfg), "--state-dir", str(tmp_path), "rotation",
+                    "--channel", "seed", "--drive", "can", "--speeds", "20,40", "--seconds", "2"]
+            code, out = await asyncio.to_thread(run, argv, None, ask)
+        finally:
+            for task in (sim, watcher):
+                task.cancel()
+            await asyncio.gather(sim, watcher, return_exceptions=True)
+    assert code == 0, out
+    assert len(boundaries) == 2 and "effective r/min" in out
+    true_rpm = [revs / (2.0 / 60) for revs in
+                (boundaries[0][1], boundaries[1][1] - boundaries[0][1])]
+    saved = cal.CalibrationStore(tmp_path).get("rotation.seed")
+    assert saved is not None
+    used = [r["rpm"] for r in saved["result"]["used"]]
+    assert used == pytest.approx(true_rpm, rel=0.03)  # the encoder's turns, not 20 / 40
+    assert saved["result"]["grams_per_rev"] == pytest.approx(11.2, rel=0.03)

@@ -240,3 +240,52 @@ def test_can_channel_needs_an_addressable_node_id() -> None:
     raw["channel"][0]["node_id"] = 0
     with pytest.raises(ConfigError, match=r"channel\[0\].*node_id 1\.\.15"):
         parse_config(raw)
+
+
+def test_can_channels_without_the_can_bus_enabled_alarm_instead_of_doing_nothing(
+    tmp_path: Path,
+) -> None:
+    from gateway.daemon import Daemon
+
+    settings = parse_config({
+        "hmi": {"enabled": False},
+        "channel": [{"name": "deep", "target_rate_kg_ha": 300.0}],
+        "prescription": {"enabled": True, "path": str(tmp_path / "rx.geojson")},
+    })
+    daemon = Daemon(settings, tmp_path / "state")
+    active = {a.code: a for a in daemon.alarms.active}
+    assert active["channel.can_disabled"].severity == "critical"
+    assert "deep" in active["channel.can_disabled"].message
+    assert "prescription.unused" in active
+    assert "metering" not in daemon.components
+
+
+def test_operator_changes_a_channel_rate_through_the_one_command_path(tmp_path: Path) -> None:
+    from gateway import commands as cmd
+    from gateway.daemon import Daemon
+    from gateway.errors import CommandError
+
+    settings = parse_config({
+        "hmi": {"enabled": False},
+        "can": {"enabled": True, "interface": "virtual", "channel": "unused"},
+        "channel": [
+            {"name": "deep", "target_rate_kg_ha": 300.0, "node_id": 2},
+            {"name": "seed", "drive": "pwm_modbus", "product": "wheat",
+             "target_rate_kg_ha": 200.0},
+        ],
+    })
+    daemon = Daemon(settings, tmp_path / "state")
+    metering = daemon.components["metering"]
+    deep = metering.channels[0]
+    assert metering.target_rate(deep, None) == 300.0
+    assert daemon.execute(cmd.SetChannelRate("deep", 280.0), "mqtt") == "deep 280 kg/ha"
+    assert metering.target_rate(deep, None) == 280.0
+    daemon.execute(cmd.SetChannelRate("seed", 210.0), "mqtt")  # paper A's motor: crop rate
+    assert (daemon.controller.crop, daemon.controller.rate_kg_ha) == ("wheat", 210.0)
+    with pytest.raises(CommandError, match="outside 120-225"):
+        daemon.execute(cmd.SetChannelRate("seed", 300.0), "mqtt")
+    with pytest.raises(CommandError, match="unknown channel 'shallow'; known: deep, seed"):
+        daemon.execute(cmd.SetChannelRate("shallow", 100.0), "mqtt")
+    with pytest.raises(CommandError, match=r"0\.\.2000"):
+        metering.set_rate("deep", -1.0)
+    assert metering.target_rate(deep, None) == 280.0  # a refused command changes nothing

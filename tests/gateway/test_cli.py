@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -64,3 +65,56 @@ def test_every_command_has_working_help(
         main([*argv, "--help"])
     assert info.value.code == 0
     assert "usage: sowgate" in capsys.readouterr().out
+
+
+def test_calibrate_runs_from_the_real_command_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`sowgate calibrate ...` dispatches (it used to fail with "no attribute func")."""
+    # paper B: 30 s runs, m = 2M/n; the 10 r/min run is unstable and excluded
+    masses = [11.2 * n / 2 for n in (10, 20, 30, 40, 50, 60)]
+    masses[0] *= 1.4
+    argv = ["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "seed",
+            "--mass", ",".join(f"{m:.3f}" for m in masses), "--no-wait"]
+    assert main(argv) == 0
+    assert "g/rev = 11.20" in capsys.readouterr().out
+    assert main(["calibrate", "--state-dir", str(tmp_path), "show"]) == 0
+    assert '"rotation.seed"' in capsys.readouterr().out
+    assert main(["calibrate", "--state-dir", str(tmp_path), "undo"]) == 0
+    assert main(["calibrate", "--state-dir", str(tmp_path), "undo"]) == 1  # nothing left
+    assert "nothing to undo" in capsys.readouterr().out
+
+
+def _map_config(tmp_path: Path, crs: str) -> Path:
+    ring = [[116.0, 40.0], [116.001, 40.0], [116.001, 40.001], [116.0, 40.0]]
+    doc = {
+        "type": "FeatureCollection",
+        "crs": {"type": "name", "properties": {"name": crs}},
+        "features": [{"type": "Feature", "properties": {"seed_rate": 200},
+                      "geometry": {"type": "Polygon", "coordinates": [ring]}}],
+    }
+    (tmp_path / "rx.geojson").write_text(json.dumps(doc))
+    cfg = tmp_path / "sowgate.toml"
+    cfg.write_text(
+        f'[prescription]\nenabled = true\npath = "{tmp_path / "rx.geojson"}"\n'
+        '[[channel]]\nname = "seed"\ntarget_rate_kg_ha = 225\n'
+        'prescription_attribute = "seed_rate"\n'
+    )
+    return cfg
+
+
+def test_check_config_rejects_a_bad_prescription_map(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["check-config", str(_map_config(tmp_path, "urn:ogc:def:crs:EPSG::32650"))]) == 78
+    err = capsys.readouterr().err
+    assert "prescription.path: " in err and "is not WGS84" in err
+    assert "[can] enabled = false" in err  # the can_pid channel would not be driven
+
+
+def test_check_config_accepts_a_good_prescription_map(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["check-config", str(_map_config(tmp_path, "EPSG:4326"))]) == 0
+    captured = capsys.readouterr()
+    assert "ok (machine" in captured.out and "1 zones" in captured.err

@@ -99,3 +99,44 @@ def test_state_dir_precedence(monkeypatch: pytest.MonkeyPatch) -> None:
     assert state_dir() == Path("/var/lib/sowgate")
     monkeypatch.setenv("SOWGATE_STATE_DIR", "/tmp/x")
     assert state_dir() == Path("/tmp/x")
+
+
+def _pwm(**values: object) -> dict[str, object]:
+    return {"name": "seed", "drive": "pwm_modbus", "product": "wheat",
+            "target_rate_kg_ha": 200.0, **values}
+
+
+@pytest.mark.parametrize(
+    ("channels", "problem"),
+    [
+        ([_pwm(), _pwm(name="seed2")], "only one channel may have drive = 'pwm_modbus'"),
+        ([_pwm(product="seed")], "channel[0].product = 'seed': a pwm_modbus channel meters"),
+        ([_pwm(target_rate_kg_ha=300.0)], "channel[0].target_rate_kg_ha = 300 is outside"),
+    ],
+)
+def test_pwm_modbus_channel_is_checked_against_the_crop_models(
+    channels: list[dict[str, object]], problem: str
+) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"channel": channels})
+    assert any(problem in p for p in info.value.problems), info.value.problems
+
+
+def test_a_pwm_modbus_channel_sets_paper_a_crop_and_rate() -> None:
+    from gateway.alarms import AlarmBoard
+    from gateway.controller import Controller
+
+    settings = parse_config({"channel": [_pwm()]})
+    c = Controller(settings, AlarmBoard())
+    assert (c.crop, c.rate_kg_ha) == ("wheat", 200.0)
+
+
+def test_without_rs485_the_sources_on_it_are_refused_by_name() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"rs485": {"enabled": False}})
+    problem = " ".join(info.value.problems)
+    assert "speed.source includes radar" in problem
+    assert "isobus.work_state_source includes inclinometer" in problem
+    ok = parse_config({"rs485": {"enabled": False}, "speed": {"source": "isobus_then_gnss"},
+                       "isobus": {"work_state_source": "hitch"}})
+    assert not ok.rs485.enabled

@@ -148,6 +148,62 @@ def test_zero_tilt_is_persisted_across_restarts(tmp_path: Path) -> None:
     assert settings.inclinometer.zero_offset_deg == -1.25
 
 
+def test_hmi_zero_keeps_a_stored_critical_angle_on_the_same_raw_reading(
+    tmp_path: Path,
+) -> None:
+    """Paper B critical angle (raw 5.3) first, then the HMI zero at raw 1.0: the implement
+    must still count as raised above raw 5.3 (+hysteresis), live and after a restart."""
+    from gateway import calibration as cal
+
+    store = cal.CalibrationStore(tmp_path)
+    cal.save_tilt(store, "tilt.inclinometer", cal.tilt_lowered_critical([5.2, 5.3, 5.4]))
+    settings = parse_config({})
+    apply_calibrations(settings, tmp_path)
+    c = Controller(settings, AlarmBoard("m1"), state_dir=tmp_path)
+    c.on_tilt(1.0, 0.0)
+    c.execute(cmd.ZeroTilt(), "hmi")
+    c.on_tilt(6.0, 0.1)  # zeroed 5.0: above 4.3 + 0.5 -> raised
+    assert c.tick(0.1).raised
+    c.on_tilt(5.0, 0.2)  # zeroed 4.0: below 4.3 -> working
+    assert not c.tick(0.2).raised
+    saved = store.get("tilt.inclinometer")
+    assert saved is not None
+    assert saved["result"]["zero_offset_deg"] == 1.0
+    assert saved["result"]["critical_angle_deg"] == pytest.approx(5.3)
+    restarted = parse_config({})
+    apply_calibrations(restarted, tmp_path)
+    assert restarted.inclinometer.zero_offset_deg == 1.0
+    assert restarted.inclinometer.critical_angle_deg == pytest.approx(4.3)
+
+
+def test_live_critical_angle_from_3_lowered_readings(tmp_path: Path) -> None:
+    """Paper B over HMI/MQTT: lowered to the ground, the mean of 3 readings (5.3 deg)."""
+    c, _ = make(tmp_path)
+    c.on_tilt(5.2, 0.0)
+    with pytest.raises(CommandError, match="need 3 fresh inclinometer readings"):
+        c.execute(cmd.CriticalTilt(), "mqtt")
+    c.on_tilt(5.3, 0.33)
+    c.on_tilt(5.4, 0.67)
+    reply = c.execute(cmd.CriticalTilt(), "mqtt")
+    assert "+5.30" in reply
+    c.on_tilt(6.0, 1.0)  # above 5.3 + 0.5 hysteresis
+    assert c.tick(1.0).raised
+    c.on_tilt(5.0, 1.3)
+    assert not c.tick(1.3).raised
+    settings = parse_config({})
+    apply_calibrations(settings, tmp_path)
+    assert settings.inclinometer.critical_angle_deg == pytest.approx(5.3)
+
+
+def test_live_critical_angle_refuses_a_moving_implement(tmp_path: Path) -> None:
+    c, _ = make(tmp_path)
+    for i, raw in enumerate((2.0, 5.3, 8.0)):
+        c.on_tilt(raw, i * 0.33)
+    with pytest.raises(CommandError, match="keep the machine still"):
+        c.execute(cmd.CriticalTilt(), "hmi")
+    assert not (tmp_path / "calibration.json").exists()
+
+
 def test_counters_integrate_area_and_mass_while_seeding() -> None:
     c, _ = make()
     c.execute(cmd.Start(), "t")

@@ -277,3 +277,24 @@ def test_missing_as_applied_log_is_a_clear_error(
     monkeypatch.setenv("SOWGATE_STATE_DIR", str(tmp_path))
     assert main(["export", "--what", "as-applied", "--output", str(tmp_path / "x")]) == 1
     assert "no as-applied log at" in capsys.readouterr().err
+
+
+def test_as_applied_export_honours_since_and_until(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from gateway.cli import main
+    from gateway.prescription import AsAppliedLog, AsAppliedRow
+
+    monkeypatch.setenv("SOWGATE_STATE_DIR", str(tmp_path))
+    log = AsAppliedLog(tmp_path / "as_applied.csv")
+    for second in range(5):
+        log.record(AsAppliedRow(f"2026-04-20T08:00:0{second}.000+00:00", 125.3, 43.8, "seed",
+                                "wheat", 200.0 + second, None))
+    out = tmp_path / "part.csv"
+    argv = ["export", "--what", "as-applied", "--format", "csv", "--output", str(out),
+            "--since", "2026-04-20T08:00:01Z", "--until", "2026-04-20T08:00:03Z"]
+    assert main(argv) == 0
+    targets = [line.split(",")[5] for line in out.read_text().splitlines()[1:]]
+    assert targets == ["201.0", "202.0"]
+    assert "wrote 2 as-applied rows" in capsys.readouterr().err
+    assert main([*argv[:-4], "--since", "yesterday"]) == 2  # a bad time is a usage error

@@ -332,3 +332,31 @@ async def test_sigkill_mid_stream_resends_unacked_and_the_will_says_offline(
         finally:
             _reap(proc)
         assert sorted(set(sub.seed_ids())) == stored
+
+
+def test_tilt_critical_topic_maps_to_the_live_critical_angle_command() -> None:
+    from gateway.commands import CriticalTilt
+    from gateway.mqtt_link import KNOWN_COMMANDS, _to_command
+    from gateway.payloads import EmptyCommand
+
+    assert KNOWN_COMMANDS["tilt_critical"] is EmptyCommand
+    assert _to_command("tilt_critical", EmptyCommand()) == CriticalTilt()
+    assert parse_config({"commands": {"enabled": ["tilt_critical"]}}).commands.enabled == [
+        "tilt_critical"
+    ]
+
+
+def test_channel_rate_topic_maps_to_the_channel_rate_command() -> None:
+    from pydantic import ValidationError
+
+    from gateway.commands import SetChannelRate
+    from gateway.mqtt_link import KNOWN_COMMANDS, _to_command
+    from gateway.payloads import ChannelRateCommand
+
+    payload = KNOWN_COMMANDS["channel_rate"].model_validate_json(
+        '{"channel": "deep", "rate_kg_ha": 280}'
+    )
+    assert isinstance(payload, ChannelRateCommand)
+    assert _to_command("channel_rate", payload) == SetChannelRate("deep", 280.0)
+    with pytest.raises(ValidationError):
+        ChannelRateCommand.model_validate_json('{"channel": "deep", "rate_kg_ha": 0}')

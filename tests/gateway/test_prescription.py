@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -209,3 +210,28 @@ def test_as_applied_memory_is_capped() -> None:
     for i in range(5):
         log.record(AsAppliedRow(str(i), 0, 0, "c", "p", 1, 1))
     assert [r.time for r in log.rows] == ["2", "3", "4"]
+
+
+def test_a_failing_as_applied_write_is_reported_not_raised(tmp_path: Path) -> None:
+    """Disk full / card pulled: metering must go on; the log says so once, then recovers."""
+    reports: list[str | None] = []
+    log = AsAppliedLog(tmp_path / "gone" / "as_applied.csv", on_error=reports.append)
+    for i in range(3):
+        log.record(AsAppliedRow(str(i), 0, 0, "c", "p", 1, 1))  # directory missing
+    assert len(reports) == 1 and reports[0] is not None and "as_applied.csv" in reports[0]
+    assert log.write_error is not None and len(log.rows) == 3  # kept in memory
+    (tmp_path / "gone").mkdir()
+    log.record(AsAppliedRow("3", 0, 0, "c", "p", 1, 1))
+    assert reports[-1] is None and log.write_error is None
+    assert (tmp_path / "gone" / "as_applied.csv").read_text().splitlines()[1].startswith("3,")
+
+
+def test_as_applied_position_is_the_outlets_not_the_antenna() -> None:
+    from types import SimpleNamespace
+
+    log = AsAppliedLog()
+    ch = SimpleNamespace(name="seed", product="wheat", outlet_behind_m=3.0, outlet_lateral_m=1.0)
+    pose = Pose(lon=116.0, lat=40.0, heading_deg=0.0, speed_kmh=5.0)  # heading north
+    row = log.record_channel(pose, ch, 225.0, 224.0)
+    assert row.lat == pytest.approx(40.0 - 3.0 / 111_320.0)
+    assert row.lon == pytest.approx(116.0 + 1.0 / (111_320.0 * math.cos(math.radians(40.0))))

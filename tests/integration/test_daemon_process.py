@@ -68,6 +68,32 @@ async def test_demo_runs_and_reports_the_applied_rate() -> None:
     assert b"demo finished: applied" in out
 
 
+async def test_demo_with_paper_b_channels_drives_the_simulated_can_controllers() -> None:
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "gateway.cli",
+        "demo",
+        "--no-tui",
+        "--channels",
+        "--duration",
+        "6",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    out, err = await asyncio.wait_for(proc.communicate(), 60.0)
+    assert proc.returncode == 0, err.decode()
+    lines = {
+        line.split(":")[0].removeprefix("channel "): line
+        for line in out.decode().splitlines()
+        if line.startswith("channel ")
+    }
+    assert sorted(lines) == ["deep", "seed", "shallow"]
+    for name, target in (("shallow", 150.0), ("deep", 300.0), ("seed", 225.0)):
+        applied = float(lines[name].split("applied ")[1].split(" ")[0])
+        assert 0.5 * target < applied < 1.2 * target, lines[name]  # the shafts really turned
+
+
 async def test_systemd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
     import socket
 

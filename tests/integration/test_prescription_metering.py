@@ -10,6 +10,7 @@ import uuid
 from pathlib import Path
 
 import pymap3d
+import pytest
 
 from drivers.can_bus import CanBus
 from simulator.can_pid import MeteringControllerSim, MeterPlant
@@ -109,3 +110,55 @@ async def test_a_bad_map_alarms_and_the_channels_use_their_default_rate(tmp_path
             assert alarm and "prescription map not used" in alarm[0].message
             snap = rig.daemon.components["metering"].snapshot()
             assert snap["channels"]["seed"]["target_rate_kg_ha"] == 225.0
+
+
+async def test_paper_a_pwm_channel_follows_the_map_and_logs_as_applied(tmp_path: Path) -> None:
+    """A `pwm_modbus` channel (paper A's motor on the RS485 PWM module) takes its rate from
+    the map under its outlets, sows the channel's own rate outside, and is logged."""
+    fmap = tmp_path / "rx.geojson"
+    fmap.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [_zone(-20.0, 6.0, 5.0), _zone(6.0, 12.0, 7.0)],
+            }
+        )
+    )
+    drive = Drive(legs=[Leg(1.0, 0.0), Leg(120.0, 4.0)], dt=0.02)
+    machine = SimulatedMachine(drive=drive, with_gnss=True)
+    overrides = {
+        "control": {"start_working": True},
+        "channel": [
+            {
+                "name": "seed",
+                "product": "rapeseed",
+                "drive": "pwm_modbus",
+                "target_rate_kg_ha": 6.5,
+                "prescription_attribute": "seed_rate",
+            },
+        ],
+        "prescription": {"enabled": True, "path": str(fmap), "lookahead_s": 0.5},
+    }
+    async with running(tmp_path, machine, **overrides) as rig:
+
+        def target() -> float | None:
+            out = rig.daemon.outputs
+            return None if out is None else out.target_rate_kg_ha
+
+        def seeding_at(rate: float) -> bool:
+            out = rig.daemon.outputs
+            return out is not None and out.state.value == "seeding" and target() == rate
+
+        await rig.until(lambda: seeding_at(5.0), timeout=10.0, what="zone A rate")
+        out = rig.daemon.outputs
+        assert out is not None and out.commanded_rate_kg_ha == pytest.approx(5.0, rel=0.02)
+        await rig.until(lambda: seeding_at(7.0), timeout=15.0, what="zone B rate")
+        assert machine.pose().north > 3.0
+        await rig.until(lambda: seeding_at(6.5), timeout=15.0, what="default outside the map")
+        assert machine.pose().north > 9.0
+        assert rig.daemon.snapshot()["target_rate_kg_ha"] == 6.5
+        assert rig.daemon.controller.crop == "rapeseed"
+    rows = (tmp_path / "state" / "as_applied.csv").read_text().splitlines()
+    assert rows[0].startswith("time,lon,lat,channel")
+    logged = {float(r.split(",")[5]) for r in rows[1:] if r.split(",")[3] == "seed"}
+    assert {5.0, 7.0} <= logged
