@@ -131,6 +131,9 @@ class Settings(BaseSettings):
         names = [c.name for c in self.channel]
         if len(names) != len(set(names)):
             raise ValueError("channel names must be unique")
+        nodes = [c.node_id for c in self.channel if c.drive == "can_pid"]
+        if len(nodes) != len(set(nodes)):
+            raise ValueError("channel: two can_pid channels share a node_id")
         ids = [self.radar.device_id, self.inclinometer.device_id, self.actuators.device_id]
         if len(ids) != len(set(ids)):
             raise ValueError(
