@@ -259,9 +259,11 @@ class MqttLink:
             self.stats.connects += 1
             self.backoff.reset()
             log.info("mqtt connected to %s:%s as %s", self.cfg.host, self.cfg.port, self.client_id)
-            await client.subscribe(self.topics.commands, qos=1)
-            await client.publish(self.topics.status, b"online", qos=1, retain=True)
+            # A stop from here on must leave 'offline': the clean disconnect below discards the
+            # will, and the birth may already be retained on the broker before its PUBACK.
             try:
+                await client.subscribe(self.topics.commands, qos=1)
+                await client.publish(self.topics.status, b"online", qos=1, retain=True)
                 async with asyncio.TaskGroup() as tg:
                     tg.create_task(self._commands_loop(client), name="mqtt-commands")
                     tg.create_task(self._seeds_loop(client), name="mqtt-seeds")

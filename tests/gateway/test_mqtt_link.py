@@ -332,3 +332,26 @@ async def test_sigkill_mid_stream_resends_unacked_and_the_will_says_offline(
         finally:
             _reap(proc)
         assert sorted(set(sub.seed_ids())) == stored
+
+
+async def test_stop_while_the_birth_awaits_its_puback_still_leaves_offline(
+    mosquitto: Mosquitto, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stop between connect and the end of the birth (two round trips on 4G) used to
+    disconnect cleanly, which discards the will: the retained status stayed 'online'."""
+    published_online = asyncio.Event()
+    original = aiomqtt.Client.publish
+
+    async def slow_birth(self: aiomqtt.Client, topic: str, payload: object = None,
+                         *args: object, **kwargs: object) -> None:
+        await original(self, topic, payload, *args, **kwargs)  # type: ignore[arg-type]
+        if payload == b"online":
+            published_online.set()
+            await asyncio.Event().wait()  # the PUBACK "has not arrived yet"
+
+    monkeypatch.setattr(aiomqtt.Client, "publish", slow_birth)
+    async with subscriber(mosquitto.port, BASE) as sub:
+        async with running_link(make_settings(mosquitto.port), tmp_path / "r.db"):
+            await asyncio.wait_for(published_online.wait(), 10)
+            await eventually(lambda: sub.on("status")[-1:] == [b"online"], what="birth")
+        await eventually(lambda: sub.on("status")[-1:] == [b"offline"], 5, "offline at stop")
