@@ -88,7 +88,8 @@ class StatePayload(_Payload):
     fan_duty_pct: float | None = Field(None, ge=0, le=100)
     devices: dict[str, bool] = Field(
         default_factory=dict,
-        description="device name -> answering (radar, inclinometer, pwm, gnss when enabled)",
+        description="device name -> answering: radar, inclinometer, pwm (RS485), hmi, "
+        "and gnss, seed_sensors when enabled",
     )
     gnss_fix: FixQuality = "none"
     alarms: list[ActiveAlarmInfo] = Field(default_factory=list)
