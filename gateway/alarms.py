@@ -1,8 +1,11 @@
 """The set of active alarms, with raise/clear transitions reported once each.
 
-Alarms are keyed by a stable code (``radar.lost``) so a dashboard can track one condition
-across many raise/clear cycles, and so a flapping condition does not flood the operator:
-re-raising an active alarm with the same message is not a new event.
+Alarms are keyed by a stable code (``speed.lost``) so a dashboard can track one condition
+across many raise/clear cycles, and so a condition re-evaluated every control tick does not
+flood the operator, the record store and the ``alarms`` topic: re-raising an active alarm is
+not a new event. Its message may carry a live value ("shaft speed 6.6 r/min outside ..."),
+so a new message only updates the active alarm (what ``state.alarms`` and the screen show);
+an event is emitted when the alarm is raised, when its severity changes, and when it clears.
 """
 
 from __future__ import annotations
@@ -45,7 +48,8 @@ class AlarmBoard:
 
     def raise_(self, code: str, message: str, severity: AlarmSeverity = "warning") -> None:
         current = self._active.get(code)
-        if current is not None and current.message == message and current.severity == severity:
+        if current is not None and current.severity == severity:
+            current.message = message  # the live text, without an event per tick
             return
         now = self._utcnow()
         self._active[code] = ActiveAlarm(code, message, severity, current.since if current else now)

@@ -96,7 +96,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         else:
             await daemon.run()
 
-    asyncio.run(main())
+    try:
+        asyncio.run(main())
+    except ConfigError as exc:
+        # found while building the daemon (a check only possible with its parts): still a
+        # config problem, so 78, which systemd does not restart in a loop
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
     return 0
 
 

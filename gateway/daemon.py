@@ -294,6 +294,12 @@ class Daemon:
         elif gnss is not None:
             data["devices"]["gnss"] = False
         data["gnss_fix"] = fix
+        # the screen and the seed-tube sensors are devices a dashboard must see go missing too
+        if self.hmi is not None:
+            data["devices"]["hmi"] = self.hmi.link.available
+        sensors = self.components.get("seed_sensors")
+        if sensors is not None:
+            data["devices"]["seed_sensors"] = bool(sensors.available)
         for name, part in self.components.items():
             snap = getattr(part, "snapshot", None)
             if callable(snap):

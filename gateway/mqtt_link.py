@@ -74,6 +74,10 @@ ALARMS_PER_READ = 100
 OFFLINE_PUBLISH_TIMEOUT_S = 2.0  # clean shutdown must not hang on a dead link
 ERROR_TEXT_MAX_CHARS = 500
 BACKLOG_ALARM = "mqtt.backlog"
+# A session must last this long to reset the reconnect backoff. Otherwise a connection the
+# broker drops right after CONNACK (typically: two boxes cloned from one image, same client
+# id, taking each other's session over) would retry at the initial delay forever.
+STABLE_SESSION_S = 10.0
 
 
 @dataclass
@@ -168,6 +172,7 @@ class MqttLink:
         self.alarms = alarms
         self.backoff = backoff or Backoff(initial_s=0.5, cap_s=self.cfg.reconnect_max_s)
         self.connected = False
+        self._connected_at: float | None = None  # when the current session's CONNACK came
         self.stats = LinkStats()
         self.publish_timeout_s = 2.0 * self.cfg.keepalive + 30.0
         self._seeds_wake = asyncio.Event()
@@ -211,6 +216,7 @@ class MqttLink:
             log.info("mqtt disabled in config")
             return
         while True:
+            self._connected_at = None
             try:
                 await self._session()
             except asyncio.CancelledError:
@@ -218,8 +224,16 @@ class MqttLink:
             except Exception as exc:  # every failure means: reconnect later
                 self.stats.last_error = _flatten(exc)[:ERROR_TEXT_MAX_CHARS]
                 log.warning("mqtt %s:%s: %s", self.cfg.host, self.cfg.port, self.stats.last_error)
-            if self.connected:
+            if self._connected_at is not None:
                 self.stats.disconnects += 1
+                lasted = time.monotonic() - self._connected_at
+                if lasted >= STABLE_SESSION_S:
+                    self.backoff.reset()
+                else:
+                    log.warning(
+                        "mqtt session dropped %.1f s after connecting; backing off (is another "
+                        "client using client id %r?)", lasted, self.client_id,
+                    )
             self.connected = False
             await asyncio.sleep(self.backoff.next_delay())
 
@@ -276,12 +290,14 @@ class MqttLink:
         await self._connect(client)
         try:
             self.connected = True
+            self._connected_at = time.monotonic()
             self.stats.connects += 1
-            self.backoff.reset()
             log.info("mqtt connected to %s:%s as %s", self.cfg.host, self.cfg.port, self.client_id)
-            await client.subscribe(self.topics.commands, qos=1)
-            await client.publish(self.topics.status, b"online", qos=1, retain=True)
+            # A stop from here on must leave 'offline': the clean disconnect below discards the
+            # will, and the birth may already be retained on the broker before its PUBACK.
             try:
+                await client.subscribe(self.topics.commands, qos=1)
+                await client.publish(self.topics.status, b"online", qos=1, retain=True)
                 async with asyncio.TaskGroup() as tg:
                     tg.create_task(self._commands_loop(client), name="mqtt-commands")
                     tg.create_task(self._seeds_loop(client), name="mqtt-seeds")

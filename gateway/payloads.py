@@ -22,9 +22,10 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, RootModel, field_validator
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, RootModel, field_validator
 
 from gateway.records import AlarmEvent, AlarmSeverity, FixQuality, SeedRecord
+from gateway.work_state import WorkState
 
 __all__ = [
     "SCHEMA_MODELS",
@@ -42,6 +43,8 @@ __all__ = [
 ]
 
 REQUEST_ID_MAX_CHARS = 128
+WORK_STATES: list[JsonValue] = [w.value for w in WorkState]
+SPEED_SOURCES: list[JsonValue] = ["radar", "gnss", "isobus", "none"]
 
 
 class _Payload(BaseModel):
@@ -64,9 +67,18 @@ class StatePayload(_Payload):
 
     machine_id: str
     utc: datetime
-    work_state: str = Field(description="e.g. idle, working, raised, stopped, fault")
-    speed_kmh: float | None = Field(None, ge=0)
-    speed_source: str = Field("none", description="radar, gnss, simulated or none")
+    # The daemon only sends these values (the schema lists them for dashboard authors); the
+    # model itself stays a plain string so an older or newer box never fails validation.
+    work_state: str = Field(
+        description="stopped | pre_seed (lowered; standing or speed unknown) | seeding | "
+        "turning (raised, moving) | paused (raised; standing or speed unknown) | emptying",
+        json_schema_extra={"enum": WORK_STATES},
+    )
+    speed_kmh: float | None = Field(None, ge=0, description="null when no source is valid")
+    speed_source: str = Field(
+        "none", description="the source speed_kmh came from", json_schema_extra={
+            "enum": SPEED_SOURCES}
+    )
     tilt_deg: float | None = None
     raised: bool | None = None
     crop: str | None = None
@@ -75,7 +87,9 @@ class StatePayload(_Payload):
     motor_duty_pct: float | None = Field(None, ge=0, le=100)
     fan_duty_pct: float | None = Field(None, ge=0, le=100)
     devices: dict[str, bool] = Field(
-        default_factory=dict, description="device name -> answering (radar, hmi, gnss, ...)"
+        default_factory=dict,
+        description="device name -> answering: radar, inclinometer, pwm (RS485), hmi, "
+        "and gnss, seed_sensors when enabled",
     )
     gnss_fix: FixQuality = "none"
     alarms: list[ActiveAlarmInfo] = Field(default_factory=list)

@@ -55,10 +55,18 @@ def port_open(port: int, host: str = "127.0.0.1") -> bool:
 class Mosquitto:
     """A mosquitto subprocess with a throwaway config; use as a context manager or fixture."""
 
-    def __init__(self, port: int | None = None, *, persistent: bool = False) -> None:
+    def __init__(
+        self,
+        port: int | None = None,
+        *,
+        persistent: bool = False,
+        listener_options: str = "",
+        password_file: Path | None = None,
+    ) -> None:
         self.port = port or free_port()
         self.host = "127.0.0.1"
         self._dir = tempfile.TemporaryDirectory(prefix="sowgate-mosquitto-")
+        self.dir = Path(self._dir.name)
         # started as root, mosquitto drops to its own user: without this it silently can write
         # neither its log nor its persistence file, and "persistent" sessions die on restart
         os.chmod(self._dir.name, 0o777)
@@ -71,9 +79,17 @@ class Mosquitto:
             if persistent
             else "persistence false\n"
         )
+        # listener_options (e.g. TLS cafile/certfile/keyfile) apply to the one listener; a
+        # password_file (mosquitto_passwd format) turns anonymous access off
+        auth = (
+            f"allow_anonymous false\npassword_file {password_file}\n"
+            if password_file is not None
+            else "allow_anonymous true\n"
+        )
         self.config.write_text(
             f"listener {self.port} 127.0.0.1\n"
-            "allow_anonymous true\n"
+            f"{listener_options}"
+            f"{auth}"
             f"{storage}"
             f"log_dest file {self.log}\n"
             "log_type error\nlog_type warning\nlog_type notice\n"

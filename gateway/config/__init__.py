@@ -164,6 +164,9 @@ class Settings(BaseSettings):
                     f"rs485.enabled = false, but {'; '.join(uses)}: those devices are on the "
                     "RS485 bus (use gnss/isobus speed, the hitch work state, can_pid channels)"
                 )
+        nodes = [c.node_id for c in self.channel if c.drive == "can_pid"]
+        if len(nodes) != len(set(nodes)):
+            raise ValueError("channel: two can_pid channels share a node_id")
         ids = [self.radar.device_id, self.inclinometer.device_id, self.actuators.device_id]
         if len(ids) != len(set(ids)):
             raise ValueError(

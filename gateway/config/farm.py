@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from gateway.config._base import Section
 
@@ -14,6 +14,12 @@ class TlsSection(Section):
     cert_file: str | None = None
     key_file: str | None = None
     insecure: bool = False
+
+    @model_validator(mode="after")
+    def _key_needs_cert(self) -> TlsSection:
+        if self.key_file is not None and self.cert_file is None:
+            raise ValueError("key_file needs cert_file (the client certificate it belongs to)")
+        return self
 
 
 class MqttSection(Section):
@@ -32,6 +38,17 @@ class MqttSection(Section):
     max_inflight_batches: int = Field(8, ge=1, le=64)
     reconnect_max_s: float = Field(30.0, gt=0, le=600)
     state_hz: float = Field(1.0, gt=0, le=10)
+
+    @model_validator(mode="after")
+    def _credentials(self) -> MqttSection:
+        # Both would be silently resolved one way; a password without a user name is never
+        # sent (the box would connect anonymously and fail on an ACL far from the cause).
+        if self.password is not None and self.password_file is not None:
+            raise ValueError("set password or password_file, not both")
+        if (self.password is not None or self.password_file is not None) and not self.username:
+            raise ValueError("password/password_file needs username (MQTT sends no password "
+                             "without a user name)")
+        return self
 
 
 CommandName = Literal[

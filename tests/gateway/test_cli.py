@@ -41,6 +41,49 @@ def test_run_with_a_missing_config_exits_78(tmp_path: Path) -> None:
     assert "config file not found" in proc.stderr
 
 
+DUPLICATE_CAN_NODES = """
+[can]
+enabled = true
+[[channel]]
+name = "seed"
+target_rate_kg_ha = 150
+node_id = 2
+[[channel]]
+name = "fert"
+target_rate_kg_ha = 100
+node_id = 2
+"""
+
+
+def test_check_config_catches_can_channels_sharing_a_node_id(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Used to pass check-config and then crash the daemon with exit 1 (a restart loop)."""
+    f = tmp_path / "dup.toml"
+    f.write_text(DUPLICATE_CAN_NODES)
+    assert main(["check-config", str(f)]) == 78
+    assert "share a node_id" in capsys.readouterr().err
+
+
+def test_run_exits_78_on_a_config_error_found_while_building_the_daemon(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not 1 with a traceback: systemd's RestartPreventExitStatus=78 must stop the loop."""
+    import gateway.daemon
+    from gateway.errors import ConfigError
+
+    class Refusing:
+        def __init__(self, *args: object) -> None:
+            raise ConfigError(["prescription.path: required when prescription.enabled"])
+
+    monkeypatch.setattr(gateway.daemon, "Daemon", Refusing)
+    monkeypatch.setenv("SOWGATE_STATE_DIR", str(tmp_path / "state"))
+    f = tmp_path / "ok.toml"
+    f.write_text("")
+    assert main(["run", "--config", str(f)]) == 78
+    assert "prescription.path: required" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "argv",
     [

@@ -140,3 +140,29 @@ def test_without_rs485_the_sources_on_it_are_refused_by_name() -> None:
     ok = parse_config({"rs485": {"enabled": False}, "speed": {"source": "isobus_then_gnss"},
                        "isobus": {"work_state_source": "hitch"}})
     assert not ok.rs485.enabled
+
+
+@pytest.mark.parametrize(
+    ("mqtt", "problem"),
+    [
+        ({"password": "s3cret"}, "needs username"),
+        ({"password_file": "/run/credentials/sowgate.service/mqtt"}, "needs username"),
+        ({"username": "u", "password": "p", "password_file": "/f"}, "not both"),
+        ({"tls": {"key_file": "/etc/sowgate/client.key"}}, "key_file needs cert_file"),
+    ],
+)
+def test_mqtt_credentials_that_would_be_silently_ignored_are_errors(
+    mqtt: dict[str, object], problem: str
+) -> None:
+    with pytest.raises(ConfigError) as err:
+        parse_config({"mqtt": mqtt})
+    assert any(line.startswith("mqtt") and problem in line for line in err.value.problems), (
+        err.value.problems
+    )
+
+
+def test_mqtt_credentials_that_make_sense_load() -> None:
+    s = parse_config({"mqtt": {"username": "seeder-01", "password_file": "/f",
+                               "tls": {"cert_file": "/c.pem", "key_file": "/c.key"}}})
+    assert s.mqtt.username == "seeder-01" and s.mqtt.tls is not None
+    assert parse_config({"mqtt": {"tls": {}}}).mqtt.tls is not None  # system CAs, no client cert

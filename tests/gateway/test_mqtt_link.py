@@ -360,3 +360,51 @@ def test_channel_rate_topic_maps_to_the_channel_rate_command() -> None:
     assert _to_command("channel_rate", payload) == SetChannelRate("deep", 280.0)
     with pytest.raises(ValidationError):
         ChannelRateCommand.model_validate_json('{"channel": "deep", "rate_kg_ha": 0}')
+
+
+async def test_stop_while_the_birth_awaits_its_puback_still_leaves_offline(
+    mosquitto: Mosquitto, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stop between connect and the end of the birth (two round trips on 4G) used to
+    disconnect cleanly, which discards the will: the retained status stayed 'online'."""
+    published_online = asyncio.Event()
+    original = aiomqtt.Client.publish
+
+    async def slow_birth(self: aiomqtt.Client, topic: str, payload: object = None,
+                         *args: object, **kwargs: object) -> None:
+        await original(self, topic, payload, *args, **kwargs)  # type: ignore[arg-type]
+        if payload == b"online":
+            published_online.set()
+            await asyncio.Event().wait()  # the PUBACK "has not arrived yet"
+
+    monkeypatch.setattr(aiomqtt.Client, "publish", slow_birth)
+    async with subscriber(mosquitto.port, BASE) as sub:
+        async with running_link(make_settings(mosquitto.port), tmp_path / "r.db"):
+            await asyncio.wait_for(published_online.wait(), 10)
+            await eventually(lambda: sub.on("status")[-1:] == [b"online"], what="birth")
+        await eventually(lambda: sub.on("status")[-1:] == [b"offline"], 5, "offline at stop")
+
+
+async def test_two_boxes_with_one_client_id_back_off_instead_of_thrashing(
+    mosquitto: Mosquitto, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Cloned SD images: each connect takes the other's session over. The backoff used to be
+    reset at every CONNACK, so the pair reconnected ~3 times a second forever (22 connects
+    in 8 s), flapping the retained status; now sessions this short keep backing off."""
+    settings = parse_config({
+        "machine": {"id": MACHINE},
+        "mqtt": {"enabled": True, "port": mosquitto.port, "keepalive": 5,
+                 "reconnect_max_s": 30},
+    })
+    async with (
+        running_link(settings, tmp_path / "a.db") as a,
+        running_link(settings, tmp_path / "b.db") as b,
+    ):
+        await asyncio.sleep(8.0)
+        connects = a.link.stats.connects + b.link.stats.connects
+        dropped = a.link.stats.disconnects + b.link.stats.disconnects
+        # the delay keeps growing (attempts were reset to 0 at every CONNACK before)
+        attempts = a.link.backoff.attempts + b.link.backoff.attempts
+        assert dropped >= 2 and attempts >= 4, (connects, dropped, attempts)
+        assert connects <= 14, connects
+    assert "another client using client id 'sowgate-seeder-t'" in caplog.text

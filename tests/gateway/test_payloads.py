@@ -107,3 +107,47 @@ def test_status_is_a_bare_string_enum() -> None:
     assert StatusPayload("online").root == "online"
     with pytest.raises(ValidationError):
         StatusPayload("maybe")  # type: ignore[arg-type]
+
+
+DOC = Path(__file__).resolve().parents[2] / "docs" / "mqtt.md"
+
+
+def _doc_examples() -> list[dict[str, object]]:
+    import re
+
+    out = []
+    for block in re.findall(r"```json\n(.*?)```", DOC.read_text(encoding="utf-8"), re.S):
+        try:
+            out.append(json.loads(block))
+        except json.JSONDecodeError:  # one object per line (the ack examples)
+            out.extend(json.loads(line) for line in block.splitlines() if line.strip())
+    return out
+
+
+def test_the_documented_examples_are_what_the_daemon_sends() -> None:
+    """docs/mqtt.md is what dashboard authors code against: its state example used to say
+    work_state "working" (no such state) and its alarm example a code nothing raises."""
+    from gateway.payloads import AlarmEvent
+    from gateway.work_state import WorkState
+
+    state, batch, alarm = _doc_examples()[:3]
+    s = StatePayload.model_validate(state)
+    assert s.work_state in {w.value for w in WorkState}
+    SeedBatch.model_validate(batch)
+    a = AlarmEvent.model_validate(alarm)
+    assert a.code in DOC.read_text(encoding="utf-8").split("## alarms")[1]
+
+
+def test_state_schema_lists_exactly_the_work_states_and_speed_sources() -> None:
+    from gateway.alarms import AlarmBoard
+    from gateway.config import parse_config
+    from gateway.controller import Controller
+    from gateway.work_state import WorkState
+
+    props = json.loads(render_schemas()["state.json"])["properties"]
+    assert props["work_state"]["enum"] == [w.value for w in WorkState]
+    # the controller's speed sources, plus "none" when no source is valid
+    controller = Controller(parse_config({}), AlarmBoard("m"), state_dir=None)
+    assert props["speed_source"]["enum"] == [*controller.sources, "none"]
+    table = DOC.read_text(encoding="utf-8").split("| `work_state` |")[1].split("\n\n")[0]
+    assert all(f"| `{w.value}` |" in table for w in WorkState)

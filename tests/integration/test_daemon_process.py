@@ -137,3 +137,22 @@ async def test_systemd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> Non
     finally:
         loop.remove_reader(sock.fileno())
         sock.close()
+
+
+async def test_demo_publishes_to_the_broker_named_in_the_environment() -> None:
+    """What docker/compose.yaml relies on: `sowgate demo` + SOWGATE_MQTT__* → seeds on MQTT."""
+    from tests.mosquitto import Mosquitto, subscriber
+
+    with Mosquitto() as broker:
+        async with subscriber(broker.port, "sowgate/seeder-01") as sub:
+            env = {**os.environ, "SOWGATE_MQTT__ENABLED": "true",
+                   "SOWGATE_MQTT__HOST": "127.0.0.1", "SOWGATE_MQTT__PORT": str(broker.port)}
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "gateway.cli", "demo", "--no-tui", "--duration", "8",
+                env=env, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            )
+            _, err = await asyncio.wait_for(proc.communicate(), 60.0)
+            assert proc.returncode == 0, err.decode()
+            await _wait(lambda: sub.on("status")[-1:] == [b"offline"], 5.0)
+    assert sub.on("status")[0] == b"online"
+    assert sub.on("state") and sub.seed_ids()
