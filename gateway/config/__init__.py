@@ -41,6 +41,8 @@ from gateway.config.recording import (
 from gateway.errors import ConfigError
 
 EXIT_CONFIG = 78  # EX_CONFIG from sysexits.h; systemd's RestartPreventExitStatus uses it
+# tables whose mere presence in the file enables the device (unless enabled = false)
+DEVICE_TABLES = ("gnss", "seed_sensors")
 
 __all__ = [
     "EXIT_CONFIG",
@@ -114,8 +116,36 @@ class Settings(BaseSettings):
         # Environment beats the file: a service override can fix one value without editing it.
         return (env_settings, init_settings)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _declared_devices_are_enabled(cls, data: Any) -> Any:
+        """A ``[gnss]`` or ``[seed_sensors]`` table says the machine has that device.
+
+        The documented contract configures them by port and baud rate alone; a fitter who
+        writes those tables expects seeds to be recorded, not a daemon that silently ignores
+        them because an ``enabled`` key was left out. ``enabled = false`` still switches one
+        off; a file without the table keeps it off.
+        """
+        if not isinstance(data, dict):
+            return data
+        for name in DEVICE_TABLES:
+            table = data.get(name)
+            if isinstance(table, dict) and "enabled" not in table:
+                data = {**data, name: {**table, "enabled": True}}
+        return data
+
     @model_validator(mode="after")
     def _cross_section(self) -> Settings:
+        if self.seed_sensors.enabled and not self.gnss.enabled:
+            raise ValueError(
+                "seed_sensors is enabled but gnss is not: seed positions need the GNSS "
+                "receiver (enable [gnss], or set seed_sensors.enabled = false)"
+            )
+        if "gnss" in self.speed.source.split("_then_") and not self.gnss.enabled:
+            raise ValueError(
+                f"speed.source = {self.speed.source!r} uses the GNSS speed but gnss is not "
+                "enabled (add a [gnss] table, or choose another source)"
+            )
         rows = self.machine.rows
         if len(self.positioning.row_lateral_m) != rows:
             raise ValueError(
