@@ -287,3 +287,16 @@ async def test_missing_port_is_retried_until_it_appears(tmp_path: Path) -> None:
         drive = _straight_drive()
         async with Um982Emulator(drive.pose_at, origin_lat=1.0, origin_lon=2.0, link_path=link):
             await _wait_for(lambda: len(epochs) >= 2)
+
+
+def test_heading_logged_in_beidou_time_joins_its_rmc_gga_epoch() -> None:
+    from protocol.unicore import encode_uniheadinga
+
+    rmc, gga, _ = _events(T0)
+    week, tow = utc_to_gps(T0)
+    heading = decode_line(encode_uniheadinga(week, tow, 123.0, time_ref="BDS"))
+    asm = EpochAssembler()
+    (epoch,) = _feed(asm, [rmc, gga, heading])
+    assert epoch.utc == T0
+    assert epoch.heading_deg == pytest.approx(123.0) and epoch.heading_valid
+    assert asm.counts["late"] == 0
