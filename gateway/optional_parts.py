@@ -83,6 +83,8 @@ def attach(daemon: Daemon) -> None:
         _attach_gnss(daemon)
     if recording and store is not None:
         _attach_seed_recording(daemon, store)
+    if s.gnss.enabled:
+        _attach_recording_health(daemon, store if recording else None)
     if s.mqtt.enabled and store is not None:
         _attach_mqtt(daemon, store)
     if s.can.enabled and any(c.drive == "can_pid" for c in s.channel):
@@ -155,6 +157,22 @@ def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
     daemon.components["seed_sensors"] = sensors
     daemon.add_task("seed-sensors", sensors.run)
     daemon.add_task("seed-recorder", recorder.run)
+
+
+def _attach_recording_health(daemon: Daemon, store: Any) -> None:
+    """Alarms for a lost receiver, a degraded fix, lost seed sensors and a failing store."""
+    from gateway.recording_health import RecordingHealth
+
+    health = RecordingHealth(
+        daemon.alarms,
+        gnss=daemon.components.get("gnss"),
+        sensors=daemon.components.get("seed_sensors"),
+        recorder=daemon.components.get("seeds"),
+        store=store,
+        clock=daemon.clock,
+    )
+    daemon.components["recording_health"] = health
+    daemon.tick_hooks.append(lambda _: health.check())
 
 
 def _seed_sensor_source(daemon: Daemon, on_edge: Any) -> Any:
