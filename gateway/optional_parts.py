@@ -137,6 +137,7 @@ def _attach_gnss(daemon: Daemon) -> None:
         stale_after_s=g.stale_after_s,
         required=g.epoch_sentences,
         silence_reconnect_s=g.silence_reconnect_s,
+        heading_offset_deg=g.heading_offset_deg,
     )
     daemon.components["gnss"] = reader
 

@@ -300,3 +300,27 @@ def test_heading_logged_in_beidou_time_joins_its_rmc_gga_epoch() -> None:
     assert epoch.utc == T0
     assert epoch.heading_deg == pytest.approx(123.0) and epoch.heading_valid
     assert asm.counts["late"] == 0
+
+
+@pytest.mark.parametrize(
+    ("receiver_deg", "offset_deg", "machine_deg"),
+    [(0.0, 90.0, 90.0), (350.0, 20.0, 10.0), (10.0, -90.0, 280.0), (91.0, 180.0, 271.0),
+     (91.0, 0.0, 91.0)],
+)
+def test_heading_offset_turns_the_antenna_baseline_into_the_machine_heading(
+    receiver_deg: float, offset_deg: float, machine_deg: float
+) -> None:
+    """Antennas side by side on the cab roof: the baseline is 90 deg off the direction of travel."""
+    asm = EpochAssembler(heading_offset_deg=offset_deg)
+    (epoch,) = _feed(asm, _events(T0, heading=receiver_deg))
+    assert epoch.heading_deg == pytest.approx(machine_deg)
+    assert epoch.heading_valid
+    assert epoch.course_deg == 90.0  # the course over ground is not the antennas' business
+
+
+def test_heading_offset_is_configurable_and_bounded() -> None:
+    from gateway.config import ConfigError, parse_config
+
+    assert parse_config({"gnss": {"heading_offset_deg": -90}}).gnss.heading_offset_deg == -90
+    with pytest.raises(ConfigError, match=r"gnss\.heading_offset_deg"):
+        parse_config({"gnss": {"heading_offset_deg": 270}})
