@@ -24,6 +24,14 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 STORE_FILE = "records.sqlite3"
+# The graceful stop, in order (``Daemon.add_task(stop_stage=...)``). First, at once and beside
+# the RS485 control loop's own stop: the CAN metering channels (their shafts commanded off, so
+# the safe state never waits for recording) and the seed sensors, which hand over the lines
+# already sent while the receiver still runs (those seeds can still get their bracketing
+# epoch). Then the receiver hands over its open epoch, then the recorder positions (or
+# extrapolates and flags) and stores every seed, then the store commits; MQTT and the rest go
+# after that, so the last records are durable before the status goes offline.
+STOP_FIRST, STOP_GNSS, STOP_RECORDER, STOP_STORE = range(4)
 
 
 async def _forever() -> None:
@@ -77,7 +85,7 @@ def attach(daemon: Daemon) -> None:
             backlog_alarm_records=s.store.backlog_alarm_records,
         )
         daemon.components["store"] = store
-        daemon.add_task("store", store.run)
+        daemon.add_task("store", store.run, stop_stage=STOP_STORE)
         daemon.closers.append(store.close)
     if s.gnss.enabled:
         _attach_gnss(daemon)
@@ -145,7 +153,7 @@ def _attach_gnss(daemon: Daemon) -> None:
         async with reader:
             await _forever()
 
-    daemon.add_task("gnss", run)
+    daemon.add_task("gnss", run, stop_stage=STOP_GNSS)
 
 
 def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
@@ -156,8 +164,8 @@ def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
     daemon.epoch_listeners.append(recorder.on_epoch)
     sensors = _seed_sensor_source(daemon, recorder.on_edge)
     daemon.components["seed_sensors"] = sensors
-    daemon.add_task("seed-sensors", sensors.run)
-    daemon.add_task("seed-recorder", recorder.run)
+    daemon.add_task("seed-sensors", sensors.run, stop_stage=STOP_FIRST)
+    daemon.add_task("seed-recorder", recorder.run, stop_stage=STOP_RECORDER)
 
 
 def _attach_recording_health(daemon: Daemon, store: Any) -> None:
@@ -265,7 +273,7 @@ def _attach_metering(daemon: Daemon) -> None:
         as_applied=as_applied,
     )
     daemon.components["metering"] = component
-    daemon.add_task("metering", component.run)
+    daemon.add_task("metering", component.run, stop_stage=STOP_FIRST)
 
 
 ISOBUS_PUMP_S = 0.1

@@ -517,3 +517,7 @@ class RecordStore:
                     self.commit_error = str(exc)
         finally:
             self._db.execute("PRAGMA wal_autocheckpoint=1000")
+            try:  # a stop commits here, as soon as the recorder has stored its last seeds
+                self.flush()
+            except StoreError:
+                log.exception("record store: commit on stop failed")
