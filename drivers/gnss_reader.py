@@ -117,9 +117,14 @@ class EpochAssembler:
         *,
         leap_s: int = GPS_UTC_LEAP_S,
         today: Callable[[], date] = lambda: datetime.now(UTC).date(),
+        heading_offset_deg: float = 0.0,
     ) -> None:
         self.required = frozenset(required)
         self.leap_s = leap_s
+        # machine heading = receiver heading + offset: the receiver reports the direction of
+        # its antenna baseline (primary -> secondary), which is the direction of travel only
+        # when the secondary antenna sits straight ahead of the primary one
+        self.heading_offset_deg = heading_offset_deg
         self._today = today
         self._open: dict[int, _Partial] = {}
         self._last_key: int | None = None
@@ -209,12 +214,12 @@ class EpochAssembler:
             self._last_key = key
         utc = self._utc(p)
         self._last_utc = utc
-        epoch = _build_epoch(p, utc)
+        epoch = _build_epoch(p, utc, self.heading_offset_deg)
         self.counts["epochs" if epoch is not None else "no_position"] += 1
         return epoch
 
 
-def _build_epoch(p: _Partial, utc: datetime) -> GnssEpoch | None:
+def _build_epoch(p: _Partial, utc: datetime, heading_offset_deg: float = 0.0) -> GnssEpoch | None:
     gga, rmc = p.gga, p.rmc
     if gga is not None and gga.lat is not None and gga.lon is not None:
         lat, lon = gga.lat, gga.lon
@@ -243,6 +248,10 @@ def _build_epoch(p: _Partial, utc: datetime) -> GnssEpoch | None:
         heading_deg, valid = h.heading_deg, h.valid
     elif isinstance(h, Hdt):
         heading_deg, valid = h.heading_deg, h.heading_deg is not None
+    if heading_deg is not None and heading_offset_deg:
+        heading_deg = (heading_deg + heading_offset_deg) % 360.0
+        if heading_deg >= 360.0:  # float rounding of a tiny negative sum
+            heading_deg = 0.0
     return GnssEpoch(
         utc=utc,
         t_mono=p.t_first,
@@ -287,6 +296,7 @@ class GnssReader:
         silence_reconnect_s: float = SILENCE_RECONNECT_S,
         clock: Callable[[], float] = time.monotonic,
         backoff: Backoff | None = None,
+        heading_offset_deg: float = 0.0,
     ) -> None:
         self.port = port
         self.baudrate = baudrate
@@ -297,7 +307,7 @@ class GnssReader:
         self._clock = clock
         self._backoff = backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0)
         self._decoder = GnssLineDecoder()
-        self._assembler = EpochAssembler(required)
+        self._assembler = EpochAssembler(required, heading_offset_deg=heading_offset_deg)
         self._task: asyncio.Task[None] | None = None
         self._connected = False
         self._connects = 0

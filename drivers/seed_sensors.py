@@ -16,6 +16,11 @@ One interface (:class:`SeedSensorSource`), two sources, chosen by ``seed_sensors
 
 Both deliver :class:`SeedEdgeEvent` to ``on_edge`` inside the event loop and keep going on any
 bad input; a vanished port or chip is retried with ``drivers.backoff.Backoff``.
+
+Cancelling ``run`` is the daemon's graceful stop, and a seed the module has already reported
+is a seed that fell: before honouring the cancel, both sources hand over what has already
+arrived (serial: read on until the port is quiet, bounded by ``DRAIN_TIMEOUT_S``; gpio: the
+events the kernel has queued), so the recorder's final flush, which runs after them, sees it.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import select
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -40,6 +46,11 @@ log = logging.getLogger(__name__)
 READ_CHUNK_BYTES = 1024
 GPIO_CONSUMER = "sowgate-seed-sensors"
 NS_PER_S = 1_000_000_000
+# On a stop, the serial port is read on until no byte has come for DRAIN_QUIET_S (a line
+# already sent may still be in the USB adapter, whose latency timer is 16 ms by default), but
+# never longer than DRAIN_TIMEOUT_S: a planter still moving would never go quiet.
+DRAIN_QUIET_S = 0.05
+DRAIN_TIMEOUT_S = 0.3
 
 
 @dataclass(frozen=True)
@@ -76,7 +87,8 @@ class SeedSensorSource(Protocol):
     def stats(self) -> SeedSensorStats: ...
 
     async def run(self) -> None:
-        """Read forever (reconnecting); returns only by cancellation."""
+        """Read forever (reconnecting); ends only by cancellation, after delivering the edges
+        that had already arrived when it came."""
         ...
 
 
@@ -149,19 +161,44 @@ class SerialSeedSensors:
     async def _pump(self, reader: asyncio.StreamReader) -> None:
         decoder = SeedLineDecoder(self.rows)  # a fresh connection starts a fresh line
         while True:
-            data = await reader.read(READ_CHUNK_BYTES)
+            try:
+                data = await reader.read(READ_CHUNK_BYTES)
+            except asyncio.CancelledError:
+                await self._drain(reader, decoder)
+                raise
             if not data:
                 return
-            t_arrival = self._clock()
-            self._backoff.reset()
-            for item in decoder.feed(data):
-                if isinstance(item, Rejected):
-                    self._stats.rejected += 1
-                    self._stats.last_rejected = f"{item.reason}: {item.line!r}"
-                    log.debug("seed sensor line rejected (%s): %r", item.reason, item.line)
-                    continue
-                self._stats.edges += 1
-                _deliver(self._on_edge, SeedEdgeEvent(item.row, t_arrival))
+            self._feed(decoder, data)
+
+    async def _drain(self, reader: asyncio.StreamReader, decoder: SeedLineDecoder) -> None:
+        """After a cancel: lines already sent (in the kernel, the transport or ``decoder``) are
+        still delivered; reading stops once the port is quiet or ``DRAIN_TIMEOUT_S`` is up."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + DRAIN_TIMEOUT_S
+        with contextlib.suppress(SerialException, OSError):  # a dead port has no more to give
+            while (left := deadline - loop.time()) > 0:
+                try:
+                    data = await asyncio.wait_for(
+                        reader.read(READ_CHUNK_BYTES), min(DRAIN_QUIET_S, left)
+                    )
+                except TimeoutError:
+                    return
+                if not data:
+                    return
+                self._feed(decoder, data)
+
+    def _feed(self, decoder: SeedLineDecoder, data: bytes) -> None:
+        """Decode one chunk; every line it completes is stamped with this arrival time."""
+        t_arrival = self._clock()
+        self._backoff.reset()
+        for item in decoder.feed(data):
+            if isinstance(item, Rejected):
+                self._stats.rejected += 1
+                self._stats.last_rejected = f"{item.reason}: {item.line!r}"
+                log.debug("seed sensor line rejected (%s): %r", item.reason, item.line)
+                continue
+            self._stats.edges += 1
+            _deliver(self._on_edge, SeedEdgeEvent(item.row, t_arrival))
 
     def _failed(self, message: str) -> None:
         if message != self._stats.last_error:
@@ -278,12 +315,24 @@ class GpioSeedSensors:
             self._backoff.reset()
             try:
                 self._failed(await broken)
+            except asyncio.CancelledError:
+                self._read_queued(request)
+                raise
             finally:
                 self._connected = False
                 loop.remove_reader(fd)
                 with contextlib.suppress(OSError):
                     request.release()
             await asyncio.sleep(self._backoff.next_delay())
+
+    def _read_queued(self, request: LineRequestLike) -> None:
+        """After a cancel: edges the kernel has queued but the loop has not yet seen. They
+        carry the kernel's stamps, so reading them late costs nothing; bounded anyway."""
+        deadline = time.monotonic() + DRAIN_TIMEOUT_S
+        with contextlib.suppress(OSError, ValueError):  # a failing or closed fd: nothing more
+            while time.monotonic() < deadline and select.select([request.fd], [], [], 0)[0]:
+                for event in request.read_edge_events():
+                    self.handle_event(event)
 
     def _readable(self, request: LineRequestLike, broken: asyncio.Future[str]) -> None:
         try:

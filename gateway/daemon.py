@@ -6,6 +6,15 @@ the order a half-duplex RS485 bus imposes anyway and it keeps the reply→write 
 few microseconds of arithmetic between them. Everything else (HMI, GNSS, seed sensors, the
 record store, MQTT, CAN) runs beside it and talks to the controller only through callbacks
 that never block, so a broker outage or a dead screen cannot delay a duty write.
+
+A stop (SIGTERM, ``request_stop``) is ordered, because nothing recorded may be lost: the
+control loop is stopped and motor and fan set to 0 at once, and beside that the tasks
+registered with a ``stop_stage`` are stopped one stage after the other (CAN metering and the
+seed sensors first, the sensors handing over the lines already sent; then the GNSS reader its
+open epoch; then the recorder positions and stores everything; then the store commits; see
+``gateway.optional_parts``); only then is the rest (MQTT, HMI, ...) cancelled. Cancelling
+everything at once let the recorder's final flush run before the sensors had delivered what
+they had already received.
 """
 
 from __future__ import annotations
@@ -72,7 +81,7 @@ class Daemon:
         self._written: dict[str, float] = {}
         self._written_at: float = -1e18
         self._stop = asyncio.Event()
-        self._extra: list[tuple[str, Callable[[], Coroutine[Any, Any, None]]]] = []
+        self._extra: list[tuple[str, Callable[[], Coroutine[Any, Any, None]], int | None]] = []
         self.hmi: HmiAdapter | None = None
         if settings.hmi.enabled:
             self.hmi = HmiAdapter(settings.hmi, self)
@@ -89,8 +98,20 @@ class Daemon:
 
         optional_parts.attach(self)
 
-    def add_task(self, name: str, factory: Callable[[], Coroutine[Any, Any, None]]) -> None:
-        self._extra.append((name, factory))
+    def add_task(
+        self,
+        name: str,
+        factory: Callable[[], Coroutine[Any, Any, None]],
+        *,
+        stop_stage: int | None = None,
+    ) -> None:
+        """Run ``factory()`` as task ``name`` beside the control loop.
+
+        On a stop, tasks with a ``stop_stage`` are cancelled and awaited stage by stage,
+        lowest first, before the others are cancelled together: a producer finishes handing
+        over (in its cancellation path) before its consumer's final flush begins.
+        """
+        self._extra.append((name, factory, stop_stage))
 
     # ---- command path -----------------------------------------------------------------------
     def execute(self, command: cmd.Command, source: str) -> str:
@@ -141,17 +162,20 @@ class Daemon:
             await self._write_outputs(0.0, 0.0, force=True)
             try:
                 async with asyncio.TaskGroup() as tg:
-                    tg.create_task(self._control_loop(), name="rs485")
+                    control = tg.create_task(self._control_loop(), name="rs485")
                     if self.hmi is not None:
                         tg.create_task(self.hmi.link.run(), name="hmi")
                         tg.create_task(self.hmi.refresh_loop(), name="hmi-view")
-                    for name, factory in self._extra:
-                        tg.create_task(factory(), name=name)
-                    tg.create_task(self._wait_stop(), name="stop")
+                    stages: dict[int, list[asyncio.Task[None]]] = {}
+                    for name, factory, stage in self._extra:
+                        task = tg.create_task(factory(), name=name)
+                        if stage is not None:
+                            stages.setdefault(stage, []).append(task)
+                    tg.create_task(self._wait_stop(control, stages), name="stop")
             except* _Shutdown:
                 pass
         finally:
-            await self._safe_off()
+            await self._safe_off()  # again: the net for the paths that skipped _stop_control
             if self.rs485:
                 await self.bus.close()
             for close in reversed(self.closers):
@@ -162,9 +186,20 @@ class Daemon:
             for sig in installed:
                 loop.remove_signal_handler(sig)
 
-    async def _wait_stop(self) -> None:
+    async def _wait_stop(
+        self, control: asyncio.Task[None], stages: dict[int, list[asyncio.Task[None]]]
+    ) -> None:
+        """The ordered stop (module docstring); ``_Shutdown`` then cancels the other tasks."""
         await self._stop.wait()
+        await asyncio.gather(self._stop_control(control), _stop_in_stages(stages))
         raise _Shutdown
+
+    async def _stop_control(self, control: asyncio.Task[None]) -> None:
+        """The safe state first, not delayed by the recording drain that runs beside it. The
+        loop is stopped before the 0 is written so that no later duty write can undo it."""
+        control.cancel()
+        await asyncio.wait({control})
+        await self._safe_off()
 
     async def _safe_off(self) -> None:
         """Motor and fan to 0 before exit, whatever else has gone wrong."""
@@ -305,3 +340,15 @@ class Daemon:
             if callable(snap):
                 data[name] = snap()
         return data
+
+
+async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:
+    """Cancel each stage's tasks and wait until they have finished, lowest stage first.
+
+    Only waited for, never awaited: a task's own error is the TaskGroup's to report.
+    """
+    for stage in sorted(stages):
+        tasks = stages[stage]
+        for task in tasks:
+            task.cancel()
+        await asyncio.wait(tasks)

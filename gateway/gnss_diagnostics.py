@@ -63,6 +63,11 @@ def decode_stream(lines: Iterable[str]) -> Iterator[dict[str, Any]]:
             record: dict[str, Any] = {"line": n, "ok": True, **event_fields(events[0])}
             if rejects:
                 record["warning"] = f"{rejects[0].reason}: {rejects[0].detail}"
+            if len(events) > 1:  # a line terminator was lost: say so, show the others too
+                record["warning"] = (
+                    f"{len(events)} sentences on one line (line terminator missing)"
+                )
+                record["more"] = [event_fields(e) for e in events[1:]]
             yield record
         else:
             last = rejects[-1]  # the sentence itself, after any garbage prefix

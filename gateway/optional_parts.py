@@ -24,6 +24,14 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 STORE_FILE = "records.sqlite3"
+# The graceful stop, in order (``Daemon.add_task(stop_stage=...)``). First, at once and beside
+# the RS485 control loop's own stop: the CAN metering channels (their shafts commanded off, so
+# the safe state never waits for recording) and the seed sensors, which hand over the lines
+# already sent while the receiver still runs (those seeds can still get their bracketing
+# epoch). Then the receiver hands over its open epoch, then the recorder positions (or
+# extrapolates and flags) and stores every seed, then the store commits; MQTT and the rest go
+# after that, so the last records are durable before the status goes offline.
+STOP_FIRST, STOP_GNSS, STOP_RECORDER, STOP_STORE = range(4)
 
 
 async def _forever() -> None:
@@ -77,12 +85,14 @@ def attach(daemon: Daemon) -> None:
             backlog_alarm_records=s.store.backlog_alarm_records,
         )
         daemon.components["store"] = store
-        daemon.add_task("store", store.run)
+        daemon.add_task("store", store.run, stop_stage=STOP_STORE)
         daemon.closers.append(store.close)
     if s.gnss.enabled:
         _attach_gnss(daemon)
     if recording and store is not None:
         _attach_seed_recording(daemon, store)
+    if s.gnss.enabled:
+        _attach_recording_health(daemon, store if recording else None)
     if s.mqtt.enabled and store is not None:
         _attach_mqtt(daemon, store)
     _attach_channels(daemon)
@@ -134,6 +144,7 @@ def _attach_gnss(daemon: Daemon) -> None:
         stale_after_s=g.stale_after_s,
         required=g.epoch_sentences,
         silence_reconnect_s=g.silence_reconnect_s,
+        heading_offset_deg=g.heading_offset_deg,
     )
     daemon.components["gnss"] = reader
 
@@ -141,7 +152,7 @@ def _attach_gnss(daemon: Daemon) -> None:
         async with reader:
             await _forever()
 
-    daemon.add_task("gnss", run)
+    daemon.add_task("gnss", run, stop_stage=STOP_GNSS)
 
 
 def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
@@ -152,8 +163,24 @@ def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
     daemon.epoch_listeners.append(recorder.on_epoch)
     sensors = _seed_sensor_source(daemon, recorder.on_edge)
     daemon.components["seed_sensors"] = sensors
-    daemon.add_task("seed-sensors", sensors.run)
-    daemon.add_task("seed-recorder", recorder.run)
+    daemon.add_task("seed-sensors", sensors.run, stop_stage=STOP_FIRST)
+    daemon.add_task("seed-recorder", recorder.run, stop_stage=STOP_RECORDER)
+
+
+def _attach_recording_health(daemon: Daemon, store: Any) -> None:
+    """Alarms for a lost receiver, a degraded fix, lost seed sensors and a failing store."""
+    from gateway.recording_health import RecordingHealth
+
+    health = RecordingHealth(
+        daemon.alarms,
+        gnss=daemon.components.get("gnss"),
+        sensors=daemon.components.get("seed_sensors"),
+        recorder=daemon.components.get("seeds"),
+        store=store,
+        clock=daemon.clock,
+    )
+    daemon.components["recording_health"] = health
+    daemon.tick_hooks.append(lambda _: health.check())
 
 
 def _seed_sensor_source(daemon: Daemon, on_edge: Any) -> Any:
@@ -351,7 +378,7 @@ def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None
         as_applied=as_applied,
     )
     daemon.components["metering"] = component
-    daemon.add_task("metering", component.run)
+    daemon.add_task("metering", component.run, stop_stage=STOP_FIRST)
 
 
 ISOBUS_PUMP_S = 0.05  # half the tractor's 100 ms, so a value reaches the controller young

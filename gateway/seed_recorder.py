@@ -73,6 +73,8 @@ class SeedRecorder:
         self.records_stored = 0
         self.bad_edges = 0
         self.store_errors = 0
+        self.store_error: str | None = None  # set while the store refuses records
+        self.records_lost = 0  # dropped because the store failed longer than the buffer lasts
         self.last_error: str | None = None
 
     # ------------------------------------------------------------ driver callbacks
@@ -125,13 +127,19 @@ class SeedRecorder:
                 append(drops)  # ids only: no record objects nobody reads
             else:
                 records = self.store.add_seeds(drops)
-        except Exception as exc:  # keep positioning; the store raises its own alarm
+        except Exception as exc:  # keep positioning; RecordingHealth raises the alarm
             self.store_errors += 1
+            self.store_error = str(exc) or type(exc).__name__
             self.last_error = f"store rejected {len(drops)} seeds: {exc}"
             log.error("%s", self.last_error)
             self._buffer = drops + self._buffer
-            del self._buffer[:-MAX_BUFFERED_DROPS]  # bounded: the oldest are lost first
+            overflow = len(self._buffer) - MAX_BUFFERED_DROPS
+            if overflow > 0:  # bounded: the oldest are lost first, and counted
+                self.records_lost += overflow
+                log.error("record store still failing: %d oldest seed records lost", overflow)
+                del self._buffer[:overflow]
             return []
+        self.store_error = None
         self.records_stored += len(drops)
         seeds_per_row, last_spacing, quality = self.seeds_per_row, self.last_spacing_m, self.quality
         for d in drops:
@@ -171,6 +179,7 @@ class SeedRecorder:
             "extrapolated": st.extrapolated,
             "bad_edges": self.bad_edges,
             "store_errors": self.store_errors,
+            "records_lost": self.records_lost,
             "last_error": self.last_error,
             "rows": {
                 row: {

@@ -195,6 +195,8 @@ class RecordStore:
         # checkpoint never stalls the event loop (and with it the control loop).
         self._ckpt_lock = threading.Lock()
         self._ckpt_db: sqlite3.Connection | None = None
+        # the last periodic commit's failure, None once one succeeds (read by the alarms)
+        self.commit_error: str | None = None
 
     @classmethod
     def open_readonly(cls, path: str | Path, machine_id: str) -> RecordStore:
@@ -499,6 +501,7 @@ class RecordStore:
                 await asyncio.sleep(self.commit_interval_s)
                 try:
                     self.flush()
+                    self.commit_error = None
                     now = time.monotonic()
                     if now - self._last_sync >= SYNC_INTERVAL_S:
                         self._last_sync = now
@@ -506,9 +509,15 @@ class RecordStore:
                     if now - last_prune >= PRUNE_INTERVAL_S:
                         last_prune = now
                         self.prune(utcnow())
-                except (StoreError, sqlite3.Error):
+                except (StoreError, sqlite3.Error) as exc:
                     # Keep the daemon running (control must go on); the records stay in the
                     # open transaction and are retried at the next tick.
-                    log.exception("record store: commit failed, retrying")
+                    if self.commit_error is None:
+                        log.exception("record store: commit failed, retrying")
+                    self.commit_error = str(exc)
         finally:
             self._db.execute("PRAGMA wal_autocheckpoint=1000")
+            try:  # a stop commits here, as soon as the recorder has stored its last seeds
+                self.flush()
+            except StoreError:
+                log.exception("record store: commit on stop failed")

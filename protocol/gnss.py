@@ -89,8 +89,10 @@ class GnssLineDecoder:
 
     Resynchronisation: sentences never contain ``$`` or ``#`` inside, so a line is decoded from
     its *last* start character; anything before it (noise, the cut-off head of a sentence) is
-    reported once as garbage. A line growing past ``MAX_LINE_BYTES`` is dropped up to the next
-    newline, so a receiver at the wrong baud rate cannot make us buffer without bound.
+    reported once as garbage, except complete sentences in it: when a line terminator was lost
+    on the wire, the sentence before it still decodes. A line growing past ``MAX_LINE_BYTES``
+    is dropped up to the next newline, so a receiver at the wrong baud rate cannot make us
+    buffer without bound.
     """
 
     def __init__(self) -> None:
@@ -156,9 +158,7 @@ class GnssLineDecoder:
             self._emit_reject(REASON_GARBAGE, "no '$' or '#' start character", raw, out)
             return
         if cut > 0:
-            self._emit_reject(
-                REASON_GARBAGE, f"{cut} bytes before the start character", raw[:cut], out
-            )
+            self._prefix(raw[:cut], out)
             raw = raw[cut:]
         try:
             text = raw.decode("ascii")
@@ -172,6 +172,24 @@ class GnssLineDecoder:
             return
         self.counts["ok"] += 1
         out.append(event)
+
+    def _prefix(self, raw: bytes, out: list[GnssEvent | Rejected]) -> None:
+        """What precedes a line's last sentence: whole sentences decode, the rest is garbage."""
+        starts = [i for i, b in enumerate(raw) if b in b"$#"]
+        bounds = list(zip(starts, [*starts[1:], len(raw)], strict=True)) if starts else []
+        junk = len(raw) - sum(end - start for start, end in bounds)  # before the first start
+        decoded: list[GnssEvent] = []
+        for start, end in bounds:
+            try:
+                decoded.append(decode_line(raw[start:end].decode("ascii")))
+            except (ProtocolError, UnicodeDecodeError):
+                junk += end - start
+        if junk:
+            self._emit_reject(
+                REASON_GARBAGE, f"{junk} bytes before the start character", raw, out
+            )
+        self.counts["ok"] += len(decoded)
+        out.extend(decoded)
 
     def flush(self) -> list[GnssEvent | Rejected]:
         """End of stream (port closed): what is buffered is an unfinished line, say so."""

@@ -21,6 +21,8 @@ from protocol.errors import ChecksumError, FieldError, FrameError
 
 KMH_PER_KNOT: Final = 1.852
 MAX_NMEA_LINE_CHARS: Final = 200  # spec says 82; high-precision receivers exceed it, not by 2x
+# Courses and headings; 360.0 itself is accepted (a receiver rounding 359.96) and wraps to 0.
+DEGREES: Final = (0.0, 360.0)
 
 SUPPORTED_SENTENCES: Final = frozenset({"RMC", "GGA", "VTG", "HDT", "THS"})
 
@@ -180,7 +182,7 @@ def parse_nmea(line: str) -> NmeaSentence:
     if msg_id == "VTG":
         return _vtg(talker, fields)
     if msg_id == "HDT":
-        return Hdt(talker, fields.opt_float("headingT", 0))
+        return Hdt(talker, fields.opt_float("headingT", 0, *DEGREES))
     return _ths(talker, fields)
 
 
@@ -216,9 +218,18 @@ class _Fields:
             raise MissingFieldError(f"{self.name}: missing field {attr} (empty)")
         return value
 
-    def opt_float(self, attr: str, index: int) -> float | None:
+    def opt_float(
+        self, attr: str, index: int, lo: float | None = None, hi: float | None = None
+    ) -> float | None:
+        """An optional number; outside ``[lo, hi]`` is a bad field, not a value to use."""
         value = self.opt(attr, index)
-        return None if value is None else float(value)
+        if value is None:
+            return None
+        number = float(value)
+        if (lo is not None and number < lo) or (hi is not None and number > hi):
+            allowed = f"must be >= {lo}" if hi is None else f"out of range [{lo}, {hi}]"
+            raise FieldError(f"{self.name}: field {attr}: {self.raw[index]} {allowed}")
+        return number
 
     def opt_str(self, attr: str, index: int) -> str | None:
         if index >= len(self.raw):
@@ -259,7 +270,7 @@ def _rmc(talker: str, f: _Fields) -> Rmc:
     lat, lon = f.latlon(2)
     if status == "A" and lat is None:
         raise MissingFieldError(f"{f.name}: missing field lat (status A needs a position)")
-    knots = f.opt_float("spd", 6)
+    knots = f.opt_float("spd", 6, 0.0)
     day = f.opt("date", 8)
     if day is not None and not isinstance(day, date):
         raise FieldError(f"{f.name}: field date: bad value {f.raw[8]!r}")
@@ -271,7 +282,7 @@ def _rmc(talker: str, f: _Fields) -> Rmc:
         lat=lat,
         lon=lon,
         speed_kmh=None if knots is None else knots * KMH_PER_KNOT,
-        course_deg=f.opt_float("cog", 7),
+        course_deg=f.opt_float("cog", 7, *DEGREES),
         mode=f.opt_str("posMode", 11),
     )
 
@@ -299,10 +310,10 @@ def _gga(talker: str, f: _Fields) -> Gga:
 def _vtg(talker: str, f: _Fields) -> Vtg:
     return Vtg(
         talker=talker,
-        course_deg=f.opt_float("cogt", 0),
-        course_mag_deg=f.opt_float("cogm", 2),
-        speed_knots=f.opt_float("sogn", 4),
-        speed_kmh=f.opt_float("sogk", 6),
+        course_deg=f.opt_float("cogt", 0, *DEGREES),
+        course_mag_deg=f.opt_float("cogm", 2, *DEGREES),
+        speed_knots=f.opt_float("sogn", 4, 0.0),
+        speed_kmh=f.opt_float("sogk", 6, 0.0),
         mode=f.opt_str("posMode", 8),
     )
 
@@ -311,4 +322,4 @@ def _ths(talker: str, f: _Fields) -> Ths:
     mode = f.req("mi", 1)
     if mode not in ("A", "E", "M", "S", "V"):
         raise FieldError(f"{f.name}: field mode: bad value {mode!r} (expected A/E/M/S/V)")
-    return Ths(talker, f.opt_float("headt", 0), mode)
+    return Ths(talker, f.opt_float("headt", 0, *DEGREES), mode)

@@ -10,7 +10,10 @@ Two header layouts exist on the same receiver family:
   <rx status>,<reserved>,<build>;`` — time of week in seconds with decimals;
 * N4 ``#UNIHEADINGA,<cpu idle%>,<time ref>,<time status>,<week>,<tow ms>,<reserved>,
   <version>,<leap s>,<output delay ms>;`` — time of week in integer milliseconds, and the
-  receiver's own GPS-UTC leap second count.
+  receiver's own leap second count. The time reference is ``GPS`` (the default) or ``BDS``
+  when the receiver is set to BeiDou time: BDT runs 14 s behind GPS time and its week 0
+  began 1356 GPS weeks later, so such a log is converted to GPS time on parsing (otherwise
+  every heading would be stamped 14 s early and never meet its RMC/GGA epoch).
 
 The 8-hex-digit CRC is CRC-32 with the reflected polynomial 0xEDB88320, initial value 0 and no
 final XOR over the bytes between ``#`` and ``*``. That is *not* ``zlib.crc32`` (which starts at
@@ -31,6 +34,10 @@ CRC32_POLY_REFLECTED: Final = 0xEDB88320
 MAX_UNICORE_LINE_CHARS: Final = 600  # the longest ASCII log we accept (BESTNAVA is ~330)
 GPS_UTC_LEAP_S: Final = 18  # GPS time minus UTC since 2017-01-01; the N4 header carries its own
 GPS_EPOCH: Final = datetime(1980, 1, 6, tzinfo=UTC)
+# BeiDou time (BDT): epoch 2006-01-01 00:00:00 UTC = GPS week 1356 + 14 s; BDT = GPST - 14 s.
+BDS_WEEK_OFFSET: Final = 1356
+BDS_GPS_OFFSET_S: Final = 14
+TIME_REFS: Final = frozenset({"GPS", "BDS"})
 SECONDS_PER_WEEK: Final = 7 * 86400
 
 HEADING_LOGS: Final = frozenset({"HEADINGA", "UNIHEADINGA"})
@@ -86,6 +93,7 @@ class Heading:
     station_id: str | None = None
     num_sv_tracked: int | None = None
     num_sv_used: int | None = None
+    time_ref: str = "GPS"  # the header's time system; week and tow above are GPS time
 
     kind: ClassVar[str] = "HEADING"
 
@@ -157,10 +165,11 @@ def parse_unicore(line: str) -> Heading:
     log, head, body = split_unicore(line)
     if log not in HEADING_LOGS:
         raise UnknownSentenceError(f"unknown Unicore log {log}", log)
+    time_ref = "GPS"
     if log == "HEADINGA":
         week, tow_s, leap, time_status = _legacy_header(log, head)
     else:
-        week, tow_s, leap, time_status = _n4_header(log, head)
+        week, tow_s, leap, time_status, time_ref = _n4_header(log, head)
     if len(body) < _MIN_BODY_FIELDS:
         raise MissingFieldError(
             f"{log}: missing fields: body has {len(body)}, needs at least {_MIN_BODY_FIELDS}"
@@ -181,6 +190,7 @@ def parse_unicore(line: str) -> Heading:
         station_id=body[8].strip('"') if len(body) > 8 else None,
         num_sv_tracked=_int(log, "num_sv_tracked", body[9]) if len(body) > 9 else None,
         num_sv_used=_int(log, "num_sv_used", body[10]) if len(body) > 10 else None,
+        time_ref=time_ref,
     )
 
 
@@ -190,11 +200,43 @@ def _legacy_header(log: str, head: list[str]) -> tuple[int, float, int | None, s
     return _int(log, "week", head[4]), _float(log, "seconds", head[5]), None, head[3]
 
 
-def _n4_header(log: str, head: list[str]) -> tuple[int, float, int | None, str]:
+def _n4_header(log: str, head: list[str]) -> tuple[int, float, int | None, str, str]:
+    """(GPS week, GPS time of week s, GPS-UTC leap s, time status, time reference)."""
     if len(head) < 8:
         raise MissingFieldError(f"{log}: header has {len(head)} fields, needs at least 8")
-    tow_ms = _int(log, "ms of week", head[4])
-    return _int(log, "week", head[3]), tow_ms / 1000.0, _int(log, "leap", head[7]), head[2]
+    time_ref = head[1]
+    if time_ref not in TIME_REFS:
+        raise FieldError(
+            f"{log}: field time reference: {time_ref!r} not supported (expected GPS or BDS)"
+        )
+    week = _int(log, "week", head[3])
+    tow_s = _int(log, "ms of week", head[4]) / 1000.0
+    leap = _int(log, "leap", head[7])
+    if time_ref == "BDS":
+        week, tow_s = bds_to_gps(week, tow_s)
+        # GPS-UTC has been >= 14 s since BDT began (2006) and BDT-UTC = GPS-UTC - 14 s, so a
+        # smaller count can only be BDT-UTC: either way it becomes GPS-UTC here.
+        if leap < BDS_GPS_OFFSET_S:
+            leap += BDS_GPS_OFFSET_S
+    return week, tow_s, leap, head[2], time_ref
+
+
+def bds_to_gps(bds_week: int, bds_tow_s: float) -> tuple[int, float]:
+    """BeiDou week and time of week to GPS week and time of week."""
+    week = bds_week + BDS_WEEK_OFFSET
+    tow_s = bds_tow_s + BDS_GPS_OFFSET_S
+    if tow_s >= SECONDS_PER_WEEK:
+        week, tow_s = week + 1, tow_s - SECONDS_PER_WEEK
+    return week, tow_s
+
+
+def gps_to_bds(gps_week: int, gps_tow_s: float) -> tuple[int, float]:
+    """GPS week and time of week to BeiDou week and time of week."""
+    week = gps_week - BDS_WEEK_OFFSET
+    tow_s = gps_tow_s - BDS_GPS_OFFSET_S
+    if tow_s < 0:
+        week, tow_s = week - 1, tow_s + SECONDS_PER_WEEK
+    return week, tow_s
 
 
 def _word(log: str, name: str, raw: str) -> str:
@@ -298,10 +340,18 @@ def encode_uniheadinga(
     leap_s: int = GPS_UTC_LEAP_S,
     idle_pct: int = 80,
     output_delay_ms: int = 10,
+    time_ref: str = "GPS",
 ) -> str:
-    """An N4-header #UNIHEADINGA line (no terminator)."""
-    tow_ms = round(gps_tow_s * 1000.0)
-    header = f"UNIHEADINGA,{idle_pct},GPS,FINE,{gps_week},{tow_ms},0,0,{leap_s},{output_delay_ms}"
+    """An N4-header #UNIHEADINGA line (no terminator).
+
+    With ``time_ref="BDS"`` the header carries BeiDou week and time of week (converted from
+    the GPS values given) and ``leap_s`` as given.
+    """
+    week, tow_s = (gps_week, gps_tow_s) if time_ref != "BDS" else gps_to_bds(gps_week, gps_tow_s)
+    tow_ms = round(tow_s * 1000.0)
+    header = (
+        f"UNIHEADINGA,{idle_pct},{time_ref},FINE,{week},{tow_ms},0,0,{leap_s},{output_delay_ms}"
+    )
     body = _body(
         heading_deg, pitch_deg, baseline_m, sol_status, pos_type, hdg_std, ptch_std,
         num_sv_tracked, num_sv_used,

@@ -41,6 +41,8 @@ from gateway.config.recording import (
 from gateway.errors import ConfigError
 
 EXIT_CONFIG = 78  # EX_CONFIG from sysexits.h; systemd's RestartPreventExitStatus uses it
+# tables whose mere presence in the file enables the device (unless enabled = false)
+DEVICE_TABLES = ("gnss", "seed_sensors")
 
 __all__ = [
     "EXIT_CONFIG",
@@ -114,8 +116,36 @@ class Settings(BaseSettings):
         # Environment beats the file: a service override can fix one value without editing it.
         return (env_settings, init_settings)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _declared_devices_are_enabled(cls, data: Any) -> Any:
+        """A ``[gnss]`` or ``[seed_sensors]`` table says the machine has that device.
+
+        The documented contract configures them by port and baud rate alone; a fitter who
+        writes those tables expects seeds to be recorded, not a daemon that silently ignores
+        them because an ``enabled`` key was left out. ``enabled = false`` still switches one
+        off; a file without the table keeps it off.
+        """
+        if not isinstance(data, dict):
+            return data
+        for name in DEVICE_TABLES:
+            table = data.get(name)
+            if isinstance(table, dict) and "enabled" not in table:
+                data = {**data, name: {**table, "enabled": True}}
+        return data
+
     @model_validator(mode="after")
     def _cross_section(self) -> Settings:
+        if self.seed_sensors.enabled and not self.gnss.enabled:
+            raise ValueError(
+                "seed_sensors is enabled but gnss is not: seed positions need the GNSS "
+                "receiver (enable [gnss], or set seed_sensors.enabled = false)"
+            )
+        if "gnss" in self.speed.source and not self.gnss.enabled:
+            raise ValueError(
+                f"speed.source = {'_then_'.join(self.speed.source)!r} uses the GNSS speed but "
+                "gnss is not enabled (add a [gnss] table, or choose another source)"
+            )
         rows = self.machine.rows
         if len(self.positioning.row_lateral_m) != rows:
             raise ValueError(
@@ -179,7 +209,7 @@ def _loc(loc: tuple[int | str, ...]) -> str:
     out = ""
     for item in loc:
         out += f"[{item}]" if isinstance(item, int) else ("." if out else "") + str(item)
-    return out or "(root)"
+    return out
 
 
 def format_validation_error(exc: ValidationError) -> list[str]:
@@ -189,7 +219,9 @@ def format_validation_error(exc: ValidationError) -> list[str]:
         loc = _loc(tuple(err["loc"]))
         msg = err["msg"].removeprefix("Value error, ")
         got = err.get("input")
-        if err["type"] in {"missing"} or isinstance(got, dict):
+        if not err["loc"]:  # a cross-section check: its message names the keys itself
+            lines.append(msg)
+        elif err["type"] in {"missing"} or isinstance(got, dict):
             lines.append(f"{loc}: {msg}")
         else:
             lines.append(f"{loc}: {msg} (got {got!r})")

@@ -25,6 +25,11 @@ class GnssSection(Section):
     )
     # no byte at all for this long: close and reopen the port (wedged USB adapter)
     silence_reconnect_s: float = Field(5.0, gt=0, le=600)
+    # The UM982 reports the heading of its antenna baseline (primary -> secondary antenna).
+    # Added to it to get the machine's heading: 0 with the secondary antenna straight ahead of
+    # the primary, 180 straight behind, 90 / -90 side by side with the secondary on the left /
+    # right (as on many cab roofs). A wrong value turns every row's lever arm.
+    heading_offset_deg: float = Field(0.0, ge=-180, le=180)
 
 
 class SeedSensorsSection(Section):

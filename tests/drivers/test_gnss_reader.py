@@ -287,3 +287,40 @@ async def test_missing_port_is_retried_until_it_appears(tmp_path: Path) -> None:
         drive = _straight_drive()
         async with Um982Emulator(drive.pose_at, origin_lat=1.0, origin_lon=2.0, link_path=link):
             await _wait_for(lambda: len(epochs) >= 2)
+
+
+def test_heading_logged_in_beidou_time_joins_its_rmc_gga_epoch() -> None:
+    from protocol.unicore import encode_uniheadinga
+
+    rmc, gga, _ = _events(T0)
+    week, tow = utc_to_gps(T0)
+    heading = decode_line(encode_uniheadinga(week, tow, 123.0, time_ref="BDS"))
+    asm = EpochAssembler()
+    (epoch,) = _feed(asm, [rmc, gga, heading])
+    assert epoch.utc == T0
+    assert epoch.heading_deg == pytest.approx(123.0) and epoch.heading_valid
+    assert asm.counts["late"] == 0
+
+
+@pytest.mark.parametrize(
+    ("receiver_deg", "offset_deg", "machine_deg"),
+    [(0.0, 90.0, 90.0), (350.0, 20.0, 10.0), (10.0, -90.0, 280.0), (91.0, 180.0, 271.0),
+     (91.0, 0.0, 91.0)],
+)
+def test_heading_offset_turns_the_antenna_baseline_into_the_machine_heading(
+    receiver_deg: float, offset_deg: float, machine_deg: float
+) -> None:
+    """Antennas side by side on the cab roof: the baseline is 90 deg off the direction of travel."""
+    asm = EpochAssembler(heading_offset_deg=offset_deg)
+    (epoch,) = _feed(asm, _events(T0, heading=receiver_deg))
+    assert epoch.heading_deg == pytest.approx(machine_deg)
+    assert epoch.heading_valid
+    assert epoch.course_deg == 90.0  # the course over ground is not the antennas' business
+
+
+def test_heading_offset_is_configurable_and_bounded() -> None:
+    from gateway.config import ConfigError, parse_config
+
+    assert parse_config({"gnss": {"heading_offset_deg": -90}}).gnss.heading_offset_deg == -90
+    with pytest.raises(ConfigError, match=r"gnss\.heading_offset_deg"):
+        parse_config({"gnss": {"heading_offset_deg": 270}})

@@ -138,7 +138,7 @@ def test_without_rs485_the_sources_on_it_are_refused_by_name() -> None:
     assert "speed.source includes radar" in problem
     assert "isobus.work_state_source includes inclinometer" in problem
     ok = parse_config({"rs485": {"enabled": False}, "speed": {"source": "isobus_then_gnss"},
-                       "isobus": {"work_state_source": "hitch"}})
+                       "gnss": {}, "isobus": {"work_state_source": "hitch"}})
     assert not ok.rs485.enabled
 
 
@@ -166,3 +166,54 @@ def test_mqtt_credentials_that_make_sense_load() -> None:
                                "tls": {"cert_file": "/c.pem", "key_file": "/c.key"}}})
     assert s.mqtt.username == "seeder-01" and s.mqtt.tls is not None
     assert parse_config({"mqtt": {"tls": {}}}).mqtt.tls is not None  # system CAs, no client cert
+# Issue 3's config contract, verbatim: no `enabled` keys, the tables alone describe the devices.
+RECORDING_CONTRACT = """
+[gnss]
+port = "/dev/ttyUSB1"
+baudrate = 115200
+[seed_sensors]
+source = "serial"          # serial | gpio
+port = "/dev/ttyUSB2"      # serial: one line "D,<row>\\r\\n" per seed
+baudrate = 115200
+[positioning]
+method = "interpolated"    # interpolated | paper
+outlet_behind_antenna_m = 1.2          # longitudinal, outlets behind the main antenna
+row_lateral_m = [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5]   # per row, right of the centre line +
+"""
+
+
+def test_the_recording_contract_loads_and_switches_recording_on(tmp_path: Path) -> None:
+    f = tmp_path / "sowgate.toml"
+    f.write_text(RECORDING_CONTRACT)
+    s = load_config(f)
+    # a fitter who wrote these tables expects seeds to be recorded
+    assert s.gnss.enabled and s.seed_sensors.enabled
+    assert (s.gnss.port, s.gnss.baudrate) == ("/dev/ttyUSB1", 115200)
+    assert (s.seed_sensors.source, s.seed_sensors.port) == ("serial", "/dev/ttyUSB2")
+    assert s.seed_sensors.baudrate == 115200
+    assert s.positioning.method == "interpolated"
+    assert s.positioning.outlet_behind_antenna_m == 1.2
+    assert s.positioning.row_lateral_m == [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5]
+
+
+def test_absent_or_explicitly_disabled_device_tables_stay_off() -> None:
+    s = parse_config({})
+    assert not s.gnss.enabled and not s.seed_sensors.enabled
+    s = parse_config({"gnss": {"port": "/dev/x", "enabled": False}})
+    assert not s.gnss.enabled
+
+
+def test_seed_sensors_without_gnss_is_an_error_not_a_silent_no_op() -> None:
+    with pytest.raises(ConfigError, match=r"seed_sensors is enabled but gnss is not"):
+        parse_config({"seed_sensors": {"port": "/dev/ttyUSB2"}})
+    with pytest.raises(ConfigError, match=r"seed_sensors is enabled but gnss is not"):
+        parse_config({"gnss": {"enabled": False}, "seed_sensors": {"enabled": True}})
+
+
+@pytest.mark.parametrize("source", ["gnss", "radar_then_gnss"])
+def test_a_gnss_speed_source_needs_the_receiver(source: str) -> None:
+    with pytest.raises(ConfigError, match=rf"speed.source = '{source}' uses the GNSS speed"):
+        parse_config({"speed": {"source": source}})
+    assert parse_config({"speed": {"source": source}, "gnss": {}}).speed.source == source.split(
+        "_then_"
+    )

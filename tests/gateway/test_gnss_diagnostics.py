@@ -94,3 +94,10 @@ def test_dash_reads_stdin(monkeypatch: pytest.MonkeyPatch) -> None:
     out = io.StringIO()
     assert main_decode_gnss("-", out) == EXIT_ALL_DECODED
     assert json.loads(out.getvalue())["type"] == "GGA"
+
+
+def test_two_sentences_on_one_line_are_both_shown_with_a_warning() -> None:
+    (record,) = decode_stream([RMC + GGA])
+    assert record["ok"] is True and record["type"] == "RMC"
+    assert "2 sentences on one line" in record["warning"]
+    assert [m["type"] for m in record["more"]] == ["GGA"]

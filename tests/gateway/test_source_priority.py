@@ -42,7 +42,8 @@ def make(**sections: Any) -> Controller:
     ],
 )
 def test_speed_source_is_a_priority_list(given: object, order: list[str]) -> None:
-    assert parse_config({"speed": {"source": given}}).speed.source == order
+    # a chain naming gnss needs the receiver configured ([gnss] table)
+    assert parse_config({"speed": {"source": given}, "gnss": {}}).speed.source == order
 
 
 @pytest.mark.parametrize(
@@ -78,6 +79,7 @@ def test_bad_source_lists_name_the_key_and_the_allowed_values(
 
 def test_a_plain_environment_override_still_works(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("SOWGATE_SPEED__SOURCE", "gnss_then_radar")
+    monkeypatch.setenv("SOWGATE_GNSS__ENABLED", "true")
     monkeypatch.setenv("SOWGATE_ISOBUS__WORK_STATE_SOURCE", "hitch")
     s = parse_config({})
     assert s.speed.source == ["gnss", "radar"] and s.isobus.work_state_source == ["hitch"]
@@ -87,7 +89,7 @@ def test_a_plain_environment_override_still_works(monkeypatch: pytest.MonkeyPatc
 
 
 def test_isobus_then_gnss_then_radar_falls_back_in_order() -> None:
-    c = make(speed={"source": "isobus_then_gnss_then_radar"})
+    c = make(speed={"source": "isobus_then_gnss_then_radar"}, gnss={})
     for t in (0.0, 0.1, 0.2):
         c.on_speed("isobus", 6.0, t)
         c.on_speed("gnss", 5.5, t)

@@ -139,3 +139,26 @@ async def test_raised_while_moving_is_turning_with_motor_stopped(tmp_path: Path)
         await rig.until(lambda: rig.state() is WorkState.TURNING, timeout=10)
         assert rig.machine.rs485 is not None
         await rig.until(lambda: rig.machine.rs485.duty_pct["motor"] == 0.0)
+
+
+async def test_gnss_speed_takes_over_when_the_radar_is_lost_and_hands_back(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    """[speed] source = "radar_then_gnss": a silent radar must not stop the drill."""
+    async with metering(tmp_path, make_machine(with_gnss=True)) as (rig, sim):
+        assert rig.daemon.settings.speed.source == "radar_then_gnss"
+        await rig.until(lambda: rig.daemon.outputs.speed_source == "radar", what="radar speed")
+        sim.set_silent(rig.daemon.settings.radar.device_id, True)
+        await rig.until(
+            lambda: rig.daemon.outputs.speed_source == "gnss", timeout=6.0, what="GNSS speed"
+        )
+        await rig.until(lambda: rig.daemon.alarms.is_active("radar.unavailable"), timeout=6.0)
+        out = rig.daemon.outputs
+        true_kmh = rig.machine.pose().speed_kmh
+        assert out.speed_kmh == pytest.approx(true_kmh, abs=0.3)
+        assert not rig.daemon.alarms.is_active("speed.lost")
+        assert sim.duty_pct["motor"] > 0  # still metering, at the GNSS speed
+        sim.set_silent(rig.daemon.settings.radar.device_id, False)
+        await rig.until(
+            lambda: rig.daemon.outputs.speed_source == "radar", timeout=6.0, what="radar again"
+        )

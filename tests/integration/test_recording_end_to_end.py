@@ -17,6 +17,7 @@ import pymap3d
 from gateway.store import RecordStore
 from simulator.machine import ORIGIN_LAT, ORIGIN_LON, SimulatedMachine
 from simulator.plant import Drive, Leg
+from simulator.pty_link import PtyPair
 from tests.integration.conftest import running
 from tests.mosquitto import Mosquitto, Subscriber, subscriber
 
@@ -95,6 +96,28 @@ async def test_every_seed_is_recorded_where_it_landed(tmp_path: Path) -> None:
     assert all(f == "rtk_fixed" for f in fixes[-80:-15])
     spacings = [r.spacing_m for r in records if r.spacing_m is not None]
     assert abs(statistics.median(spacings) - 0.2) < 0.03
+
+
+async def test_seeds_sensed_just_before_a_stop_are_all_recorded(tmp_path: Path) -> None:
+    """The module sends seed lines and the daemon is stopped at once: every one is stored.
+
+    Deterministic: the lines are written and the stop requested with no await in between, so
+    none of them has been read by the daemon when the stop begins.
+    """
+    standing = Drive(legs=[Leg(600.0, 0.0)], dt=0.02)
+    lines = 40
+    with PtyPair(tmp_path / "ttySEED") as sensors:
+        machine = SimulatedMachine(drive=standing, with_gnss=True)
+        port = {"enabled": True, "source": "serial", "port": sensors.device_path}
+        async with running(tmp_path, machine, seed_sensors=port) as rig:
+            gnss = rig.daemon.components["gnss"]
+            sensor_port = rig.daemon.components["seed_sensors"]
+            await rig.until(lambda: gnss.available and sensor_port.available, 15.0, "ports")
+            os.write(sensors.master_fd, b"".join(b"D,%d\r\n" % (k % 6 + 1) for k in range(lines)))
+            await rig.stop()
+    with RecordStore.open_readonly(tmp_path / "state" / "records.sqlite3", MACHINE_ID) as store:
+        records = list(store.query_seeds())
+    assert [r.row for r in records] == [k % 6 + 1 for k in range(lines)]
 
 
 async def test_broker_down_for_30_s_mid_run_loses_no_record(tmp_path: Path) -> None:

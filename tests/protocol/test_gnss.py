@@ -148,3 +148,21 @@ def test_decode_line_dispatches_on_the_start_character() -> None:
     rmc, _, hdg = um982_sentences(T0, 45.0, 7.0, 250.0, 8.0, 90.0, 91.0)
     assert isinstance(decode_line(rmc + "\r\n"), Rmc)
     assert isinstance(decode_line(hdg), Heading)
+
+
+def test_sentences_run_together_by_a_lost_line_terminator_all_decode() -> None:
+    rmc, gga, hdg = um982_sentences(T0, 45.0, 7.0, 250.0, 8.0, 90.0, 91.0)
+    decoder = GnssLineDecoder()
+    out = decoder.feed(f"{rmc}{gga}{hdg}\r\n".encode())
+    assert [type(e) for e in out] == [Rmc, Gga, Heading]
+    assert decoder.counts == {"ok": 3}
+
+
+def test_noise_and_a_cut_head_before_a_whole_sentence_are_one_garbage_report() -> None:
+    rmc, gga, hdg = um982_sentences(T0, 45.0, 7.0, 250.0, 8.0, 90.0, 91.0)
+    decoder = GnssLineDecoder()
+    out = decoder.feed(f"\x13zz{rmc[:25]}{gga}{hdg}\r\n".encode())
+    assert isinstance(out[0], Rejected) and out[0].reason == REASON_GARBAGE
+    assert "28 bytes" in out[0].detail  # 3 noise + 25 of the cut RMC
+    assert [type(e) for e in out[1:]] == [Gga, Heading]
+    assert decoder.counts == {"ok": 2, REASON_GARBAGE: 1}

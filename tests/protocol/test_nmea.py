@@ -187,3 +187,31 @@ def test_sentence_time_keeps_hundredths() -> None:
     assert isinstance(rmc, Rmc)
     assert rmc.utc is not None and rmc.utc.microsecond == 900_000
     assert (datetime.combine(rmc.date, rmc.utc, UTC) - utc) == timedelta(0)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("content", "field"),
+    [
+        ("GNRMC,120000.00,A,4500.0,N,00700.0,E,-2.5,90.0,010124,,,R", "spd"),
+        ("GNRMC,120000.00,A,4500.0,N,00700.0,E,2.5,361.0,010124,,,R", "cog"),
+        ("GNRMC,120000.00,A,4500.0,N,00700.0,E,2.5,-0.5,010124,,,R", "cog"),
+        ("GNVTG,90.0,T,,M,-1.0,N,-1.9,K,A", "sogn"),
+        ("GNVTG,400.0,T,,M,1.0,N,1.9,K,A", "cogt"),
+        ("GNHDT,360.5,T", "headingT"),
+        ("GNHDT,-10.0,T", "headingT"),
+        ("GNTHS,720.0,A", "headt"),
+    ],
+)
+def test_speeds_and_angles_out_of_range_are_bad_fields_not_values(
+    content: str, field: str
+) -> None:
+    # a negative speed or a 400° heading would otherwise be clamped or wrapped into a
+    # plausible-looking, wrong seed position
+    with pytest.raises(FieldError, match=rf"field {field}: .* (out of range|must be >=)"):
+        parse_nmea(encode_nmea(content))
+
+
+@given(heading=st.floats(0.0, 360.0))
+def test_every_heading_in_range_is_accepted(heading: float) -> None:
+    hdt = parse_nmea(encode_nmea(f"GNHDT,{heading:.4f},T"))
+    assert isinstance(hdt, Hdt) and hdt.heading_deg == pytest.approx(heading, abs=1e-4)

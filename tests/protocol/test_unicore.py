@@ -177,3 +177,31 @@ def test_gps_time_is_18_seconds_ahead_of_utc() -> None:
 def test_utc_gps_conversion_round_trips_to_the_millisecond(utc: datetime) -> None:
     utc = utc.replace(microsecond=utc.microsecond // 1000 * 1000)
     assert gps_to_utc(*utc_to_gps(utc)) == utc
+
+
+@given(week=st.integers(1357, 4000), tow=tows, hdg=headings, leap=st.sampled_from([18, 4]))
+def test_n4_log_in_beidou_time_gives_the_same_instant_as_in_gps_time(
+    week: int, tow: float, hdg: float, leap: int
+) -> None:
+    """A receiver set to BDT stamps 14 s and 1356 weeks lower; the parsed time must not move.
+
+    The leap count is accepted either as GPS-UTC (18) or as BDT-UTC (4): both give one UTC.
+    """
+    gps = parse_unicore(encode_uniheadinga(week, tow, hdg))
+    bds = parse_unicore(encode_uniheadinga(week, tow, hdg, time_ref="BDS", leap_s=leap))
+    assert bds.time_ref == "BDS" and gps.time_ref == "GPS"
+    assert (bds.gps_week, bds.gps_tow_s) == (gps.gps_week, pytest.approx(gps.gps_tow_s))
+    assert bds.utc() == gps.utc()
+    assert bds.leap_s == GPS_UTC_LEAP_S
+
+
+def test_beidou_header_carries_beidou_week_and_seconds() -> None:
+    line = encode_uniheadinga(2300, 10.0, 91.0, time_ref="BDS")
+    # 10 s into GPS week 2300 is 4 s before the end of BDT week 2300 - 1356 - 1
+    assert line.startswith("#UNIHEADINGA,80,BDS,FINE,943,604796000,")
+
+
+def test_unknown_time_reference_is_a_field_error_not_a_wrong_time() -> None:
+    content = encode_uniheadinga(2300, 100.0, 91.0)[1:].split("*")[0].replace(",GPS,", ",GLO,")
+    with pytest.raises(FieldError, match=r"time reference: 'GLO' not supported"):
+        parse_unicore(_framed(content))

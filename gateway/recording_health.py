@@ -1,0 +1,171 @@
+"""Alarms that tell the operator, in the cab and on the dashboard, when the as-planted map is
+not being recorded as it should be.
+
+The GNSS reader, the seed-sensor source and the recorder keep going through every fault (they
+reconnect, extrapolate, retry the store) and count what happened; without these alarms the
+only trace would be the journal, read after the field is sown. Each condition must hold for
+``hold_s`` before it is raised, so the ports opening at start-up or a single late epoch do not
+flap; it clears as soon as the condition is gone.
+
+| code | severity | raised while |
+|---|---|---|
+| ``gnss.unavailable`` | warning | no fresh epoch with a fix (port gone, receiver silent, no fix) |
+| ``gnss.not_rtk_fixed`` | warning | recording, and the fix is RTK float, DGPS or single |
+| ``gnss.heading_invalid`` | info | recording, and no ambiguity-fixed dual-antenna heading |
+| ``seed_sensors.unavailable`` | warning | the seed-tube sensor port/chip is not being read |
+| ``records.store_failed`` | critical | seed records cannot be written or committed |
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+from gateway.alarms import AlarmBoard
+from gateway.records import AlarmSeverity
+
+HOLD_S = 1.0
+
+
+class _GnssStats(Protocol):
+    @property
+    def connected(self) -> bool: ...
+    @property
+    def last_error(self) -> str | None: ...
+
+
+class _Epoch(Protocol):
+    @property
+    def fix(self) -> str: ...
+    @property
+    def heading_valid(self) -> bool: ...
+
+
+class GnssLike(Protocol):
+    """What is read from ``drivers.gnss_reader.GnssReader``."""
+
+    port: str
+
+    @property
+    def available(self) -> bool: ...
+    @property
+    def latest(self) -> _Epoch | None: ...
+    @property
+    def stats(self) -> _GnssStats: ...
+
+
+class _SensorStats(Protocol):
+    @property
+    def last_error(self) -> str | None: ...
+
+
+class SensorsLike(Protocol):
+    """What is read from a ``drivers.seed_sensors`` source."""
+
+    @property
+    def available(self) -> bool: ...
+    @property
+    def stats(self) -> _SensorStats: ...
+
+
+class RecorderLike(Protocol):
+    """What is read from ``gateway.seed_recorder.SeedRecorder``."""
+
+    @property
+    def store_error(self) -> str | None: ...
+
+
+class StoreLike(Protocol):
+    """What is read from ``gateway.store.RecordStore``."""
+
+    @property
+    def commit_error(self) -> str | None: ...
+
+
+class RecordingHealth:
+    """Re-evaluated on every control tick (``check``); raises and clears on ``alarms``."""
+
+    def __init__(
+        self,
+        alarms: AlarmBoard,
+        *,
+        gnss: GnssLike | None = None,
+        sensors: SensorsLike | None = None,
+        recorder: RecorderLike | None = None,
+        store: StoreLike | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        hold_s: float = HOLD_S,
+    ) -> None:
+        self.alarms = alarms
+        self.gnss = gnss
+        self.sensors = sensors
+        self.recorder = recorder
+        self.store = store
+        self._clock = clock
+        self.hold_s = hold_s
+        self._bad_since: dict[str, float] = {}
+
+    def _set(
+        self, code: str, bad: bool, message: str, severity: AlarmSeverity, now: float
+    ) -> None:
+        if not bad:
+            self._bad_since.pop(code, None)
+            self.alarms.clear(code)
+            return
+        since = self._bad_since.setdefault(code, now)
+        if now - since >= self.hold_s:
+            self.alarms.raise_(code, message, severity)
+
+    def check(self) -> None:
+        now = self._clock()
+        recording = self.recorder is not None
+        gnss = self.gnss
+        if gnss is not None:
+            available = gnss.available
+            stats = gnss.stats
+            if not stats.connected:
+                why = f"receiver on {gnss.port} not readable ({stats.last_error or 'not open'})"
+            elif gnss.latest is None:
+                why = "no position fix yet"
+            else:
+                why = "no fresh position fix"
+            if recording:
+                why += ": seed positions are estimates or missing"
+            self._set("gnss.unavailable", not available, f"GNSS: {why}", "warning", now)
+            latest = gnss.latest if available else None
+            fix = latest.fix if latest is not None else "rtk_fixed"
+            self._set(
+                "gnss.not_rtk_fixed",
+                recording and fix != "rtk_fixed",
+                f"GNSS fix is {fix}, not RTK fixed: seed positions are less accurate",
+                "warning",
+                now,
+            )
+            self._set(
+                "gnss.heading_invalid",
+                recording and latest is not None and not latest.heading_valid,
+                "no dual-antenna heading: seed positions use the course over ground",
+                "info",
+                now,
+            )
+        sensors = self.sensors
+        if sensors is not None:
+            self._set(
+                "seed_sensors.unavailable",
+                not sensors.available,
+                "seed-tube sensors not readable "
+                f"({sensors.stats.last_error or 'not open'}): seeds are not being recorded",
+                "warning",
+                now,
+            )
+        rec, store = self.recorder, self.store
+        store_error = rec.store_error if rec is not None else None
+        commit_error = store.commit_error if store is not None else None
+        error = store_error or commit_error
+        # a stable message: one alarm event per failure, not one per tick of a growing count
+        message = (
+            f"record store failing ({error}): seed records are held in memory, the oldest "
+            "are lost once the buffer is full"
+        )
+        self._set("records.store_failed", error is not None, message, "critical", now)

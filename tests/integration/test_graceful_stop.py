@@ -1,0 +1,76 @@
+"""The daemon's ordered stop: actuators off at once, staged tasks one stage after the other."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import Any
+
+from gateway.daemon import Daemon
+from simulator.machine import SimulatedMachine
+from simulator.modbus_devices import Rs485Simulator
+
+DRAIN_S = 0.3  # as long as the seed sensors' longest drain
+
+
+def part(
+    name: str, events: list[str], drained: Callable[[], None] = lambda: None
+) -> Callable[[], Coroutine[Any, Any, None]]:
+    """A task that, like the seed sensors, still has work to do once it is cancelled."""
+
+    async def run() -> None:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            events.append(f"{name} cancelled")
+            await asyncio.sleep(DRAIN_S)
+            drained()
+            events.append(f"{name} done")
+            raise
+
+    return run
+
+
+async def test_stop_runs_the_stages_in_order_and_sets_the_safe_state_without_waiting(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    events: list[str] = []
+    async with make_machine() as machine:
+        sim = machine.rs485
+        assert isinstance(sim, Rs485Simulator)
+        duty_when_drained: list[dict[str, float]] = []
+
+        def drained() -> None:  # what the PWM module has been told when the drain ends
+            duty_when_drained.append(dict(sim.duty_pct))
+
+        daemon = Daemon(machine.settings(control={"start_working": True}), tmp_path / "state")
+        # registered in the "wrong" order on purpose: the stage decides, not the order
+        daemon.add_task("rest", part("rest", events))
+        daemon.add_task("consumer", part("consumer", events), stop_stage=1)
+        daemon.add_task("producer", part("producer", events, drained), stop_stage=0)
+        task = asyncio.create_task(daemon.run(), name="daemon")
+        try:
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + 15.0
+            while not (sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0):
+                assert loop.time() < deadline, "metering never started"
+                assert not task.done()
+                await asyncio.sleep(0.05)
+            daemon.request_stop()
+            await asyncio.wait_for(task, 5.0)
+        finally:
+            if not task.done():
+                task.cancel()
+                await asyncio.wait({task}, timeout=5.0)
+    assert events == [
+        "producer cancelled",
+        "producer done",
+        "consumer cancelled",
+        "consumer done",
+        "rest cancelled",
+        "rest done",
+    ]
+    # motor and fan were already at 0 before the first stage had finished draining
+    assert duty_when_drained == [{"motor": 0.0, "fan": 0.0}]
+    assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
