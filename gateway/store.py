@@ -44,6 +44,10 @@ log = logging.getLogger(__name__)
 
 SYNC_INTERVAL_S = 1.0  # the power-cut loss window (see module docstring)
 PRUNE_INTERVAL_S = 3600.0
+# Rows one pruning step deletes before the event loop gets a turn: a day of a 48-row planter
+# is millions of rows, and deleting them in one statement would stall the control loop (and
+# the watchdog) for seconds on an SD card.
+PRUNE_CHUNK_ROWS = 5000
 QUERY_CHUNK_ROWS = 5000  # rows fetched per step by query_seeds, so exports stream
 MAX_OUTBOX_LIMIT = 10_000  # one outbox read never materialises more than this many records
 
@@ -457,16 +461,38 @@ class RecordStore:
 
     def prune(self, now: datetime) -> int:
         """Delete delivered records older than the retention; undelivered ones are kept."""
+        deleted, more = self.prune_step(now)
+        while more:
+            step, more = self.prune_step(now)
+            deleted += step
+        return deleted
+
+    def prune_step(self, now: datetime) -> tuple[int, bool]:
+        """``prune`` for at most ``PRUNE_CHUNK_ROWS`` rows a table, committed.
+
+        Returns the rows deleted and whether a table may have more to prune.
+        """
         cutoff = _to_us(now - self.retention)
         self._begin()
-        deleted = 0
+        deleted, more = 0, False
         for table in ("seeds", "alarms"):
             cur = self._db.execute(
-                f"DELETE FROM {table} WHERE delivered = 1 AND utc_us < ?",
-                (cutoff,),
+                f"DELETE FROM {table} WHERE id IN (SELECT id FROM {table} "
+                "WHERE delivered = 1 AND utc_us < ? ORDER BY id LIMIT ?)",
+                (cutoff, PRUNE_CHUNK_ROWS),
             )
             deleted += cur.rowcount
+            more = more or cur.rowcount >= PRUNE_CHUNK_ROWS
         self.flush()
+        return deleted, more
+
+    async def _prune_in_steps(self, now: datetime) -> int:
+        """``prune`` that lets the event loop (and with it control) run between chunks."""
+        deleted, more = self.prune_step(now)
+        while more:
+            await asyncio.sleep(0)
+            step, more = self.prune_step(now)
+            deleted += step
         return deleted
 
     def integrity_check(self) -> str:
@@ -491,8 +517,14 @@ class RecordStore:
         self.close()
 
     async def run(self, utcnow: Callable[[], datetime] = lambda: datetime.now(UTC)) -> None:
-        """Commit every ``commit_interval_s``, sync every second, prune hourly; forever."""
-        last_prune = time.monotonic()
+        """Commit every ``commit_interval_s``, sync every second, prune at start and hourly.
+
+        Pruning at start too: a box switched off every evening would otherwise never run an
+        hour and never prune. The backlog is checked at start as well, so a restart with a
+        large unsent backlog and the broker down still raises the backlog alarm.
+        """
+        last_prune = time.monotonic() - PRUNE_INTERVAL_S
+        self._check_backlog()
         # Checkpoints happen here, off the event loop; SQLite's automatic ones would run
         # inside a COMMIT on the loop thread.
         self._db.execute("PRAGMA wal_autocheckpoint=0")
@@ -508,7 +540,7 @@ class RecordStore:
                         await asyncio.to_thread(self._checkpoint)
                     if now - last_prune >= PRUNE_INTERVAL_S:
                         last_prune = now
-                        self.prune(utcnow())
+                        await self._prune_in_steps(utcnow())
                 except (StoreError, sqlite3.Error) as exc:
                     # Keep the daemon running (control must go on); the records stay in the
                     # open transaction and are retried at the next tick.

@@ -272,3 +272,49 @@ def test_append_seeds_hands_out_the_same_ids_as_add_seeds(store: RecordStore) ->
         SeedRecord(**d.model_dump(), id=i, machine_id="seeder-01")
         for i, d in zip(ids, drops(3, row=7), strict=True)
     ]
+
+
+def test_pruning_goes_in_bounded_steps(
+    store: RecordStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A day of records is millions of rows: each step deletes a bounded chunk, so the
+    control loop gets the event loop back between steps."""
+    monkeypatch.setattr("gateway.store.PRUNE_CHUNK_ROWS", 5)
+    recs = store.add_seeds(drops(12))
+    store.flush()
+    store.mark_seeds_delivered([r.id for r in recs])
+    later = T0 + timedelta(days=2)
+    assert store.prune_step(later) == (5, True)
+    assert len(list(store.query_seeds())) == 7
+    assert store.prune(later) == 7
+    assert list(store.query_seeds()) == []
+
+
+async def test_run_prunes_at_start_and_raises_an_old_backlog(tmp_path: Path) -> None:
+    """A box that never runs an hour still prunes; a restart with a large unsent backlog
+    and no new seeds (broker down) still tells the operator about it."""
+    path = tmp_path / "r.sqlite3"
+    with RecordStore(path, "m") as s:
+        old = s.add_seeds(drops(3))
+        s.add_seeds(drops(12, start=T0 + timedelta(days=40)))
+        s.flush()
+        s.mark_seeds_delivered([r.id for r in old])
+        s.flush()
+    calls: list[tuple[int, bool]] = []
+    store = RecordStore(path, "m", retention_days=30, backlog_alarm_records=10,
+                        on_backlog=lambda n, over: calls.append((n, over)))
+    task = asyncio.create_task(
+        store.run(utcnow=lambda: T0 + timedelta(days=41)), name="store-run"
+    )
+    try:
+        for _ in range(100):
+            if calls and len(list(store.query_seeds())) == 12:
+                break
+            await asyncio.sleep(0.02)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        store.close()
+    assert calls == [(12, True)]
+    with RecordStore(path, "m") as s:
+        assert [r.id for r in s.query_seeds()] == list(range(4, 16))
