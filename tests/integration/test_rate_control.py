@@ -146,7 +146,7 @@ async def test_gnss_speed_takes_over_when_the_radar_is_lost_and_hands_back(
 ) -> None:
     """[speed] source = "radar_then_gnss": a silent radar must not stop the drill."""
     async with metering(tmp_path, make_machine(with_gnss=True)) as (rig, sim):
-        assert rig.daemon.settings.speed.source == "radar_then_gnss"
+        assert rig.daemon.settings.speed.source == ["radar", "gnss"]
         await rig.until(lambda: rig.daemon.outputs.speed_source == "radar", what="radar speed")
         sim.set_silent(rig.daemon.settings.radar.device_id, True)
         await rig.until(
