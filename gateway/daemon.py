@@ -1,4 +1,4 @@
-"""The daemon: one TaskGroup, one named task per driver, the controller in the middle.
+"""The daemon: one named task per driver under one supervisor, the controller in the middle.
 
 The RS485 task is also the control loop: it polls the radar and the inclinometer, ticks the
 controller and writes the PWM module, one request at a time on the one bus, because that is
@@ -6,6 +6,12 @@ the order a half-duplex RS485 bus imposes anyway and it keeps the reply→write 
 few microseconds of arithmetic between them. Everything else (HMI, GNSS, seed sensors, the
 record store, MQTT, CAN) runs beside it and talks to the controller only through callbacks
 that never block, so a broker outage or a dead screen cannot delay a duty write.
+
+The supervisor is hand-written rather than an ``asyncio.TaskGroup`` because a TaskGroup
+cancels each child once and then waits for ever: on Python 3.11 a polling loop can swallow
+that one cancel (see ``drivers.tasks``), and a daemon that hangs on SIGTERM never writes the
+motor and fan to 0. Here a stop re-cancels until every task has ended, waits at most
+``SHUTDOWN_TIMEOUT_S``, and the PWM module is set to 0 whatever happened.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from typing import Any
 from drivers.errors import DriverError
 from drivers.modbus_bus import ModbusBus
 from drivers.rs485_devices import Channel, Inclinometer, PwmModule, Radar
+from drivers.tasks import cancel_all
 from gateway import commands as cmd
 from gateway.alarms import AlarmBoard
 from gateway.calibration_apply import apply_calibrations
@@ -37,12 +44,11 @@ log = logging.getLogger(__name__)
 
 LATENCY_SAMPLES = 4096  # reply→write latencies kept for the benchmark and the status view
 SAFE_OFF_TIMEOUT_S = 1.0
+# Longest wait for the driver tasks to end after a stop; past it the stuck ones are named in
+# the log and the motor and fan are switched off anyway.
+SHUTDOWN_TIMEOUT_S = 5.0
 DUTY_EPSILON_PCT = 0.05  # below this a change is not worth a bus write
 DEVICE_LOST_AFTER_S = 2.0
-
-
-class _Shutdown(Exception):
-    """Raised inside the TaskGroup to stop every task when a stop is requested."""
 
 
 class Daemon:
@@ -117,17 +123,7 @@ class Daemon:
         try:
             # both outputs are 0 before anything else happens
             await self._write_outputs(0.0, 0.0, force=True)
-            try:
-                async with asyncio.TaskGroup() as tg:
-                    tg.create_task(self._control_loop(), name="rs485")
-                    if self.hmi is not None:
-                        tg.create_task(self.hmi.link.run(), name="hmi")
-                        tg.create_task(self.hmi.refresh_loop(), name="hmi-view")
-                    for name, factory in self._extra:
-                        tg.create_task(factory(), name=name)
-                    tg.create_task(self._wait_stop(), name="stop")
-            except* _Shutdown:
-                pass
+            await self._supervise()
         finally:
             await self._safe_off()
             await self.bus.close()
@@ -139,9 +135,45 @@ class Daemon:
             for sig in installed:
                 loop.remove_signal_handler(sig)
 
-    async def _wait_stop(self) -> None:
-        await self._stop.wait()
-        raise _Shutdown
+    async def _supervise(self) -> None:
+        """Run every task until a stop is requested or one of them fails, then end them all.
+
+        A task that returns normally just ends (as in a TaskGroup); a task that raises stops
+        the daemon and its exceptions are re-raised as an ExceptionGroup after shutdown.
+        """
+        factories: list[tuple[str, Callable[[], Coroutine[Any, Any, None]]]] = [
+            ("rs485", self._control_loop)
+        ]
+        if self.hmi is not None:
+            factories += [("hmi", self.hmi.link.run), ("hmi-view", self.hmi.refresh_loop)]
+        factories += self._extra
+        tasks = [asyncio.create_task(factory(), name=name) for name, factory in factories]
+        stop = asyncio.create_task(self._stop.wait(), name="stop")
+        failures: list[Exception] = []
+        try:
+            running: set[asyncio.Task[Any]] = set(tasks)
+            while not stop.done() and not failures:
+                done, _ = await asyncio.wait(
+                    running | {stop}, return_when=asyncio.FIRST_COMPLETED
+                )
+                for task in done - {stop}:
+                    running.discard(task)
+                    exc = None if task.cancelled() else task.exception()
+                    if isinstance(exc, Exception):
+                        log.error("task %s failed: %r", task.get_name(), exc)
+                        failures.append(exc)
+                    elif exc is not None:
+                        raise exc
+        finally:
+            stuck = await cancel_all([stop, *tasks], timeout_s=SHUTDOWN_TIMEOUT_S)
+            if stuck:
+                log.error(
+                    "task(s) still running %.0f s after the stop: %s; switching off anyway",
+                    SHUTDOWN_TIMEOUT_S,
+                    ", ".join(t.get_name() for t in stuck),
+                )
+        if failures:
+            raise ExceptionGroup("sowgate task failed", failures)
 
     async def _safe_off(self) -> None:
         """Motor and fan to 0 before exit, whatever else has gone wrong."""
@@ -155,7 +187,9 @@ class Daemon:
     async def _control_loop(self) -> None:
         period = 1.0 / self.settings.rs485.poll_hz
         next_at = self.clock()
-        while True:
+        # The stop flag, not only cancellation, ends this loop: a cancel swallowed by a Modbus
+        # read (drivers.tasks) must not let it write a duty after the safe-off.
+        while not self._stop.is_set():
             reply_t = None
             try:
                 kmh = await self.radar.read()
