@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
-from gateway.config._base import Section
+from gateway.config._base import FieldProblem, Section
 
 
 class MachineSection(Section):
@@ -63,7 +63,9 @@ class ActuatorsSection(Section):
     @model_validator(mode="after")
     def _distinct_registers(self) -> ActuatorsSection:
         if self.motor_register == self.fan_register:
-            raise ValueError("motor_register and fan_register must differ")
+            raise FieldProblem(
+                "fan_register", "must differ from motor_register", self.fan_register
+            )
         return self
 
 
@@ -92,12 +94,19 @@ class HmiSection(Section):
     write_timeout_s: float = Field(0.5, gt=0, le=5.0)
     reconnect_max_s: float = Field(5.0, gt=0, le=300)
 
-    @model_validator(mode="after")
-    def _encoding_exists(self) -> HmiSection:
+    @field_validator("encoding")
+    @classmethod
+    def _encoding_exists(cls, encoding: str) -> str:
+        """A misspelt codec would otherwise only fail when the first text is sent."""
         import codecs
 
-        codecs.lookup(self.encoding)  # raises LookupError -> reported as a value error
-        return self
+        try:
+            codecs.lookup(encoding)
+        except LookupError:
+            raise ValueError(
+                "unknown text encoding (e.g. ascii, utf-8, gb2312 for Chinese TJC fonts)"
+            ) from None
+        return encoding
 
     @model_validator(mode="after")
     def _screen_can_show_it(self) -> HmiSection:
@@ -109,16 +118,16 @@ class HmiSection(Section):
             try:
                 check_object_name(obj)
             except ValueError:
-                raise ValueError(
-                    f"objects.{key} = {obj!r} is not a screen object name (letters, digits, _)"
+                raise FieldProblem(
+                    f"objects.{key}", "not a screen object name (letters, digits, _)", obj
                 ) from None
         for table in ("state_labels", "crop_labels"):
             for key, label in getattr(self, table).items():
                 try:
                     label.encode(self.encoding)
                 except UnicodeEncodeError:
-                    raise ValueError(
-                        f"{table}.{key} = {label!r} cannot be shown in encoding {self.encoding!r}"
+                    raise FieldProblem(
+                        f"{table}.{key}", f"cannot be shown in encoding {self.encoding!r}", label
                     ) from None
         return self
 
@@ -152,11 +161,24 @@ class CropModel(Section):
     @model_validator(mode="after")
     def _ranges(self) -> CropModel:
         if self.rate_min_kg_ha >= self.rate_max_kg_ha:
-            raise ValueError("rate_min_kg_ha must be below rate_max_kg_ha")
+            raise FieldProblem(
+                "rate_max_kg_ha",
+                f"must be above rate_min_kg_ha ({self.rate_min_kg_ha:g})",
+                self.rate_max_kg_ha,
+            )
         if not self.rate_min_kg_ha <= self.default_rate_kg_ha <= self.rate_max_kg_ha:
-            raise ValueError("default_rate_kg_ha must lie within rate_min_kg_ha..rate_max_kg_ha")
+            raise FieldProblem(
+                "default_rate_kg_ha",
+                f"must lie within {self.rate_min_kg_ha:g}..{self.rate_max_kg_ha:g} "
+                "(rate_min_kg_ha..rate_max_kg_ha)",
+                self.default_rate_kg_ha,
+            )
         if self.omega_min_rpm >= self.omega_max_rpm:
-            raise ValueError("omega_min_rpm must be below omega_max_rpm")
+            raise FieldProblem(
+                "omega_max_rpm",
+                f"must be above omega_min_rpm ({self.omega_min_rpm:g})",
+                self.omega_max_rpm,
+            )
         return self
 
 
@@ -210,16 +232,25 @@ class ControlSection(Section):
     @model_validator(mode="after")
     def _crop_known(self) -> ControlSection:
         if self.crop not in self.crops:
-            raise ValueError(f"crop {self.crop!r} is not one of {sorted(self.crops)}")
+            raise FieldProblem(
+                "crop", f"not one of the crops in control.crops: {sorted(self.crops)}", self.crop
+            )
         model = self.crops[self.crop]
         if self.rate_kg_ha is not None and not (
             model.rate_min_kg_ha <= self.rate_kg_ha <= model.rate_max_kg_ha
         ):
-            raise ValueError(
-                f"rate_kg_ha {self.rate_kg_ha} outside {self.crop} range "
-                f"{model.rate_min_kg_ha}..{model.rate_max_kg_ha}"
+            raise FieldProblem(
+                "rate_kg_ha",
+                f"outside {self.crop} range {model.rate_min_kg_ha}..{model.rate_max_kg_ha} kg/ha",
+                self.rate_kg_ha,
             )
-        codes = [c.code for c in self.crops.values()]
-        if len(codes) != len(set(codes)):
-            raise ValueError("crop codes must be unique")
+        owner: dict[int, str] = {}
+        for name, crop in self.crops.items():
+            if crop.code in owner:
+                raise FieldProblem(
+                    f"crops.{name}.code",
+                    f"crop codes must be unique; crops.{owner[crop.code]}.code has it too",
+                    crop.code,
+                )
+            owner[crop.code] = name
         return self

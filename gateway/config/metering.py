@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from gateway.config._base import Section
+from gateway.config._base import FieldProblem, Section
 
 
 class CanSection(Section):
@@ -37,7 +37,10 @@ class ChannelSection(Section):
     @model_validator(mode="after")
     def _can_node(self) -> ChannelSection:
         if self.drive == "can_pid" and not 1 <= self.node_id <= 15:
-            raise ValueError("a can_pid channel needs node_id 1..15 (0 is not addressable)")
+            raise FieldProblem(
+                "node_id", "a can_pid channel needs node_id 1..15 (0 is not addressable)",
+                self.node_id,
+            )
         return self
 
 
