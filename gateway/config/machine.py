@@ -137,6 +137,9 @@ class SpeedSection(Section):
     moving_threshold_kmh: float = Field(0.3, ge=0, le=5)
     moving_hysteresis_kmh: float = Field(0.1, ge=0, le=5)
     stale_after_s: float = Field(2.0, gt=0, le=30)
+    # A reading above this is a sensor glitch (e.g. a radar's 0xFFFF = 655.35 km/h), not a
+    # speed: it is dropped with an alarm instead of dragging the filter to full motor duty.
+    max_plausible_kmh: float = Field(40.0, gt=0, le=100)
     correction: dict[str, float] = Field(default_factory=dict)
 
 
