@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
@@ -231,6 +231,24 @@ class ControlSection(Section):
     emptying_motor_pct: float = Field(100.0, ge=0, le=100)
     start_working: bool = False  # start in the "work" mode without an HMI start press
     crops: dict[str, CropModel] = Field(default_factory=default_crops)
+
+    @field_validator("crops", mode="before")
+    @classmethod
+    def _over_defaults(cls, value: Any) -> Any:
+        """A ``[control.crops.wheat]`` table refits wheat: the keys it gives replace paper A's,
+        the rest keep paper A's values, and rapeseed stays. Without this, refitting eq. (6)
+        meant copying all 14 keys and silently dropped the crop not mentioned."""
+        if not isinstance(value, dict):
+            return value
+        merged: dict[str, Any] = {name: m.model_dump() for name, m in default_crops().items()}
+        for name, table in value.items():
+            if isinstance(table, CropModel):
+                table = table.model_dump()
+            if isinstance(table, dict) and isinstance(merged.get(name), dict):
+                merged[name] = {**merged[name], **table}
+            else:
+                merged[name] = table  # a new crop: every key is required
+        return merged
 
     @model_validator(mode="after")
     def _crop_known(self) -> ControlSection:

@@ -136,6 +136,25 @@ def test_refitted_crop_with_inverted_ranges_names_the_key() -> None:
     ]
 
 
+def test_a_crop_table_refits_only_the_keys_it_gives(tmp_path: Path) -> None:
+    f = tmp_path / "sowgate.toml"
+    f.write_text(
+        "[control]\ncrop = 'wheat'\n"
+        "[control.crops.wheat]\nmeter_a = -0.61\nmeter_b = 130.0\nrate_max_kg_ha = 250.0\n"
+    )
+    s = load_config(f)
+    wheat = s.control.crops["wheat"]
+    assert (wheat.meter_a, wheat.meter_b, wheat.meter_c) == (-0.61, 130.0, -398.316)
+    assert wheat.motor_slope == pytest.approx(0.6671) and wheat.rate_max_kg_ha == 250.0
+    assert s.control.crops["rapeseed"].meter_b == pytest.approx(5.468)  # still there
+
+
+def test_a_new_crop_needs_every_key() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"control": {"crops": {"barley": {"code": 3}}}})
+    assert "control.crops.barley.meter_a: Field required" in info.value.problems
+
+
 def test_unknown_screen_encoding_is_a_config_error_not_a_crash() -> None:
     with pytest.raises(ConfigError) as info:
         parse_config({"hmi": {"encoding": "gb2321"}})
