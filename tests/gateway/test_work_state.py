@@ -37,7 +37,7 @@ def test_row(
     assert decide(mode, motion, attitude) == (state, fan, motor)
 
 
-@pytest.mark.parametrize(("motion", "attitude"), itertools.product(Motion, Attitude))
+@pytest.mark.parametrize(("motion", "attitude"), list(itertools.product(Motion, Attitude)))
 def test_operator_stop_turns_everything_off(motion: Motion, attitude: Attitude) -> None:
     assert decide(S, motion, attitude) == (WorkState.STOPPED, Fan.OFF, Motor.STOP)
 
