@@ -33,10 +33,15 @@ async def cancel_all(
 
     Returns the tasks still running when ``timeout_s`` ran out (empty when all stopped), so
     the caller can name them in a log and carry on with what must happen regardless.
+
+    If the caller is itself cancelled meanwhile (a driver being stopped while it stops its
+    reader task), the job is finished first and the cancellation re-raised afterwards:
+    giving up half-way would orphan a task that still reads its port.
     """
     pending = {t for t in tasks if not t.done()}
     loop = asyncio.get_running_loop()
     deadline = None if timeout_s is None else loop.time() + timeout_s
+    caller_cancelled = False
     while pending:
         for task in pending:
             task.cancel()
@@ -45,7 +50,12 @@ async def cancel_all(
             wait_s = min(wait_s, deadline - loop.time())
             if wait_s <= 0:
                 break
-        _, pending = await asyncio.wait(pending, timeout=wait_s)
+        try:
+            _, pending = await asyncio.wait(pending, timeout=wait_s)
+        except asyncio.CancelledError:
+            caller_cancelled = True
+    if caller_cancelled:
+        raise asyncio.CancelledError
     return sorted(pending, key=lambda t: t.get_name())
 
 

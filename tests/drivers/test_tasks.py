@@ -71,6 +71,33 @@ async def test_a_task_cleaning_up_is_given_time_before_a_second_cancel() -> None
     assert cleaned.is_set()
 
 
+async def test_a_cancelled_caller_still_finishes_stopping_its_child_first() -> None:
+    """A driver cancelled while it stops its reader must not leave the reader running."""
+    child_cancels = 0
+
+    async def reader_swallowing_one_cancel() -> None:
+        nonlocal child_cancels
+        while True:
+            try:
+                await asyncio.sleep(10)
+            except asyncio.CancelledError:
+                child_cancels += 1
+                if child_cancels > 1:
+                    raise
+
+    child = asyncio.create_task(reader_swallowing_one_cancel())
+
+    async def driver_stopping() -> None:
+        await cancel_and_wait(child, recancel_after_s=0.2)
+
+    caller = asyncio.create_task(driver_stopping())
+    await asyncio.sleep(0.05)  # the caller has cancelled the child once, which swallowed it
+    caller.cancel()  # e.g. the daemon's supervisor cancelling the driver task again
+    await asyncio.wait({caller}, timeout=2.0)
+    assert caller.cancelled()
+    assert child.done() and child_cancels == 2
+
+
 async def test_cancel_all_names_the_tasks_that_outlive_the_timeout() -> None:
     release = asyncio.Event()
 
