@@ -48,6 +48,8 @@ SAFE_OFF_TIMEOUT_S = 1.0
 # the log and the motor and fan are switched off anyway.
 SHUTDOWN_TIMEOUT_S = 5.0
 DUTY_EPSILON_PCT = 0.05  # below this a change is not worth a bus write
+# A device alarms once it has not answered for this long (as speed.lost does): one CRC error
+# from motor noise must not flash "radar not answering" on the screen and over MQTT.
 DEVICE_LOST_AFTER_S = 2.0
 
 
@@ -76,6 +78,8 @@ class Daemon:
         self.outputs: ControlOutputs | None = None
         self._written: dict[str, float] = {}
         self._written_at: float = -1e18
+        # device -> last tick it was answering (or its first failure if it never answered)
+        self._answering_at: dict[str, float] = {}
         self._stop = asyncio.Event()
         self._extra: list[tuple[str, Callable[[], Coroutine[Any, Any, None]]]] = []
         self.hmi: HmiAdapter | None = None
@@ -243,13 +247,19 @@ class Daemon:
             self._written_at = now
 
     def _update_device_alarms(self) -> None:
+        now = self.clock()
         for name, label in (
             ("radar", "radar"),
             ("inclinometer", "inclinometer"),
             ("pwm", "PWM module"),
         ):
             st = self.bus.stats.get(name)
-            lost = st is not None and not st.available
+            lost = False
+            if st is not None and st.available:
+                self._answering_at[name] = now
+            elif st is not None:
+                since = self._answering_at.setdefault(name, now)
+                lost = now - since >= DEVICE_LOST_AFTER_S
             self.alarms.set(
                 f"{name}.unavailable",
                 lost,

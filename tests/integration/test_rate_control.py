@@ -67,7 +67,7 @@ async def test_silent_radar_stops_metering_within_two_seconds_and_recovers(
         sim.set_silent(rig.daemon.settings.radar.device_id, True)
         await rig.until(lambda: rig.daemon.alarms.is_active("speed.lost"), timeout=6.0)
         await rig.until(lambda: sim.duty_pct["motor"] == 0.0, timeout=3.0, what="motor off")
-        assert rig.daemon.alarms.is_active("radar.unavailable")
+        await rig.until(lambda: rig.daemon.alarms.is_active("radar.unavailable"), timeout=2.0)
         sim.set_silent(rig.daemon.settings.radar.device_id, False)
         await rig.until(lambda: sim.duty_pct["motor"] > 0, timeout=6.0, what="metering again")
         assert not rig.daemon.alarms.is_active("speed.lost")
@@ -109,6 +109,25 @@ async def test_line_noise_and_crc_errors_do_not_stop_the_daemon(
         )
         await rig.until(lambda: rig.state() is WorkState.SEEDING)
         assert not rig.task.done()
+
+
+async def test_a_single_garbled_reply_does_not_flash_a_device_alarm(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    async with metering(tmp_path, make_machine()) as (rig, sim):
+        alarmed: list[str] = []
+        rig.daemon.alarms.subscribe(
+            lambda e: alarmed.append(e.code) if e.active and e.code.endswith(".unavailable")
+            else None
+        )
+        radar = rig.daemon.bus.stats["radar"]
+        before = radar.garbled + radar.timeouts
+        sim.corrupt_next_crc(1)
+        await rig.until(lambda: radar.garbled + radar.timeouts > before, what="the bad reply")
+        await rig.until(lambda: radar.available, what="the radar answering again")
+        await asyncio.sleep(1.0)
+        assert alarmed == []
+        assert rig.state() is WorkState.SEEDING
 
 
 async def test_vanished_port_is_reopened_by_itself(
