@@ -123,6 +123,7 @@ class Controller:
             s.inclinometer.critical_angle_deg, s.inclinometer.hysteresis_deg
         )
         self._odometer_start: dict[str, float] | None = None
+        self._implausible_t: dict[str, float] = {}  # source -> last implausible sample
         self._tilt_raw: float | None = None
         self._tilt_t: float | None = None
         self._tilt_recent: deque[tuple[float, float]] = deque(maxlen=LOWERED_READINGS)
@@ -141,8 +142,33 @@ class Controller:
     def crop_model(self) -> CropModel:
         return self.settings.control.crops[self.crop]
 
-    def on_speed(self, source: str, kmh: float, t: float) -> None:
-        self.sources[source].add(kmh, t, self.settings.speed.stale_after_s)
+    def on_speed(self, source: str, kmh: float, t: float) -> bool:
+        """Take one speed sample; False (and an alarm) if it is not a possible ground speed.
+
+        One glitch sample of 655 km/h would otherwise hold the 12-sample filter far above the
+        real speed for 4 s: motor at 100 % and a phantom "too fast" alarm, then a swing to 0.
+        A source that only sends such values goes stale and metering stops as for a lost one.
+        """
+        speed = self.settings.speed
+        code = f"{source}.implausible"
+        if not kmh <= speed.max_plausible_kmh:  # also catches NaN
+            if not self.alarms.is_active(code):
+                log.warning(
+                    "%s reported %.2f km/h, above speed.max_plausible_kmh %g: sample ignored",
+                    source, kmh, speed.max_plausible_kmh,
+                )
+            self._implausible_t[source] = t
+            self.alarms.raise_(
+                code,
+                f"{source} speed readings above {speed.max_plausible_kmh:g} km/h ignored",
+            )
+            return False
+        last_bad = self._implausible_t.get(source)
+        if last_bad is not None and t - last_bad >= speed.stale_after_s:
+            del self._implausible_t[source]
+            self.alarms.clear(code)
+        self.sources[source].add(kmh, t, speed.stale_after_s)
+        return True
 
     def on_tilt(self, raw_deg: float, t: float) -> None:
         self._tilt_raw = raw_deg

@@ -1,4 +1,4 @@
-"""The daemon: one TaskGroup, one named task per driver, the controller in the middle.
+"""The daemon: one named task per driver under one supervisor, the controller in the middle.
 
 The RS485 task is also the control loop: it polls the radar and the inclinometer, ticks the
 controller and writes the PWM module, one request at a time on the one bus, because that is
@@ -15,6 +15,12 @@ open epoch; then the recorder positions and stores everything; then the store co
 ``gateway.optional_parts``); only then is the rest (MQTT, HMI, ...) cancelled. Cancelling
 everything at once let the recorder's final flush run before the sensors had delivered what
 they had already received.
+
+The supervisor is hand-written rather than an ``asyncio.TaskGroup`` because a TaskGroup
+cancels each child once and then waits for ever: on Python 3.11 a polling loop can swallow
+that one cancel (see ``drivers.tasks``), and a daemon that hangs on SIGTERM never writes the
+motor and fan to 0. Here a stop re-cancels until every task has ended, waits at most
+``SHUTDOWN_TIMEOUT_S``, and the PWM module is set to 0 whatever happened.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from typing import Any
 from drivers.errors import DriverError
 from drivers.modbus_bus import ModbusBus
 from drivers.rs485_devices import Channel, Inclinometer, PwmModule, Radar
+from drivers.tasks import cancel_all
 from gateway import commands as cmd
 from gateway.alarms import AlarmBoard
 from gateway.calibration_apply import apply_calibrations
@@ -46,12 +53,13 @@ log = logging.getLogger(__name__)
 
 LATENCY_SAMPLES = 4096  # reply→write latencies kept for the benchmark and the status view
 SAFE_OFF_TIMEOUT_S = 1.0
+# Longest wait for the driver tasks to end after a stop; past it the stuck ones are named in
+# the log and the motor and fan are switched off anyway.
+SHUTDOWN_TIMEOUT_S = 5.0
 DUTY_EPSILON_PCT = 0.05  # below this a change is not worth a bus write
+# A device alarms once it has not answered for this long (as speed.lost does): one CRC error
+# from motor noise must not flash "radar not answering" on the screen and over MQTT.
 DEVICE_LOST_AFTER_S = 2.0
-
-
-class _Shutdown(Exception):
-    """Raised inside the TaskGroup to stop every task when a stop is requested."""
 
 
 class Daemon:
@@ -80,6 +88,8 @@ class Daemon:
         self.outputs: ControlOutputs | None = None
         self._written: dict[str, float] = {}
         self._written_at: float = -1e18
+        # device -> last tick it was answering (or its first failure if it never answered)
+        self._answering_at: dict[str, float] = {}
         self._stop = asyncio.Event()
         self._extra: list[tuple[str, Callable[[], Coroutine[Any, Any, None]], int | None]] = []
         self.hmi: HmiAdapter | None = None
@@ -160,20 +170,7 @@ class Daemon:
         try:
             # both outputs are 0 before anything else happens
             await self._write_outputs(0.0, 0.0, force=True)
-            try:
-                async with asyncio.TaskGroup() as tg:
-                    control = tg.create_task(self._control_loop(), name="rs485")
-                    if self.hmi is not None:
-                        tg.create_task(self.hmi.link.run(), name="hmi")
-                        tg.create_task(self.hmi.refresh_loop(), name="hmi-view")
-                    stages: dict[int, list[asyncio.Task[None]]] = {}
-                    for name, factory, stage in self._extra:
-                        task = tg.create_task(factory(), name=name)
-                        if stage is not None:
-                            stages.setdefault(stage, []).append(task)
-                    tg.create_task(self._wait_stop(control, stages), name="stop")
-            except* _Shutdown:
-                pass
+            await self._supervise()
         finally:
             await self._safe_off()  # again: the net for the paths that skipped _stop_control
             if self.rs485:
@@ -186,19 +183,63 @@ class Daemon:
             for sig in installed:
                 loop.remove_signal_handler(sig)
 
-    async def _wait_stop(
-        self, control: asyncio.Task[None], stages: dict[int, list[asyncio.Task[None]]]
-    ) -> None:
-        """The ordered stop (module docstring); ``_Shutdown`` then cancels the other tasks."""
-        await self._stop.wait()
-        await asyncio.gather(self._stop_control(control), _stop_in_stages(stages))
-        raise _Shutdown
+    async def _supervise(self) -> None:
+        """Run every task until a stop is requested or one of them fails, then end them all.
+
+        A task that returns normally just ends (as in a TaskGroup); a task that raises stops
+        the daemon and its exceptions are re-raised as an ExceptionGroup after shutdown.
+        """
+        factories: list[tuple[str, Callable[[], Coroutine[Any, Any, None]], int | None]] = [
+            ("rs485", self._control_loop, None)
+        ]
+        if self.hmi is not None:
+            factories += [
+                ("hmi", self.hmi.link.run, None), ("hmi-view", self.hmi.refresh_loop, None)
+            ]
+        factories += self._extra
+        tasks = [asyncio.create_task(factory(), name=name) for name, factory, _ in factories]
+        control = tasks[0]
+        stages: dict[int, list[asyncio.Task[None]]] = {}
+        for task, (_name, _factory, stage) in zip(tasks, factories, strict=True):
+            if stage is not None:
+                stages.setdefault(stage, []).append(task)
+        stop = asyncio.create_task(self._stop.wait(), name="stop")
+        failures: list[Exception] = []
+        try:
+            running: set[asyncio.Task[Any]] = set(tasks)
+            while not stop.done() and not failures:
+                done, _ = await asyncio.wait(
+                    running | {stop}, return_when=asyncio.FIRST_COMPLETED
+                )
+                for finished in done - {stop}:
+                    running.discard(finished)
+                    exc = None if finished.cancelled() else finished.exception()
+                    if isinstance(exc, Exception):
+                        log.error("task %s failed: %r", finished.get_name(), exc)
+                        failures.append(exc)
+                    elif exc is not None:
+                        raise exc
+            # The ordered stop, after a failure too: what was recorded must still be stored.
+            try:
+                async with asyncio.timeout(SHUTDOWN_TIMEOUT_S):
+                    await asyncio.gather(self._stop_control(control), _stop_in_stages(stages))
+            except TimeoutError:
+                log.error("ordered stop took over %.0f s; cancelling the rest", SHUTDOWN_TIMEOUT_S)
+        finally:
+            stuck = await cancel_all([stop, *tasks], timeout_s=SHUTDOWN_TIMEOUT_S)
+            if stuck:
+                log.error(
+                    "task(s) still running %.0f s after the stop: %s; switching off anyway",
+                    SHUTDOWN_TIMEOUT_S,
+                    ", ".join(t.get_name() for t in stuck),
+                )
+        if failures:
+            raise ExceptionGroup("sowgate task failed", failures)
 
     async def _stop_control(self, control: asyncio.Task[None]) -> None:
         """The safe state first, not delayed by the recording drain that runs beside it. The
         loop is stopped before the 0 is written so that no later duty write can undo it."""
-        control.cancel()
-        await asyncio.wait({control})
+        await cancel_all([control])
         await self._safe_off()
 
     async def _safe_off(self) -> None:
@@ -213,7 +254,9 @@ class Daemon:
     async def _control_loop(self) -> None:
         period = 1.0 / self.settings.rs485.poll_hz
         next_at = self.clock()
-        while True:
+        # The stop flag, not only cancellation, ends this loop: a cancel swallowed by a Modbus
+        # read (drivers.tasks) must not let it write a duty after the safe-off.
+        while not self._stop.is_set():
             reply_t = None
             if self.rs485:
                 try:
@@ -272,13 +315,19 @@ class Daemon:
     def _update_device_alarms(self) -> None:
         if not self.rs485:
             return
+        now = self.clock()
         for name, label in (
             ("radar", "radar"),
             ("inclinometer", "inclinometer"),
             ("pwm", "PWM module"),
         ):
             st = self.bus.stats.get(name)
-            lost = st is not None and not st.available
+            lost = False
+            if st is not None and st.available:
+                self._answering_at[name] = now
+            elif st is not None:
+                since = self._answering_at.setdefault(name, now)
+                lost = now - since >= DEVICE_LOST_AFTER_S
             self.alarms.set(
                 f"{name}.unavailable",
                 lost,
@@ -345,10 +394,9 @@ class Daemon:
 async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:
     """Cancel each stage's tasks and wait until they have finished, lowest stage first.
 
-    Only waited for, never awaited: a task's own error is the TaskGroup's to report.
+    Only waited for, never awaited: a task's own error is the supervisor's to report. A task
+    that swallows its cancel is cancelled again (``cancel_all``) rather than waited for
+    forever.
     """
     for stage in sorted(stages):
-        tasks = stages[stage]
-        for task in tasks:
-            task.cancel()
-        await asyncio.wait(tasks)
+        await cancel_all(stages[stage])

@@ -13,10 +13,14 @@ import logging
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.tasks import cancel_and_wait
 from gateway.daemon import Daemon
+from simulator.machine import STARTUP_TRANSIENT_S
+
+if TYPE_CHECKING:
+    from simulator.machine import Truth
 
 log = logging.getLogger(__name__)
 
@@ -27,6 +31,62 @@ PAPER_B_CHANNELS = (
     ("seed", "wheat", 225.0, 11.20),
 )
 PAPER_B_OUTLETS = 10  # 10 rows
+
+
+def _error_pct(applied: float | None, target: float) -> float | None:
+    return None if applied is None or target <= 0 else (applied / target - 1.0) * 100.0
+
+
+def _pct(value: float) -> str:
+    return f"{round(value, 2) + 0.0:+.2f} %"  # + 0.0: never print "-0.00 %"
+
+
+def truth_report(truth: Truth, target_kg_ha: float) -> dict[str, Any]:
+    """The simulator's ground truth as the demo shows it: the whole-run applied rate and, apart,
+    the rate after each pass's start-up transient (see ``simulator.machine.Truth``)."""
+    applied = truth.applied_kg_ha() if truth.area_m2 > 0 else None
+    settled = truth.settled_kg_ha() if truth.settled_area_m2 > 0 else None
+    return {
+        "sown_m": truth.sown_m,
+        "applied_kg_ha": applied,
+        "rate_error_pct": _error_pct(applied, target_kg_ha),
+        "settled_m": truth.settled_m,
+        "settled_kg_ha": settled,
+        "settled_rate_error_pct": _error_pct(settled, target_kg_ha),
+    }
+
+
+def summary(report: dict[str, Any], target_kg_ha: float) -> str:
+    """The closing line of ``sowgate demo``.
+
+    Why not just the whole-run error: a drive starts from standstill, and for the first seconds
+    of every pass the speed filter and the motor lag the tractor, so a demo of a few seconds
+    reports -10 % or worse although the controller holds the rate once under way (and
+    printed "+0.00 %" when nothing had been sown at all). The line says how much was sown and
+    keeps the start-up part apart, so neither figure is read out of context.
+    """
+    applied = report["applied_kg_ha"]
+    if applied is None:
+        return (
+            "demo finished: nothing sown yet (the simulated tractor had not started a pass); "
+            "run longer, e.g. --duration 60"
+        )
+    whole = (
+        f"{report['sown_m']:.1f} m sown, applied {applied:.2f} kg/ha "
+        f"(target {target_kg_ha:g}, error {_pct(report['rate_error_pct'])})"
+    )
+    settled = report["settled_kg_ha"]
+    if settled is None:
+        return (
+            f"demo finished: {whole}, all of it in the start-up of a pass (speed filter and "
+            "motor catching up from standstill), so not representative; "
+            "run longer, e.g. --duration 60"
+        )
+    return (
+        f"demo finished: {whole}; after the first {STARTUP_TRANSIENT_S:g} s of each pass "
+        f"{settled:.2f} kg/ha (error {_pct(report['settled_rate_error_pct'])} "
+        f"over {report['settled_m']:.1f} m)"
+    )
 
 
 def paper_b_channel_config(can_channel: str) -> dict[str, Any]:
@@ -80,12 +140,7 @@ async def run_demo(
                     daemon.request_stop()
 
             def truth() -> dict[str, Any]:
-                applied = machine.truth.applied_kg_ha()
-                target = daemon.controller.rate_kg_ha
-                return {
-                    "applied_kg_ha": applied if applied else None,
-                    "rate_error_pct": (applied / target - 1) * 100 if applied else None,
-                }
+                return truth_report(machine.truth, daemon.controller.rate_kg_ha)
 
             op = asyncio.create_task(operator(), name="demo-operator")
             try:
@@ -97,12 +152,7 @@ async def run_demo(
                     await daemon.run()
             finally:
                 await cancel_and_wait(op)
-            t = truth()
-            print(
-                f"demo finished: applied {t['applied_kg_ha'] or 0:.2f} kg/ha "
-                f"(target {daemon.controller.rate_kg_ha:g}), error "
-                f"{t['rate_error_pct'] or 0:+.2f} %"
-            )
+            print(summary(truth(), daemon.controller.rate_kg_ha))
             area_ha = machine.truth.area_m2 / 1e4
             for name, _product, rate, _g in PAPER_B_CHANNELS if channels else ():
                 mass_kg = plants[name].mass_g / 1000

@@ -36,7 +36,12 @@ class HmiAdapter:
         self.section = section
         self.daemon = daemon
         self.link = HmiLink(
-            section.port, section.baudrate, section.encoding, on_event=self.on_event
+            section.port,
+            section.baudrate,
+            section.encoding,
+            on_event=self.on_event,
+            write_timeout_s=section.write_timeout_s,
+            reconnect_max_s=section.reconnect_max_s,
         )
         self.last_message: str = ""
         self._dirty = asyncio.Event()

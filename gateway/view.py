@@ -57,13 +57,22 @@ def render(snapshot: dict[str, Any], truth: dict[str, Any] | None = None) -> Gro
         f"{snapshot['seed_mass_kg']:.3f} kg",
     )
     if truth:
-        err = truth.get("rate_error_pct")
+        sown = truth.get("sown_m")
         main.add_row(
             "applied (truth)",
-            _fmt(truth.get("applied_kg_ha"), ".2f", " kg/ha"),
+            _fmt(truth.get("applied_kg_ha"), ".2f", " kg/ha")
+            + ("" if sown is None else f" over {sown:.1f} m"),
             "rate error",
-            _fmt(err, "+.2f", " %"),
+            _fmt(truth.get("rate_error_pct"), "+.2f", " %"),
         )
+        if "settled_rate_error_pct" in truth:
+            # the whole-run figure is dominated by start-up from standstill in a short run
+            main.add_row(
+                "after start-up",
+                _fmt(truth.get("settled_kg_ha"), ".2f", " kg/ha"),
+                "rate error",
+                _fmt(truth.get("settled_rate_error_pct"), "+.2f", " %"),
+            )
     devices = Table(title="devices", show_header=False, box=None)
     for name, ok in snapshot["devices"].items():
         devices.add_row(name, "[green]ok[/]" if ok else "[red]lost[/]")

@@ -14,6 +14,7 @@ from typing import Any
 from pydantic import Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from gateway.config._base import FieldProblem
 from gateway.config.farm import CommandsSection, MqttSection, TlsSection
 from gateway.config.machine import (
     ActuatorsSection,
@@ -147,20 +148,37 @@ class Settings(BaseSettings):
                 "gnss is not enabled (add a [gnss] table, or choose another source)"
             )
         rows = self.machine.rows
-        if len(self.positioning.row_lateral_m) != rows:
-            raise ValueError(
-                f"positioning.row_lateral_m has {len(self.positioning.row_lateral_m)} entries "
-                f"but machine.rows is {rows}"
+        lateral = self.positioning.row_lateral_m
+        if len(lateral) != rows:
+            raise FieldProblem(
+                "positioning.row_lateral_m",
+                f"needs one entry per row, machine.rows is {rows} but it has {len(lateral)}",
+                lateral,
             )
-        if (
-            self.seed_sensors.source == "gpio"
-            and self.seed_sensors.enabled
-            and (len(self.seed_sensors.gpio_lines) != rows)
-        ):
-            raise ValueError(f"seed_sensors.gpio_lines needs one line per row ({rows})")
+        lines = self.seed_sensors.gpio_lines
+        if self.seed_sensors.source == "gpio" and self.seed_sensors.enabled and len(lines) != rows:
+            raise FieldProblem(
+                "seed_sensors.gpio_lines", f"needs one line per row ({rows})", lines
+            )
         names = [c.name for c in self.channel]
-        if len(names) != len(set(names)):
-            raise ValueError("channel names must be unique")
+        for i, name in enumerate(names):
+            if name in names[:i]:
+                raise FieldProblem(f"channel[{i}].name", "channel names must be unique", name)
+        bus = {
+            "radar": self.radar.device_id,
+            "inclinometer": self.inclinometer.device_id,
+            "actuators": self.actuators.device_id,
+        }
+        seen: dict[int, str] = {}
+        for section, device_id in bus.items():
+            if device_id in seen:
+                raise FieldProblem(
+                    f"{section}.device_id",
+                    f"same as {seen[device_id]}.device_id; radar, inclinometer and actuators "
+                    "share one RS485 bus and each needs its own id",
+                    device_id,
+                )
+            seen[device_id] = section
         pwm = [(i, c) for i, c in enumerate(self.channel) if c.drive == "pwm_modbus"]
         if len(pwm) > 1:
             raise ValueError(
@@ -197,11 +215,6 @@ class Settings(BaseSettings):
         nodes = [c.node_id for c in self.channel if c.drive == "can_pid"]
         if len(nodes) != len(set(nodes)):
             raise ValueError("channel: two can_pid channels share a node_id")
-        ids = [self.radar.device_id, self.inclinometer.device_id, self.actuators.device_id]
-        if len(ids) != len(set(ids)):
-            raise ValueError(
-                "radar, inclinometer and actuators share one RS485 bus and need distinct device_id"
-            )
         return self
 
 
@@ -219,7 +232,12 @@ def format_validation_error(exc: ValidationError) -> list[str]:
         loc = _loc(tuple(err["loc"]))
         msg = err["msg"].removeprefix("Value error, ")
         got = err.get("input")
-        if not err["loc"]:  # a cross-section check: its message names the keys itself
+        problem = err.get("ctx", {}).get("error")
+        if isinstance(problem, FieldProblem):
+            key = problem.key if problem.key.startswith("[") else "." + problem.key
+            loc = problem.key if not loc else loc + key
+            msg, got = problem.problem, problem.value
+        if not loc:  # a cross-section check whose message names the keys itself
             lines.append(msg)
         elif err["type"] in {"missing"} or isinstance(got, dict):
             lines.append(f"{loc}: {msg}")

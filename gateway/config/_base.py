@@ -37,3 +37,18 @@ def check_unique(value: list[str]) -> list[str]:
     if dupes:
         raise ValueError(f"each source may appear once (repeated: {', '.join(dupes)})")
     return value
+
+
+class FieldProblem(ValueError):
+    """A check that spans several keys, reported against the one key the fitter should change.
+
+    pydantic files an error raised in a model validator under the whole table ("control: …",
+    or "(root): …" for the file); raising this instead lets ``format_validation_error`` print
+    ``section.key: problem (got value)`` like any single-field error.
+    """
+
+    def __init__(self, key: str, problem: str, value: object) -> None:
+        super().__init__(problem)
+        self.key = key
+        self.problem = problem
+        self.value = value

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import ConfigDict, Field, field_validator, model_validator
 from pydantic_settings import NoDecode
 
-from gateway.config._base import Section, check_unique, source_chain
+from gateway.config._base import FieldProblem, Section, check_unique, source_chain
 
 
 class MachineSection(Section):
@@ -67,7 +67,9 @@ class ActuatorsSection(Section):
     @model_validator(mode="after")
     def _distinct_registers(self) -> ActuatorsSection:
         if self.motor_register == self.fan_register:
-            raise ValueError("motor_register and fan_register must differ")
+            raise FieldProblem(
+                "fan_register", "must differ from motor_register", self.fan_register
+            )
         return self
 
 
@@ -96,12 +98,19 @@ class HmiSection(Section):
     write_timeout_s: float = Field(0.5, gt=0, le=5.0)
     reconnect_max_s: float = Field(5.0, gt=0, le=300)
 
-    @model_validator(mode="after")
-    def _encoding_exists(self) -> HmiSection:
+    @field_validator("encoding")
+    @classmethod
+    def _encoding_exists(cls, encoding: str) -> str:
+        """A misspelt codec would otherwise only fail when the first text is sent."""
         import codecs
 
-        codecs.lookup(self.encoding)  # raises LookupError -> reported as a value error
-        return self
+        try:
+            codecs.lookup(encoding)
+        except LookupError:
+            raise ValueError(
+                "unknown text encoding (e.g. ascii, utf-8, gb2312 for Chinese TJC fonts)"
+            ) from None
+        return encoding
 
     @model_validator(mode="after")
     def _screen_can_show_it(self) -> HmiSection:
@@ -113,16 +122,16 @@ class HmiSection(Section):
             try:
                 check_object_name(obj)
             except ValueError:
-                raise ValueError(
-                    f"objects.{key} = {obj!r} is not a screen object name (letters, digits, _)"
+                raise FieldProblem(
+                    f"objects.{key}", "not a screen object name (letters, digits, _)", obj
                 ) from None
         for table in ("state_labels", "crop_labels"):
             for key, label in getattr(self, table).items():
                 try:
                     label.encode(self.encoding)
                 except UnicodeEncodeError:
-                    raise ValueError(
-                        f"{table}.{key} = {label!r} cannot be shown in encoding {self.encoding!r}"
+                    raise FieldProblem(
+                        f"{table}.{key}", f"cannot be shown in encoding {self.encoding!r}", label
                     ) from None
         return self
 
@@ -143,6 +152,9 @@ class SpeedSection(Section):
     moving_threshold_kmh: float = Field(0.3, ge=0, le=5)
     moving_hysteresis_kmh: float = Field(0.1, ge=0, le=5)
     stale_after_s: float = Field(2.0, gt=0, le=30)
+    # A reading above this is a sensor glitch (e.g. a radar's 0xFFFF = 655.35 km/h), not a
+    # speed: it is dropped with an alarm instead of dragging the filter to full motor duty.
+    max_plausible_kmh: float = Field(40.0, gt=0, le=100)
     correction: dict[str, float] = Field(default_factory=dict)
 
     _chain = field_validator("source", mode="before")(source_chain)
@@ -170,11 +182,24 @@ class CropModel(Section):
     @model_validator(mode="after")
     def _ranges(self) -> CropModel:
         if self.rate_min_kg_ha >= self.rate_max_kg_ha:
-            raise ValueError("rate_min_kg_ha must be below rate_max_kg_ha")
+            raise FieldProblem(
+                "rate_max_kg_ha",
+                f"must be above rate_min_kg_ha ({self.rate_min_kg_ha:g})",
+                self.rate_max_kg_ha,
+            )
         if not self.rate_min_kg_ha <= self.default_rate_kg_ha <= self.rate_max_kg_ha:
-            raise ValueError("default_rate_kg_ha must lie within rate_min_kg_ha..rate_max_kg_ha")
+            raise FieldProblem(
+                "default_rate_kg_ha",
+                f"must lie within {self.rate_min_kg_ha:g}..{self.rate_max_kg_ha:g} "
+                "(rate_min_kg_ha..rate_max_kg_ha)",
+                self.default_rate_kg_ha,
+            )
         if self.omega_min_rpm >= self.omega_max_rpm:
-            raise ValueError("omega_min_rpm must be below omega_max_rpm")
+            raise FieldProblem(
+                "omega_max_rpm",
+                f"must be above omega_min_rpm ({self.omega_min_rpm:g})",
+                self.omega_max_rpm,
+            )
         return self
 
 
@@ -225,19 +250,46 @@ class ControlSection(Section):
     start_working: bool = False  # start in the "work" mode without an HMI start press
     crops: dict[str, CropModel] = Field(default_factory=default_crops)
 
+    @field_validator("crops", mode="before")
+    @classmethod
+    def _over_defaults(cls, value: Any) -> Any:
+        """A ``[control.crops.wheat]`` table refits wheat: the keys it gives replace paper A's,
+        the rest keep paper A's values, and rapeseed stays. Without this, refitting eq. (6)
+        meant copying all 14 keys and silently dropped the crop not mentioned."""
+        if not isinstance(value, dict):
+            return value
+        merged: dict[str, Any] = {name: m.model_dump() for name, m in default_crops().items()}
+        for name, table in value.items():
+            if isinstance(table, CropModel):
+                table = table.model_dump()
+            if isinstance(table, dict) and isinstance(merged.get(name), dict):
+                merged[name] = {**merged[name], **table}
+            else:
+                merged[name] = table  # a new crop: every key is required
+        return merged
+
     @model_validator(mode="after")
     def _crop_known(self) -> ControlSection:
         if self.crop not in self.crops:
-            raise ValueError(f"crop {self.crop!r} is not one of {sorted(self.crops)}")
+            raise FieldProblem(
+                "crop", f"not one of the crops in control.crops: {sorted(self.crops)}", self.crop
+            )
         model = self.crops[self.crop]
         if self.rate_kg_ha is not None and not (
             model.rate_min_kg_ha <= self.rate_kg_ha <= model.rate_max_kg_ha
         ):
-            raise ValueError(
-                f"rate_kg_ha {self.rate_kg_ha} outside {self.crop} range "
-                f"{model.rate_min_kg_ha}..{model.rate_max_kg_ha}"
+            raise FieldProblem(
+                "rate_kg_ha",
+                f"outside {self.crop} range {model.rate_min_kg_ha}..{model.rate_max_kg_ha} kg/ha",
+                self.rate_kg_ha,
             )
-        codes = [c.code for c in self.crops.values()]
-        if len(codes) != len(set(codes)):
-            raise ValueError("crop codes must be unique")
+        owner: dict[int, str] = {}
+        for name, crop in self.crops.items():
+            if crop.code in owner:
+                raise FieldProblem(
+                    f"crops.{name}.code",
+                    f"crop codes must be unique; crops.{owner[crop.code]}.code has it too",
+                    crop.code,
+                )
+            owner[crop.code] = name
         return self

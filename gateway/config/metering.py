@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import NoDecode
 
-from gateway.config._base import Section, check_unique, source_chain
+from gateway.config._base import FieldProblem, Section, check_unique, source_chain
 
 
 class CanSection(Section):
@@ -38,7 +38,10 @@ class ChannelSection(Section):
     @model_validator(mode="after")
     def _can_node(self) -> ChannelSection:
         if self.drive == "can_pid" and not 1 <= self.node_id <= 15:
-            raise ValueError("a can_pid channel needs node_id 1..15 (0 is not addressable)")
+            raise FieldProblem(
+                "node_id", "a can_pid channel needs node_id 1..15 (0 is not addressable)",
+                self.node_id,
+            )
         return self
 
 

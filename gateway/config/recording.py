@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from gateway.config._base import Section
+from gateway.config._base import FieldProblem, Section
 
 EpochSentence = Literal["RMC", "GGA", "HEADING", "VTG"]
 DEFAULT_EPOCH_SENTENCES: tuple[EpochSentence, ...] = ("RMC", "GGA", "HEADING")
@@ -84,7 +84,9 @@ class PositioningSection(Section):
     def _table_sorted(self) -> PositioningSection:
         speeds = [s for s, _ in self.fall_time_table]
         if not speeds or speeds != sorted(speeds):
-            raise ValueError("fall_time_table must be non-empty and sorted by speed")
+            raise FieldProblem(
+                "fall_time_table", "must be non-empty and sorted by speed", self.fall_time_table
+            )
         return self
 
 

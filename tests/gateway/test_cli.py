@@ -30,6 +30,20 @@ def test_check_config_prints_one_line_per_problem_and_exits_78(
     assert err[1].startswith("radar.unit: ")
 
 
+def test_run_with_an_unknown_screen_encoding_exits_78_naming_the_key(tmp_path: Path) -> None:
+    f = tmp_path / "sowgate.toml"
+    f.write_text('[hmi]\nencoding = "nonesuch"\n')
+    proc = subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "run", "--config", str(f)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 78, proc.stderr
+    assert proc.stderr.startswith("hmi.encoding: unknown text encoding")
+    assert "Traceback" not in proc.stderr
+
+
 def test_run_with_a_missing_config_exits_78(tmp_path: Path) -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "gateway.cli", "run", "--config", str(tmp_path / "none.toml")],

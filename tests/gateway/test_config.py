@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -75,13 +76,92 @@ def test_each_problem_names_its_key_and_value() -> None:
 
 
 def test_rate_outside_crop_range_is_rejected() -> None:
-    with pytest.raises(ConfigError, match=r"control: .*outside wheat range 120.0..225.0"):
+    with pytest.raises(ConfigError) as info:
         parse_config({"control": {"crop": "wheat", "rate_kg_ha": 300}})
+    assert info.value.problems == [
+        "control.rate_kg_ha: outside wheat range 120.0..225.0 kg/ha (got 300.0)"
+    ]
 
 
 def test_devices_on_one_bus_need_distinct_ids() -> None:
-    with pytest.raises(ConfigError, match="distinct device_id"):
+    with pytest.raises(ConfigError) as info:
         parse_config({"radar": {"device_id": 3}})
+    (line,) = info.value.problems
+    assert line.startswith("actuators.device_id: same as radar.device_id;")
+    assert line.endswith("(got 3)")
+
+
+# Checks that span several keys still name the one key to change and the value it has.
+@pytest.mark.parametrize(
+    ("data", "line"),
+    [
+        (
+            {"actuators": {"motor_register": 1, "fan_register": 1}},
+            "actuators.fan_register: must differ from motor_register (got 1)",
+        ),
+        (
+            {"control": {"crop": "maize"}},
+            "control.crop: not one of the crops in control.crops: ['rapeseed', 'wheat'] "
+            "(got 'maize')",
+        ),
+        (
+            {"machine": {"rows": 4}},
+            "positioning.row_lateral_m: needs one entry per row, machine.rows is 4 but it has 6 "
+            "(got [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5])",
+        ),
+        (
+            {"hmi": {"objects": {"speed": "t speed"}}},
+            "hmi.objects.speed: not a screen object name (letters, digits, _) (got 't speed')",
+        ),
+        (
+            {"channel": [{"name": "seed", "target_rate_kg_ha": 150, "node_id": 0}]},
+            "channel[0].node_id: a can_pid channel needs node_id 1..15 (0 is not addressable) "
+            "(got 0)",
+        ),
+    ],
+)
+def test_cross_key_problems_name_section_key_and_value(data: dict[str, Any], line: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(data)
+    assert info.value.problems == [line]
+
+
+def test_refitted_crop_with_inverted_ranges_names_the_key() -> None:
+    wheat = parse_config({}).control.crops["wheat"].model_dump()
+    wheat["omega_max_rpm"] = 10.0
+    with pytest.raises(ConfigError) as info:
+        parse_config({"control": {"crops": {"wheat": wheat}, "crop": "wheat"}})
+    assert info.value.problems == [
+        "control.crops.wheat.omega_max_rpm: must be above omega_min_rpm (20) (got 10.0)"
+    ]
+
+
+def test_a_crop_table_refits_only_the_keys_it_gives(tmp_path: Path) -> None:
+    f = tmp_path / "sowgate.toml"
+    f.write_text(
+        "[control]\ncrop = 'wheat'\n"
+        "[control.crops.wheat]\nmeter_a = -0.61\nmeter_b = 130.0\nrate_max_kg_ha = 250.0\n"
+    )
+    s = load_config(f)
+    wheat = s.control.crops["wheat"]
+    assert (wheat.meter_a, wheat.meter_b, wheat.meter_c) == (-0.61, 130.0, -398.316)
+    assert wheat.motor_slope == pytest.approx(0.6671) and wheat.rate_max_kg_ha == 250.0
+    assert s.control.crops["rapeseed"].meter_b == pytest.approx(5.468)  # still there
+
+
+def test_a_new_crop_needs_every_key() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"control": {"crops": {"barley": {"code": 3}}}})
+    assert "control.crops.barley.meter_a: Field required" in info.value.problems
+
+
+def test_unknown_screen_encoding_is_a_config_error_not_a_crash() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"hmi": {"encoding": "gb2321"}})
+    (line,) = info.value.problems
+    assert line.startswith("hmi.encoding: unknown text encoding")
+    assert line.endswith("(got 'gb2321')")
+    assert parse_config({"hmi": {"encoding": "gb2312"}}).hmi.encoding == "gb2312"
 
 
 def test_environment_overrides_the_file(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -60,6 +60,47 @@ def test_lost_speed_stops_metering_and_raises_a_critical_alarm() -> None:
     assert any(e.code == "speed.lost" and e.active and e.severity == "critical" for e in events)
 
 
+def test_a_glitch_speed_reading_is_ignored_not_metered() -> None:
+    """A radar's 0xFFFF (655.35 km/h) used to hold the motor at 100 % for 3 s, then at 0."""
+    c, events = make(crop="rapeseed", rate_kg_ha=6.0)
+    c.execute(cmd.Start(), "test")
+    t = 0.0
+    for _ in range(24):
+        feed(c, t)
+        t += 1 / 3
+    steady = c.tick(t).motor_pct
+    assert steady == pytest.approx(48.1, abs=0.1)
+    assert c.on_speed("radar", 655.35, t) is False
+    assert c.alarms.is_active("radar.implausible")
+    duties = []
+    for _ in range(5):
+        t += 1 / 3
+        feed(c, t)
+        out = c.tick(t)
+        duties.append(out.motor_pct)
+        assert out.state is WorkState.SEEDING
+        assert not c.alarms.is_active("rate.too_fast")
+    assert duties == pytest.approx([steady] * 5, abs=0.01)
+    assert c.alarms.is_active("radar.implausible")
+    raised = [e for e in events if e.code == "radar.implausible" and e.active]
+    assert len(raised) == 1 and "40 km/h" in raised[0].message
+    t += 1.0  # plausible readings for speed.stale_after_s (2 s) after the glitch clear it
+    feed(c, t)
+    assert not c.alarms.is_active("radar.implausible")
+
+
+def test_a_source_sending_only_glitches_goes_stale_and_stops_metering() -> None:
+    c, _ = make()
+    c.execute(cmd.Start(), "test")
+    feed(c, 0.0)
+    assert c.tick(0.1).motor_pct > 0
+    for t in (0.4, 1.0, 1.6, 2.2, 2.6):
+        feed(c, t, kmh=float("nan"))
+    out = c.tick(2.6)
+    assert out.motor_pct == 0.0
+    assert c.alarms.is_active("speed.lost") and c.alarms.is_active("radar.implausible")
+
+
 def test_lost_inclinometer_counts_as_raised_with_an_alarm() -> None:
     c, _ = make()
     c.execute(cmd.Start(), "test")

@@ -65,7 +65,11 @@ async def test_demo_runs_and_reports_the_applied_rate() -> None:
     )
     out, err = await asyncio.wait_for(proc.communicate(), 60.0)
     assert proc.returncode == 0, err.decode()
-    assert b"demo finished: applied" in out
+    # the simulated tractor stands for its first 4 s: at most a start-up has been sown, and
+    # the demo must say so instead of presenting that as the controller's rate error
+    line = out.decode().strip().splitlines()[-1]
+    assert line.startswith("demo finished: "), line
+    assert "nothing sown yet" in line or "not representative" in line, line
 
 
 async def test_demo_with_paper_b_channels_drives_the_simulated_can_controllers() -> None:
