@@ -290,6 +290,11 @@ def _attach_channels(daemon: Daemon) -> None:
         daemon.tick_hooks.append(part.on_tick)
 
 
+# the alarms that are about paper A's motor (the PWM module and the rate its duty can give)
+PWM_CHANNEL_ALARMS = ("pwm.unavailable", "rate.too_fast", "rate.outside_calibration",
+                      "rate.low_duty")
+
+
 class PwmChannelPart:
     """Paper A's motor as a channel: its rate from the map under its outlets, as-applied log.
 
@@ -306,6 +311,7 @@ class PwmChannelPart:
         self._last_logged = float("-inf")
         self.last_target: float | None = None
         self.last_commanded: float | None = None
+        self.last_duty_pct: float | None = None
 
     def prescribed_rate(self) -> float | None:
         if self.prescription is None:
@@ -325,6 +331,7 @@ class PwmChannelPart:
         from gateway.channels import AS_APPLIED_PERIOD_S
 
         self.last_target, self.last_commanded = out.target_rate_kg_ha, out.commanded_rate_kg_ha
+        self.last_duty_pct = out.motor_pct
         now = self.daemon.clock()
         if out.state.value != "seeding" or now - self._last_logged < AS_APPLIED_PERIOD_S:
             return
@@ -337,12 +344,17 @@ class PwmChannelPart:
         )
 
     def snapshot(self) -> dict[str, Any]:
+        """Shaped like a CAN channel's so the live view can show every channel in one table;
+        the motor has no shaft feedback, so the duty written is what there is to show."""
+        active = {a.code for a in self.daemon.alarms.active}
         return {
             "name": self.channel.name,
             "product": self.channel.product,
             "prescription": self.prescription is not None,
             "target_rate_kg_ha": self.last_target,
             "commanded_rate_kg_ha": self.last_commanded,
+            "duty_pct": self.last_duty_pct,
+            "alarms": [code for code in PWM_CHANNEL_ALARMS if code in active],
         }
 
 

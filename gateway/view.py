@@ -85,8 +85,15 @@ def render(snapshot: dict[str, Any], truth: dict[str, Any] | None = None) -> Gro
     if isinstance(seeds, dict) and isinstance(seeds.get("rows"), dict):
         parts.append(_seed_table(seeds))
     metering = snapshot.get("metering")
-    if isinstance(metering, dict) and isinstance(metering.get("channels"), dict):
-        parts.append(_metering_table(metering["channels"]))
+    can_channels = metering.get("channels") if isinstance(metering, dict) else None
+    pwm = snapshot.get("pwm_channel")
+    if isinstance(can_channels, dict) or isinstance(pwm, dict):
+        parts.append(
+            _metering_table(
+                can_channels if isinstance(can_channels, dict) else {},
+                pwm if isinstance(pwm, dict) else None,
+            )
+        )
     return Group(Panel(Group(*parts), title=f"sowgate · {snapshot['machine_id']}"))
 
 
@@ -112,15 +119,32 @@ def _seed_table(seeds: dict[str, Any]) -> Table:
     return t
 
 
-def _metering_table(channels: dict[str, Any]) -> Table:
+def _metering_table(channels: dict[str, Any], pwm: dict[str, Any] | None = None) -> Table:
+    """Every ``[[channel]]`` in one table, the ``can_pid`` ones and paper A's ``pwm_modbus``
+    motor alike, so a fitter checks all of them in one place.
+
+    A CAN channel is commanded a shaft speed and reports the one it measures; paper A's motor
+    is commanded a PWM duty (with the rate the crop model says it gives) and has no feedback.
+    """
     t = Table(title="metering channels", box=None)
-    for col in ("channel", "target kg/ha", "target r/min", "measured r/min", "alarms"):
+    for col in ("channel", "product", "target kg/ha", "command", "feedback", "alarms"):
         t.add_column(col, justify="right")
     for name, ch in channels.items():
         t.add_row(
-            name, f"{ch.get('target_rate_kg_ha', 0):g}", f"{ch.get('target_rpm', 0):.1f}",
-            "--" if ch.get("measured_rpm") is None else f"{ch['measured_rpm']:.1f}",
+            name, str(ch.get("product") or "-"), f"{ch.get('target_rate_kg_ha', 0):g}",
+            f"{ch.get('target_rpm', 0):.1f} r/min",
+            _fmt(ch.get("measured_rpm"), ".1f", " r/min"),
             ", ".join(ch.get("alarms") or []) or "-",
+        )
+    if pwm is not None:
+        duty, commanded = pwm.get("duty_pct"), pwm.get("commanded_rate_kg_ha")
+        command = _fmt(duty, ".1f", " %")
+        if duty is not None and commanded is not None:
+            command += f" ({commanded:.2f} kg/ha)"
+        t.add_row(
+            str(pwm.get("name")), str(pwm.get("product") or "-"),
+            _fmt(pwm.get("target_rate_kg_ha"), "g"), command, "open loop",
+            ", ".join(pwm.get("alarms") or []) or "-",
         )
     return t
 
