@@ -29,7 +29,7 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
     rates and an alarm), but a fitter checking a config wants to hear about them now.
     """
     problems: list[str] = []
-    warnings: list[str] = []
+    warnings: list[str] = settings.deprecation_notes()
     p = settings.prescription
     channels = settings.channel
     can_pid = [c.name for c in channels if c.drive == "can_pid"]

@@ -71,6 +71,8 @@ class Daemon:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.settings = settings
+        for note in settings.deprecation_notes():  # logged here: logging is set up by now
+            log.warning("config: %s", note)
         self.state_dir = state_dir
         state_dir.mkdir(parents=True, exist_ok=True)
         self.clock = clock

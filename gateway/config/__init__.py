@@ -135,6 +135,21 @@ class Settings(BaseSettings):
                 data = {**data, name: {**table, "enabled": True}}
         return data
 
+    def deprecation_notes(self) -> list[str]:
+        """Keys the file sets that do nothing any more, each with the key that does.
+
+        They are accepted so an old config still loads; the daemon logs these at start and
+        ``check-config`` prints them, because a fitter who set one believes it works.
+        """
+        notes: list[str] = []
+        if "loop_hz" in self.control.ignored_keys:
+            notes.append(
+                f"control.loop_hz = {self.control.ignored_keys['loop_hz']} is deprecated and "
+                "ignored: the control loop ticks once per RS485 poll, so set rs485.poll_hz "
+                f"(now {self.rs485.poll_hz:g} Hz) instead and remove control.loop_hz"
+            )
+        return notes
+
     @model_validator(mode="after")
     def _cross_section(self) -> Settings:
         if self.seed_sensors.enabled and not self.gnss.enabled:

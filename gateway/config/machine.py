@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    ConfigDict,
+    Field,
+    ModelWrapValidatorHandler,
+    PrivateAttr,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import NoDecode
 
 from gateway.config._base import FieldProblem, Section, check_unique, source_chain
@@ -244,11 +251,34 @@ def default_crops() -> dict[str, CropModel]:
 class ControlSection(Section):
     crop: str = "rapeseed"
     rate_kg_ha: float | None = None  # None -> the crop's default rate
-    loop_hz: float = Field(10.0, ge=1, le=100)
     emptying_timeout_s: float = Field(120.0, gt=0, le=3600)
     emptying_motor_pct: float = Field(100.0, ge=0, le=100)
     start_working: bool = False  # start in the "work" mode without an HMI start press
     crops: dict[str, CropModel] = Field(default_factory=default_crops)
+    # keys older versions accepted and that never did anything: key -> value in the file
+    _ignored: dict[str, Any] = PrivateAttr(default_factory=dict)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _accept_old_loop_hz(
+        cls, data: Any, handler: ModelWrapValidatorHandler[ControlSection]
+    ) -> ControlSection:
+        """``loop_hz`` was accepted but never used: the control loop ticks once per RS485 poll
+        (``rs485.poll_hz``). A file that still has it loads, and the value is kept only so
+        that ``Settings.deprecation_notes`` can tell the fitter it changes nothing."""
+        old: dict[str, Any] = {}
+        if isinstance(data, dict) and "loop_hz" in data:
+            data = dict(data)
+            old["loop_hz"] = data.pop("loop_hz")
+        section = handler(data)
+        if old:
+            section._ignored = old
+        return section
+
+    @property
+    def ignored_keys(self) -> dict[str, Any]:
+        """Keys given in the file that this version ignores (see ``_accept_old_loop_hz``)."""
+        return dict(self._ignored)
 
     @field_validator("crops", mode="before")
     @classmethod

@@ -175,3 +175,14 @@ def test_check_config_accepts_a_good_prescription_map(
     assert main(["check-config", str(_map_config(tmp_path, "EPSG:4326"))]) == 0
     captured = capsys.readouterr()
     assert "ok (machine" in captured.out and "1 zones" in captured.err
+
+
+def test_check_config_notes_an_ignored_loop_hz_and_passes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    f = tmp_path / "old.toml"
+    f.write_text("[control]\nloop_hz = 10\n")
+    assert main(["check-config", str(f)]) == 0
+    err = capsys.readouterr().err
+    assert "note: control.loop_hz = 10 is deprecated and ignored" in err
+    assert "rs485.poll_hz" in err

@@ -297,3 +297,33 @@ def test_a_gnss_speed_source_needs_the_receiver(source: str) -> None:
     assert parse_config({"speed": {"source": source}, "gnss": {}}).speed.source == source.split(
         "_then_"
     )
+
+
+def test_an_old_loop_hz_still_loads_and_says_rs485_poll_hz_is_the_real_setting(
+    tmp_path: Path,
+) -> None:
+    """control.loop_hz never changed anything (the loop ticks once per RS485 poll); a file
+    written for an older version must load, and the fitter must hear what to set instead."""
+    f = tmp_path / "sowgate.toml"
+    f.write_text(CONTRACT.replace("poll_hz = 3.0", "poll_hz = 5.0") + "[control]\nloop_hz = 20\n")
+    s = load_config(f)
+    (note,) = s.deprecation_notes()
+    assert note.startswith("control.loop_hz = 20 is deprecated and ignored")
+    assert "set rs485.poll_hz (now 5 Hz)" in note
+    assert not hasattr(s.control, "loop_hz")  # nothing can read it by mistake
+    assert parse_config({}).deprecation_notes() == []
+    with pytest.raises(ConfigError, match=r"control\.loop_hzz: Extra inputs"):
+        parse_config({"control": {"loop_hzz": 20}})  # a typo is still an error
+
+
+def test_the_daemon_logs_the_ignored_loop_hz_at_start(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from gateway.daemon import Daemon
+
+    settings = parse_config({"hmi": {"enabled": False}, "control": {"loop_hz": 10.0}})
+    with caplog.at_level("WARNING", logger="gateway.daemon"):
+        Daemon(settings, tmp_path / "state")
+    (record,) = [r for r in caplog.records if "loop_hz" in r.getMessage()]
+    assert record.levelname == "WARNING"
+    assert "rs485.poll_hz" in record.getMessage()
