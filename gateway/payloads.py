@@ -116,18 +116,20 @@ class _Command(_Payload):
     )
 
 
+def _must_be_finite(v: float) -> float:
+    """JSON from a dashboard may carry NaN or Infinity, which pass ``gt``/``le`` bounds."""
+    if not math.isfinite(v):
+        raise ValueError("must be a finite number")
+    return v
+
+
 class RateCommand(_Command):
     """``cmd/rate``: set crop and target rate (ranges checked like HMI input by the controller)."""
 
     crop: str = Field(min_length=1, max_length=64)
     rate_kg_ha: float = Field(gt=0)
 
-    @field_validator("rate_kg_ha")
-    @classmethod
-    def _finite(cls, v: float) -> float:
-        if not math.isfinite(v):
-            raise ValueError("must be a finite number")
-        return v
+    _finite = field_validator("rate_kg_ha")(_must_be_finite)
 
 
 class ChannelRateCommand(_Command):
@@ -137,12 +139,7 @@ class ChannelRateCommand(_Command):
     channel: str = Field(min_length=1, max_length=32)
     rate_kg_ha: float = Field(gt=0, le=2000)
 
-    @field_validator("rate_kg_ha")
-    @classmethod
-    def _finite(cls, v: float) -> float:
-        if not math.isfinite(v):
-            raise ValueError("must be a finite number")
-        return v
+    _finite = field_validator("rate_kg_ha")(_must_be_finite)
 
 
 class SpeedCalCommand(_Command):

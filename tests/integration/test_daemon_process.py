@@ -51,47 +51,34 @@ async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
         assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
 
 
-async def test_demo_runs_and_reports_the_applied_rate() -> None:
+async def _demo(*args: str) -> str:
+    """``sowgate demo --no-tui ARGS`` in its own process; its standard output."""
     proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "gateway.cli",
-        "demo",
-        "--no-tui",
-        "--duration",
-        "4",
+        sys.executable, "-m", "gateway.cli", "demo", "--no-tui", *args,
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
     )
     out, err = await asyncio.wait_for(proc.communicate(), 60.0)
     assert proc.returncode == 0, err.decode()
+    return out.decode()
+
+
+async def test_demo_runs_and_reports_the_applied_rate() -> None:
+    out = await _demo("--duration", "4")
     # the simulated tractor stands for its first 4 s: at most a start-up has been sown, and
     # the demo must say so instead of presenting that as the controller's rate error
-    line = out.decode().strip().splitlines()[-1]
+    line = out.strip().splitlines()[-1]
     assert line.startswith("demo finished: "), line
     assert "nothing sown yet" in line or "not representative" in line, line
 
 
 async def test_demo_with_paper_b_channels_drives_the_simulated_can_controllers() -> None:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "gateway.cli",
-        "demo",
-        "--no-tui",
-        "--channels",
-        "--duration",
-        # 6 s is mostly the start from standstill (~55 % of target applied, marginal under
-        # load); by 10 s the shafts have clearly followed the targets (~85 %)
-        "10",
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-    )
-    out, err = await asyncio.wait_for(proc.communicate(), 60.0)
-    assert proc.returncode == 0, err.decode()
+    # 6 s is mostly the start from standstill (~55 % of target applied, marginal under load);
+    # by 10 s the shafts have clearly followed the targets (~85 %)
+    out = await _demo("--channels", "--duration", "10")
     lines = {
         line.split(":")[0].removeprefix("channel "): line
-        for line in out.decode().splitlines()
+        for line in out.splitlines()
         if line.startswith("channel ")
     }
     assert sorted(lines) == ["deep", "seed", "shallow"]
