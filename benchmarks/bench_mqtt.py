@@ -87,12 +87,10 @@ UTC0 = datetime(2026, 4, 20, 8, tzinfo=UTC)
 
 
 def _planter(extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Config sections of a 48-row, 36 m planter (0.75 m rows)."""
+    """Config sections of a 48-row, 36 m planter (0.75 m rows; the daemon derives the row
+    offsets from rows and width)."""
     data: dict[str, Any] = {
         "machine": {"id": MACHINE, "rows": ROWS, "working_width_m": WIDTH_M},
-        "positioning": {
-            "row_lateral_m": [-WIDTH_M / 2 + 0.375 + 0.75 * i for i in range(ROWS)]
-        },
     }
     for section, values in (extra or {}).items():
         data.setdefault(section, {}).update(values)

@@ -9,7 +9,8 @@ Design rules, in order of importance:
 * The control loop never waits on MQTT. The only entry points the daemon's control loop
   touches are synchronous callbacks that enqueue (alarm listener, ``notify_state_changed``);
   everything that can block on the network runs in this module's own tasks.
-* Remote commands go through the same ``CommandSink`` as the HMI. Each gets an ack; a refused
+* Remote commands go through the same ``CommandSink`` as the HMI. Each gets an ack (carrying
+  the result text the cab screen shows, or the reason it was refused); a refused
   command changes nothing. Commands are off unless listed in ``[commands] enabled``.
 * ``run()`` reconnects forever with capped, jittered backoff and never raises (except
   ``CancelledError``): a broker outage is a normal day on a tractor.
@@ -73,6 +74,7 @@ STATE_POLL_S = 0.1  # how often the state snapshot is compared for changes (max 
 ALARMS_PER_READ = 100
 OFFLINE_PUBLISH_TIMEOUT_S = 2.0  # clean shutdown must not hang on a dead link
 ERROR_TEXT_MAX_CHARS = 500
+ACK_TEXT_MAX_CHARS = 500  # an OK ack's result message
 BACKLOG_ALARM = "mqtt.backlog"
 # A session must last this long to reset the reconnect backoff. Otherwise a connection the
 # broker drops right after CONNACK (typically: two boxes cloned from one image, same client
@@ -483,7 +485,7 @@ class MqttLink:
         except ValidationError as exc:
             return CommandAck(ok=False, error=_describe_validation(exc), request_id=request_id)
         try:
-            self.commands.execute(_to_command(name, parsed), "mqtt")
+            reply = self.commands.execute(_to_command(name, parsed), "mqtt")
         except CommandError as exc:
             return CommandAck(ok=False, error=str(exc), request_id=request_id)
         except Exception as exc:  # report, keep the link alive
@@ -493,7 +495,10 @@ class MqttLink:
                 error=f"internal error: {exc}"[:ERROR_TEXT_MAX_CHARS],
                 request_id=request_id,
             )
-        return CommandAck(ok=True, request_id=request_id)
+        # the result text the cab screen shows (a calibration's factor, ...): the remote
+        # operator's only view of it; capped like errors so one ack stays one small message
+        message = reply.strip()[:ACK_TEXT_MAX_CHARS] or None
+        return CommandAck(ok=True, message=message, request_id=request_id)
 
 
 def _flatten(exc: BaseException) -> str:

@@ -155,9 +155,17 @@ class EmptyCommand(_Command):
 
 
 class CommandAck(_Payload):
-    """On ``cmd/<name>/ack``: ``{"ok": true}`` or ``{"ok": false, "error": "…"}``."""
+    """On ``cmd/<name>/ack``: ``{"ok": true, "message": "…"}`` or ``{"ok": false, "error": "…"}``.
+
+    ``message`` is the executed command's result text, the confirmation a touchscreen command
+    shows on the cab screen (e.g. a speed calibration's ``radar 48.7 m -> x1.0267``): without
+    it a remote operator calibrating from the farm office never learns the factor. It is
+    omitted when the command gave no text, so a bare ``{"ok": true}`` stays a valid ack;
+    refused commands carry ``error`` instead.
+    """
 
     ok: bool
+    message: str | None = None
     error: str | None = None
     request_id: str | None = None
 

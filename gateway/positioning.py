@@ -123,17 +123,8 @@ class RowOffset:
     right_m: float
 
 
-def paper_row_lateral(width_m: float, rows: int) -> list[float]:
-    """Paper C's lateral offsets ``R·m/(n−1)``, m counted from the centre line (−(n−1)/2 …)."""
-    if rows < 1:
-        raise ValueError(f"rows must be >= 1, got {rows}")
-    if rows == 1:
-        return [0.0]
-    return [width_m * (i - (rows - 1) / 2.0) / (rows - 1) for i in range(rows)]
-
-
 def row_offset(settings: PositioningSection, row: int) -> RowOffset:
-    lateral = settings.row_lateral_m
+    lateral = settings.lateral_offsets()
     if not 1 <= row <= len(lateral):
         raise ValueError(f"row {row} outside 1..{len(lateral)} (positioning.row_lateral_m)")
     return RowOffset(settings.outlet_behind_antenna_m, lateral[row - 1])
@@ -640,7 +631,8 @@ class SeedPositioner:
     ) -> None:
         self.settings = settings
         self.method: Method = method or settings.method
-        self.offsets = [row_offset(settings, r) for r in range(1, len(settings.row_lateral_m) + 1)]
+        rows = len(settings.lateral_offsets())
+        self.offsets = [row_offset(settings, r) for r in range(1, rows + 1)]
         self.clock = ClockMap(settings.gnss_output_latency_ms / 1000.0)
         self.frame: LocalFrame | None = None
         self._samples: deque[AntennaSample] = deque(maxlen=history)

@@ -98,7 +98,9 @@ class SimulatedMachine:
     def __post_init__(self) -> None:
         self.rng = random.Random(self.seed)
         self.truth = Truth()
-        self.base_settings = parse_config({})
+        # the machine being simulated: the daemon's own config (settings_overrides included),
+        # so the seed tubes' outlets and the truth's width are those the daemon works with
+        self.base_settings = parse_config(_merged({}, self.settings_overrides))
         model = self.base_settings.control.crops[self.crop]
         self.plant = MeteringPlant(
             slope=model.motor_slope,
@@ -247,18 +249,46 @@ class SimulatedMachine:
                 "source": "serial",
                 "port": self.seed_tubes.device_path,
             }
-        for section, values in {**self.settings_overrides, **overrides}.items():
-            if isinstance(values, dict):
-                data.setdefault(section, {}).update(values)
-            else:
-                data[section] = values
-        return data
+        return _merged(data, {**self.settings_overrides, **overrides})
 
     def settings(self, **overrides: Any) -> Settings:
-        return parse_config(self.config(**overrides))
+        settings = parse_config(self.config(**overrides))
+        self._check_same_planter(settings)
+        return settings
 
     def write_config(self, path: Path, **overrides: Any) -> Path:
         import tomli_w
 
-        path.write_text(tomli_w.dumps(self.config(**overrides)))
+        data = self.config(**overrides)
+        self._check_same_planter(parse_config(data))
+        path.write_text(tomli_w.dumps(data))
         return path
+
+    def _check_same_planter(self, daemon: Settings) -> None:
+        """The running seed tubes' ground truth is the planter of ``base_settings``: a daemon
+        given other rows or outlets (e.g. a ``machine.rows`` passed here, which also moves the
+        derived row offsets) would be scored against a planter it does not have."""
+        if self.seed_tubes is None:
+            return
+
+        def planter(s: Settings) -> tuple[object, ...]:
+            p = s.positioning
+            return (s.machine.rows, p.row_lateral_m, p.outlet_behind_antenna_m,
+                    p.fall_time_table)
+
+        if planter(daemon) != planter(self.base_settings):
+            raise ValueError(
+                "the daemon's rows/outlets differ from the simulated planter's: pass machine "
+                "and positioning changes as SimulatedMachine(settings_overrides=...)"
+            )
+
+
+def _merged(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with each override table merged into its table (a non-table replaces it)."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    for section, values in overrides.items():
+        if isinstance(values, dict):
+            out.setdefault(section, {}).update(values)
+        else:
+            out[section] = values
+    return out

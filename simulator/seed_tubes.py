@@ -27,7 +27,12 @@ from types import TracebackType
 from typing import Any
 
 from drivers.tasks import cancel_and_wait
-from gateway.config.recording import DEFAULT_FALL_TIME_TABLE, PositioningSection
+from gateway.config.machine import MachineSection
+from gateway.config.recording import (
+    DEFAULT_FALL_TIME_TABLE,
+    PositioningSection,
+    row_lateral_from_width,
+)
 from protocol.seed_line import encode_seed_line
 from simulator.plant import Drive, Pose
 from simulator.pty_link import PtyPair
@@ -49,11 +54,18 @@ class SeedTruth:
     north: float
 
 
+def _default_row_lateral() -> tuple[float, ...]:
+    """The outlets a daemon derives for the default ``[machine]`` (rows, working width), so a
+    default planter and a default daemon config describe the same machine."""
+    machine = MachineSection()
+    return tuple(row_lateral_from_width(machine.working_width_m, machine.rows))
+
+
 @dataclass(frozen=True)
 class PlanterModel:
     """How the planter meters and where its outlets are."""
 
-    row_lateral_m: Sequence[float] = (-1.5, -0.9, -0.3, 0.3, 0.9, 1.5)
+    row_lateral_m: Sequence[float] = field(default_factory=_default_row_lateral)
     outlet_behind_antenna_m: float = 1.2
     spacing_m: float = 0.2
     spacing_cv: float = 0.08  # seed-to-seed variation of a good vacuum meter
@@ -67,7 +79,7 @@ class PlanterModel:
     def from_positioning(cls, section: PositioningSection, **kw: Any) -> PlanterModel:
         """The planter a daemon config describes (outlets, fall-time table, target spacing)."""
         base: dict[str, Any] = {
-            "row_lateral_m": tuple(section.row_lateral_m),
+            "row_lateral_m": tuple(section.lateral_offsets()),
             "outlet_behind_antenna_m": section.outlet_behind_antenna_m,
             "fall_time_table": tuple(section.fall_time_table),
         }

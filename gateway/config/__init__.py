@@ -38,6 +38,7 @@ from gateway.config.recording import (
     PositioningSection,
     SeedSensorsSection,
     StoreSection,
+    row_lateral_from_width,
 )
 from gateway.errors import ConfigError
 
@@ -164,7 +165,12 @@ class Settings(BaseSettings):
             )
         rows = self.machine.rows
         lateral = self.positioning.row_lateral_m
-        if len(lateral) != rows:
+        if lateral is None:
+            # omitted: follow the machine, so changing rows or width cannot leave stale offsets
+            self.positioning.row_lateral_m = row_lateral_from_width(
+                self.machine.working_width_m, rows
+            )
+        elif len(lateral) != rows:
             raise FieldProblem(
                 "positioning.row_lateral_m",
                 f"needs one entry per row, machine.rows is {rows} but it has {len(lateral)}",

@@ -58,10 +58,33 @@ DEFAULT_FALL_TIME_TABLE: list[tuple[float, float]] = [
 ]
 
 
+def row_lateral_from_width(working_width_m: float, rows: int) -> list[float]:
+    """Each row's lateral offset from the centre line (m), row 1 first, left to right, right
+    of the centre line positive: ``rows`` rows sharing ``working_width_m`` evenly.
+
+    Paper C writes the offset as ``R·m/(n−1)`` (R working width, n rows) with m only described
+    as a "row coefficient related to n", counted from the centre line. We take each row to sow
+    an equal strip of width R/n with its outlet in the middle: row spacing R/n, outer rows at
+    ±(R/2 − R/(2n)). That is what a planter's working width means (rows × row spacing, so
+    48 rows at 0.75 m work 36 m and their seeded strips tile the pass), and it is defined for
+    one row. Reading m as the plain row index from the centre would instead put the outer
+    outlets on the very edges of the working width (spacing R/(n−1)), making adjacent passes
+    overlap by one row, and divide by zero for a single row.
+    """
+    if rows < 1:
+        raise ValueError(f"rows must be >= 1, got {rows}")
+    spacing = working_width_m / rows
+    return [spacing * (i - (rows - 1) / 2.0) for i in range(rows)]
+
+
 class PositioningSection(Section):
     method: Literal["interpolated", "paper"] = "interpolated"
     outlet_behind_antenna_m: float = Field(1.2, ge=-20, le=20)
-    row_lateral_m: list[float] = Field(default_factory=lambda: [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5])
+    # One lateral offset per row (m, row 1 first, right of the centre line positive). Omitted:
+    # ``Settings`` derives it from machine.rows and machine.working_width_m (see
+    # row_lateral_from_width), so a machine of any size works without listing them by hand; a
+    # section built on its own, without the machine, must give it.
+    row_lateral_m: list[float] | None = None
     fall_time_table: list[tuple[float, float]] = Field(
         default_factory=lambda: list(DEFAULT_FALL_TIME_TABLE)
     )
@@ -88,6 +111,16 @@ class PositioningSection(Section):
                 "fall_time_table", "must be non-empty and sorted by speed", self.fall_time_table
             )
         return self
+
+    def lateral_offsets(self) -> list[float]:
+        """``row_lateral_m`` as the position model needs it: always a list once ``Settings``
+        has resolved the section, so only a hand-built section can get here without one."""
+        if self.row_lateral_m is None:
+            raise ValueError(
+                "positioning.row_lateral_m is not set: give it, or build the section through "
+                "Settings, which derives it from machine.rows and machine.working_width_m"
+            )
+        return self.row_lateral_m
 
 
 class StoreSection(Section):

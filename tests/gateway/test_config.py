@@ -105,7 +105,8 @@ def test_devices_on_one_bus_need_distinct_ids() -> None:
             "(got 'maize')",
         ),
         (
-            {"machine": {"rows": 4}},
+            {"machine": {"rows": 4},
+             "positioning": {"row_lateral_m": [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5]}},
             "positioning.row_lateral_m: needs one entry per row, machine.rows is 4 but it has 6 "
             "(got [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5])",
         ),
@@ -274,6 +275,42 @@ def test_the_recording_contract_loads_and_switches_recording_on(tmp_path: Path) 
     assert s.positioning.method == "interpolated"
     assert s.positioning.outlet_behind_antenna_m == 1.2
     assert s.positioning.row_lateral_m == [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5]
+
+
+@pytest.mark.parametrize(
+    ("rows", "width_m", "expected"),
+    [
+        # the default machine: 1/3 m rows, outer outlets 1/6 m in from the 2 m edges
+        (6, 2.0, [-5 / 6, -0.5, -1 / 6, 1 / 6, 0.5, 5 / 6]),
+        # 48 rows at 0.75 m work 36 m: outer rows at +/-(18 - 0.375)
+        (48, 36.0, [-17.625 + 0.75 * i for i in range(48)]),
+        (1, 3.0, [0.0]),
+    ],
+)
+def test_row_offsets_follow_the_machine_when_omitted(
+    rows: int, width_m: float, expected: list[float]
+) -> None:
+    """A planter of any size works without listing its outlets: row spacing = width / rows,
+    centred, row 1 on the left (negative)."""
+    s = parse_config({"machine": {"rows": rows, "working_width_m": width_m}})
+    assert s.positioning.row_lateral_m == pytest.approx(expected)
+
+
+def test_an_explicit_row_offset_list_wins_over_the_derived_one() -> None:
+    explicit = [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5]
+    s = parse_config({"positioning": {"row_lateral_m": explicit}})
+    assert (s.machine.rows, s.machine.working_width_m) == (6, 2.0)
+    assert s.positioning.row_lateral_m == explicit
+
+
+def test_the_example_config_describes_the_machine_it_names() -> None:
+    """examples/sowgate.toml is a 6-row, 2 m seeder: its outlets must span 2 m, not 3.6 m."""
+    example = Path(__file__).resolve().parents[2] / "examples" / "sowgate.toml"
+    s = load_config(example)
+    lateral = s.positioning.row_lateral_m
+    assert lateral is not None and len(lateral) == s.machine.rows
+    spacing = s.machine.working_width_m / s.machine.rows
+    assert max(lateral) - min(lateral) == pytest.approx(s.machine.working_width_m - spacing)
 
 
 def test_absent_or_explicitly_disabled_device_tables_stay_off() -> None:

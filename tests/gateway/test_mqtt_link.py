@@ -75,7 +75,9 @@ class StubController:
                     f"rate {command.rate_kg_ha:g} kg/ha outside {lo:g}–{hi:g} for {command.crop}"
                 )
         self.executed.append(command)
-        return "done"
+        if isinstance(command, SetRate):
+            return f"{command.crop} {command.rate_kg_ha:g} kg/ha"
+        return ""  # a command with no result text: its ack is a bare {"ok": true}
 
 
 def state_now() -> StatePayload:
@@ -186,7 +188,10 @@ async def test_bad_commands_get_precise_error_acks_and_change_nothing(
                 assert ack["ok"] is True, ack
             else:
                 assert ack["ok"] is False and expected_error in ack["error"], ack
-        assert json.loads(sub.on("cmd/rate/ack")[0]) == {"ok": True, "request_id": "r1"}
+        # an OK ack carries the command's result text, and omits it when there is none
+        assert json.loads(sub.on("cmd/rate/ack")[0]) == {
+            "ok": True, "message": "wheat 225 kg/ha", "request_id": "r1"}
+        assert json.loads(sub.on("cmd/start/ack")[-1]) == {"ok": True}
         # the retained command left on the broker before the link came up is not executed
         assert "retained" in json.loads(sub.on("cmd/zero_tilt/ack")[0])["error"]
         assert run.sink.executed == [SetRate("wheat", 225.0), Start()]

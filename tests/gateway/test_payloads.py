@@ -53,6 +53,9 @@ def test_ack_wire_shape_is_the_contract() -> None:
     assert json.loads(CommandAck(ok=True, request_id="r1").to_json()) == {
         "ok": True, "request_id": "r1"
     }
+    assert json.loads(CommandAck(ok=True, message="radar 48.7 m -> x1.0267").to_json()) == {
+        "ok": True, "message": "radar 48.7 m -> x1.0267"
+    }
 
 
 def test_rate_command_accepts_the_documented_example() -> None:

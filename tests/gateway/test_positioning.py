@@ -14,7 +14,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from gateway.config.recording import DEFAULT_FALL_TIME_TABLE, PositioningSection
+from gateway.config.recording import (
+    DEFAULT_FALL_TIME_TABLE,
+    PositioningSection,
+    row_lateral_from_width,
+)
 from gateway.positioning import (
     PAPER_MM_PER_DEG,
     ClockMap,
@@ -30,7 +34,6 @@ from gateway.positioning import (
     oracle_landing,
     paper_lag_m,
     paper_landing,
-    paper_row_lateral,
     rotate_offset,
     row_offset,
 )
@@ -83,8 +86,15 @@ def epoch_from_pose(
     )
 
 
+# a 3.6 m, 6-row planter (0.6 m rows): long lever arms make heading errors visible
+ROW_LATERAL_M = [-1.5, -0.9, -0.3, 0.3, 0.9, 1.5]
+
+
 def settings(**kw: object) -> PositioningSection:
-    base: dict[str, object] = {"gnss_output_latency_ms": LATENCY_S * 1000.0}
+    base: dict[str, object] = {
+        "gnss_output_latency_ms": LATENCY_S * 1000.0,
+        "row_lateral_m": ROW_LATERAL_M,
+    }
     base.update(kw)
     return PositioningSection.model_validate(base)
 
@@ -177,9 +187,19 @@ def test_left_and_right_rows_mirror_about_the_centre_line(heading: float) -> Non
     assert cross < 0
 
 
-def test_paper_lateral_formula_reproduces_the_default_rows() -> None:
-    assert paper_row_lateral(3.0, 6) == pytest.approx(PositioningSection().row_lateral_m)
-    assert paper_row_lateral(2.0, 1) == [0.0]
+def test_rows_share_the_working_width_evenly_centred_on_the_antenna() -> None:
+    """Paper C's R·m/(n−1) read as row spacing R/n: six 0.6 m rows work 3.6 m."""
+    assert row_lateral_from_width(3.6, 6) == pytest.approx(ROW_LATERAL_M)
+    assert row_lateral_from_width(2.0, 1) == [0.0]
+    with pytest.raises(ValueError, match="rows must be >= 1"):
+        row_lateral_from_width(2.0, 0)
+
+
+def test_a_section_without_row_offsets_is_refused_by_the_position_model() -> None:
+    """Only Settings can derive the offsets (it knows the machine); a hand-built section
+    without them must fail by name rather than position seeds nowhere."""
+    with pytest.raises(ValueError, match=r"positioning\.row_lateral_m is not set"):
+        SeedPositioner(PositioningSection())
 
 
 def test_fall_time_follows_paper_table_interpolates_and_clamps() -> None:

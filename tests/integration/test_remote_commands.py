@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 from pathlib import Path
 
 import aiomqtt
@@ -94,6 +95,8 @@ async def test_live_speed_calibration_over_mqtt(tmp_path: Path) -> None:
                 # the simulated radar is unbiased: the factor is close to 1
                 factor = rig.daemon.controller.sources["radar"].correction
                 assert abs(factor - 1.0) < 0.08
+                # the farm office gets the calibration result in the ack, factor included
+                assert re.search(rf"\bradar \d+\.\d m -> x{factor:.4f}\b", str(ack["message"])), ack
                 await _send(broker.port, "speed_cal", b'{"action": "finish", "distance_m": 5}')
                 ack = await _ack(sub, "speed_cal", 3)
                 assert ack["ok"] is False and "not started" in str(ack["error"])

@@ -35,8 +35,10 @@ DRIVE = Drive(legs=[Leg(0.6, 0.0), Leg(3.6, 8.0)], start_heading_deg=37.0)
 
 
 async def test_predicted_landing_points_match_ground_truth_over_ptys() -> None:
-    model = PlanterModel()
-    settings = PositioningSection(gnss_output_latency_ms=OUTPUT_LATENCY_S * 1000.0)
+    model = PlanterModel()  # the default machine's planter, as a default daemon derives it
+    settings = PositioningSection(
+        gnss_output_latency_ms=OUTPUT_LATENCY_S * 1000.0, row_lateral_m=list(model.row_lateral_m)
+    )
     positioner = SeedPositioner(settings)
     landed: list[Landing] = []
 

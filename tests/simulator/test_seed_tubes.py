@@ -11,11 +11,19 @@ import time
 
 import pytest
 
+from gateway.config import parse_config
 from gateway.config.recording import PositioningSection
+from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg, field_passes
 from simulator.seed_tubes import PlanterModel, SeedTubeEmulator, landing_point, plan_seeds
 
-EXACT = PlanterModel(spacing_cv=0.0, miss_prob=0.0, double_prob=0.0, fall_time_sigma_s=0.0)
+EXACT = PlanterModel(
+    row_lateral_m=(-1.5, -0.9, -0.3, 0.3, 0.9, 1.5),
+    spacing_cv=0.0,
+    miss_prob=0.0,
+    double_prob=0.0,
+    fall_time_sigma_s=0.0,
+)
 
 
 def test_landing_point_is_behind_the_antenna_and_left_rows_are_left() -> None:
@@ -136,3 +144,24 @@ def test_the_planter_can_be_taken_from_a_daemon_positioning_config() -> None:
     assert model.outlet_behind_antenna_m == 0.9
     assert model.spacing_m == 0.25 and model.miss_prob == 0.0
     assert model.fall_time_table == tuple(section.fall_time_table)
+
+
+def test_the_default_planter_is_the_one_a_default_daemon_config_describes() -> None:
+    """Ground truth and the position model must agree on the outlets, or every seed is
+    'wrong' by the difference: the old default planter kept a fixed 3.6 m layout after the
+    daemon's default began to follow [machine] (6 rows, 2 m)."""
+    assert list(PlanterModel().row_lateral_m) == parse_config({}).positioning.row_lateral_m
+
+
+async def test_a_simulated_machine_plants_the_rows_its_daemon_config_has() -> None:
+    drive = Drive(legs=[Leg(0.2, 0.0), Leg(1.0, 5.0)])
+    four_rows = {"machine": {"rows": 4, "working_width_m": 3.0}}
+    async with SimulatedMachine(
+        drive=drive, with_gnss=True, with_seed_tubes=True, settings_overrides=four_rows
+    ) as machine:
+        daemon = machine.settings()
+        assert daemon.positioning.row_lateral_m == pytest.approx([-1.125, -0.375, 0.375, 1.125])
+        assert list(machine.seed_tubes.model.row_lateral_m) == daemon.positioning.row_lateral_m
+        # a daemon for another planter than the one whose seeds are simulated is refused
+        with pytest.raises(ValueError, match="settings_overrides"):
+            machine.settings(machine={"rows": 6})
