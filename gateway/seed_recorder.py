@@ -40,8 +40,9 @@ MAX_BUFFERED_DROPS = 10_000
 class SeedSink(Protocol):
     """What the recorder needs from ``gateway.store.RecordStore``.
 
-    A sink may also offer ``append_seeds(drops) -> ids`` (the store does); the recorder uses
-    it when no ``on_records`` callback wants the record objects.
+    A sink may also offer ``append_rows(rows) -> ids`` (the store does, rows as in
+    ``Landing.row``); the recorder uses it when no ``on_records`` callback wants the record
+    objects, so no ``SeedDrop`` is ever built for them.
     """
 
     def add_seeds(self, drops: Sequence[SeedDrop]) -> list[SeedRecord]: ...
@@ -69,7 +70,7 @@ class SeedRecorder:
         self.quality = {r: RowQualityAccumulator(x_ref) for r in range(1, rows + 1)}
         self.seeds_per_row = dict.fromkeys(range(1, rows + 1), 0)
         self.last_spacing_m: dict[int, float | None] = dict.fromkeys(range(1, rows + 1))
-        self._buffer: list[SeedDrop] = []
+        self._buffer: list[Landing] = []
         self.records_stored = 0
         self.bad_edges = 0
         self.store_errors = 0
@@ -94,7 +95,7 @@ class SeedRecorder:
             self._take(landed)
 
     def _take(self, landed: list[Landing]) -> None:
-        self._buffer.extend(la.drop for la in landed)
+        self._buffer.extend(landed)
         if len(self._buffer) >= MAX_BUFFERED_DROPS:
             self._flush_quietly()
 
@@ -111,7 +112,7 @@ class SeedRecorder:
         self._store(want_records=False)
 
     def _take_quiet(self, landed: list[Landing]) -> None:
-        self._buffer.extend(la.drop for la in landed)
+        self._buffer.extend(landed)
 
     def _store(self, want_records: bool) -> list[SeedRecord]:
         """Hand the buffer to the store; record objects only if someone wants them."""
@@ -120,13 +121,13 @@ class SeedRecorder:
         drops, self._buffer = self._buffer, []
         append = None
         if not want_records and self.on_records is None:
-            append = getattr(self.store, "append_seeds", None)
+            append = getattr(self.store, "append_rows", None)
         records: list[SeedRecord] = []
         try:
             if append is not None:
-                append(drops)  # ids only: no record objects nobody reads
+                append([la.row for la in drops])  # ids only: no objects nobody reads
             else:
-                records = self.store.add_seeds(drops)
+                records = self.store.add_seeds([la.drop for la in drops])
         except Exception as exc:  # keep positioning; RecordingHealth raises the alarm
             self.store_errors += 1
             self.store_error = str(exc) or type(exc).__name__
@@ -142,8 +143,9 @@ class SeedRecorder:
         self.store_error = None
         self.records_stored += len(drops)
         seeds_per_row, last_spacing, quality = self.seeds_per_row, self.last_spacing_m, self.quality
-        for d in drops:
-            row, spacing = d.row, d.spacing_m
+        for la in drops:
+            fields = la.row
+            row, spacing = fields[1], fields[10]
             seeds_per_row[row] = seeds_per_row.get(row, 0) + 1
             last_spacing[row] = spacing
             if spacing is not None and row in quality:

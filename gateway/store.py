@@ -35,10 +35,13 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gateway.errors import GatewayError
 from gateway.records import AlarmEvent, SeedDrop, SeedRecord
+
+if TYPE_CHECKING:
+    from gateway.positioning import SeedRow
 
 log = logging.getLogger(__name__)
 
@@ -248,14 +251,23 @@ class RecordStore:
         """
         if not drops:
             return range(0)
-        self._begin()
-        rows = [
+        return self.append_rows([
             (
                 _to_us(d.utc), d.row, d.lat, d.lon, d.fix, d.speed_kmh, d.heading_deg,
-                d.heading_source, int(d.extrapolated), d.method, d.spacing_m,
+                d.heading_source, d.extrapolated, d.method, d.spacing_m,
             )
             for d in drops
-        ]
+        ])
+
+    def append_rows(self, rows: Sequence[SeedRow]) -> range:
+        """``append_seeds`` for records already in column form (``Landing.row``).
+
+        The positioner hands the daemon's recorder rows, not ``SeedDrop`` objects; the values
+        are the ones a ``SeedDrop`` would hold (the positioner checks them against its schema).
+        """
+        if not rows:
+            return range(0)
+        self._begin()
         # A savepoint so a failed insert (disk full) leaves no half batch behind ids we
         # never returned.
         self._db.execute("SAVEPOINT add_seeds")
@@ -272,9 +284,9 @@ class RecordStore:
             self._db.execute("RELEASE add_seeds")
             raise StoreError(f"cannot write seed records: {exc}") from exc
         # One writer, one transaction: AUTOINCREMENT hands out a contiguous run ending at last.
-        first = last - len(drops) + 1
+        first = last - len(rows) + 1
         self._last_seed_id = last
-        self._uncommitted_seeds += len(drops)
+        self._uncommitted_seeds += len(rows)
         return range(first, last + 1)
 
     def add_alarm(self, event: AlarmEvent) -> AlarmEvent:
