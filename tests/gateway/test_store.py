@@ -16,7 +16,7 @@ import pytest
 
 from gateway.payloads import SeedBatch
 from gateway.records import AlarmEvent, SeedDrop, SeedRecord
-from gateway.store import RecordStore, StoreError
+from gateway.store import MAX_OUTBOX_LIMIT, RecordStore, StoreError
 
 T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
 REPO = Path(__file__).resolve().parents[2]
@@ -318,3 +318,21 @@ async def test_run_prunes_at_start_and_raises_an_old_backlog(tmp_path: Path) -> 
     assert calls == [(12, True)]
     with RecordStore(path, "m") as s:
         assert [r.id for r in s.query_seeds()] == list(range(4, 16))
+
+
+@pytest.mark.parametrize("sizes", [[1], [7, 9], [128], [129, 33], [300, 2, 161]])
+def test_batches_of_any_size_keep_ids_and_values(store: RecordStore, sizes: list[int]) -> None:
+    """Rows go in as multi-row INSERTs of a few fixed sizes: no row lost, reordered or
+    renumbered, whatever the batch size."""
+    written: list[SeedDrop] = []
+    ids: list[int] = []
+    for k, n in enumerate(sizes):
+        batch = drops(n, start=T0 + timedelta(seconds=10 * k), row=1 + k)
+        ids += store.append_seeds(batch)
+        written += batch
+    store.flush()
+    assert ids == list(range(1, len(written) + 1))
+    assert store.pending_seeds(MAX_OUTBOX_LIMIT) == [
+        SeedRecord(**d.model_dump(), id=i, machine_id="seeder-01")
+        for i, d in zip(ids, written, strict=True)
+    ]
