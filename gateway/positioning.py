@@ -671,16 +671,17 @@ def drop_row(drop: SeedDrop) -> SeedRow:
 class Landing:
     """A positioned seed in the local frame, alongside the record it became.
 
-    ``row`` holds the record as the store writes it; ``drop`` (the ``SeedDrop``) is built
-    from it on first access, so the daemon, which only stores rows, never builds one. Rows
+    ``stored`` holds the record as the store writes it (a ``SeedRow``); ``drop`` (the
+    ``SeedDrop``) is built from it on first access, so the daemon, which only stores rows,
+    never builds one. Rows
     given to :meth:`_lazy` must already satisfy ``SeedDrop``'s schema (the positioner checks).
     """
 
-    __slots__ = ("_drop", "east", "north", "row", "t_land")
+    __slots__ = ("_drop", "east", "north", "stored", "t_land")
 
     def __init__(self, drop: SeedDrop, east: float, north: float, t_land: float) -> None:
         self._drop: SeedDrop | None = drop
-        self.row: SeedRow = drop_row(drop)
+        self.stored: SeedRow = drop_row(drop)
         self.east = east
         self.north = north
         self.t_land = t_land
@@ -689,7 +690,7 @@ class Landing:
     def _lazy(cls, row: SeedRow, east: float, north: float, t_land: float) -> Landing:
         la = _object_new(cls)
         la._drop = None
-        la.row = row
+        la.stored = row
         la.east = east
         la.north = north
         la.t_land = t_land
@@ -699,7 +700,7 @@ class Landing:
     def drop(self) -> SeedDrop:
         drop = self._drop
         if drop is None:
-            us, row, lat, lon, fix, speed, heading, source, extrap, method, spacing = self.row
+            us, row, lat, lon, fix, speed, heading, source, extrap, method, spacing = self.stored
             drop = _new_drop(
                 row, _EPOCH + timedelta(microseconds=us), lat, lon, fix, speed, heading,
                 source, extrap, method, spacing,
@@ -708,7 +709,7 @@ class Landing:
         return drop
 
     def _key(self) -> tuple[SeedRow, float, float, float]:
-        return (self.row, self.east, self.north, self.t_land)
+        return (self.stored, self.east, self.north, self.t_land)
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Landing):

@@ -41,7 +41,7 @@ class SeedSink(Protocol):
     """What the recorder needs from ``gateway.store.RecordStore``.
 
     A sink may also offer ``append_rows(rows) -> ids`` (the store does, rows as in
-    ``Landing.row``); the recorder uses it when no ``on_records`` callback wants the record
+    ``Landing.stored``); the recorder uses it when no ``on_records`` callback wants the record
     objects, so no ``SeedDrop`` is ever built for them.
     """
 
@@ -125,7 +125,7 @@ class SeedRecorder:
         records: list[SeedRecord] = []
         try:
             if append is not None:
-                append([la.row for la in drops])  # ids only: no objects nobody reads
+                append([la.stored for la in drops])  # ids only: no objects nobody reads
             else:
                 records = self.store.add_seeds([la.drop for la in drops])
         except Exception as exc:  # keep positioning; RecordingHealth raises the alarm
@@ -144,8 +144,7 @@ class SeedRecorder:
         self.records_stored += len(drops)
         seeds_per_row, last_spacing, quality = self.seeds_per_row, self.last_spacing_m, self.quality
         for la in drops:
-            fields = la.row
-            row, spacing = fields[1], fields[10]
+            _us, row, *_, spacing = la.stored
             seeds_per_row[row] = seeds_per_row.get(row, 0) + 1
             last_spacing[row] = spacing
             if spacing is not None and row in quality:

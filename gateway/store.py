@@ -274,7 +274,7 @@ class RecordStore:
         ])
 
     def append_rows(self, rows: Sequence[SeedRow]) -> range:
-        """``append_seeds`` for records already in column form (``Landing.row``).
+        """``append_seeds`` for records already in column form (``Landing.stored``).
 
         The positioner hands the daemon's recorder rows, not ``SeedDrop`` objects; the values
         are the ones a ``SeedDrop`` would hold (the positioner checks them against its schema).

@@ -604,4 +604,4 @@ def _assert_landing_close(got: Landing, expected: Landing) -> None:
     assert g.spacing_m == pytest.approx(e.spacing_m, rel=0, abs=1e-9)
     approx = {"lat", "lon", "speed_kmh", "heading_deg", "spacing_m"}
     assert g.model_dump(exclude=approx) == e.model_dump(exclude=approx)
-    assert got.row[0] == expected.row[0]  # the stored utc_us
+    assert got.stored[0] == expected.stored[0]  # the stored utc_us
