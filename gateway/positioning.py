@@ -41,15 +41,23 @@ import statistics
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from datetime import UTC, datetime, timedelta
-from typing import Literal, NamedTuple, Protocol
+from datetime import UTC, datetime
+from typing import Any, Literal, NamedTuple, Protocol, overload
 
 import numpy as np
 import numpy.typing as npt
 import pymap3d
 
 from gateway.config.recording import PositioningSection
-from gateway.records import FixQuality, HeadingSource, PositionMethod, SeedDrop
+from gateway.records import (
+    FixQuality,
+    HeadingSource,
+    PositionMethod,
+    SeedDrop,
+    SeedRow,
+    drop_row,
+    us_to_utc,
+)
 
 log = logging.getLogger(__name__)
 
@@ -214,6 +222,22 @@ class LocalFrame:
         )
         return float(e), float(n), float(u)
 
+    @overload
+    def _ecef(self, east: float, north: float, up: float) -> tuple[float, float, float]: ...
+    @overload
+    def _ecef(
+        self, east: FloatArray, north: FloatArray, up: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]: ...
+
+    def _ecef(self, east: Any, north: Any, up: Any) -> tuple[Any, Any, Any]:
+        """Local ENU → ECEF: the rotation both geodesy paths share (floats or arrays)."""
+        x0, y0, z0, sin_la, cos_la, sin_lo, cos_lo = self._origin
+        t = cos_la * up - sin_la * north
+        z = z0 + sin_la * up + cos_la * north
+        x = x0 + cos_lo * t - sin_lo * east
+        y = y0 + sin_lo * t + cos_lo * east
+        return x, y, z
+
     def to_geodetic(self, east: float, north: float, up: float = 0.0) -> tuple[float, float]:
         """pymap3d's ``enu2geodetic`` (You 2000, non-iterative) in scalar ``math``.
 
@@ -222,11 +246,7 @@ class LocalFrame:
         (~3 µs) and agree with pymap3d to ~1e-12° (tested). Near the poles, where the
         formula's special cases apply, pymap3d itself answers.
         """
-        x0, y0, z0, sin_la, cos_la, sin_lo, cos_lo = self._origin
-        t = cos_la * up - sin_la * north
-        z = z0 + sin_la * up + cos_la * north
-        x = x0 + cos_lo * t - sin_lo * east
-        y = y0 + sin_lo * t + cos_lo * east
+        x, y, z = self._ecef(east, north, up)
         r2 = x * x + y * y + z * z
         e2 = _WGS84_E2
         u = math.sqrt(0.5 * (r2 - e2) + 0.5 * math.hypot(r2 - e2, 2.0 * math.sqrt(e2) * z))
@@ -253,11 +273,7 @@ class LocalFrame:
         an ulp or two of numpy's libm (≪ 1e-12°). Where ``ok`` is False (near the poles or
         the Earth's centre) the values are meaningless: use the scalar ``to_geodetic``.
         """
-        x0, y0, z0, sin_la, cos_la, sin_lo, cos_lo = self._origin
-        t = cos_la * up - sin_la * north
-        z = z0 + sin_la * up + cos_la * north
-        x = x0 + cos_lo * t - sin_lo * east
-        y = y0 + sin_lo * t + cos_lo * east
+        x, y, z = self._ecef(east, north, up)
         r2 = x * x + y * y + z * z
         e2 = _WGS84_E2
         u = np.sqrt(0.5 * (r2 - e2) + 0.5 * np.hypot(r2 - e2, 2.0 * math.sqrt(e2) * z))
@@ -641,31 +657,11 @@ def _new_drop(
     )
 
 
-_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
-
-# One seed as the store writes it: (utc_us, row, lat, lon, fix, speed_kmh, heading_deg,
-# heading_source, extrapolated, method, spacing_m), the column order of its INSERT.
-SeedRow = tuple[
-    int, int, float, float, FixQuality, float, float | None, HeadingSource, bool,
-    PositionMethod, float | None,
-]
-
-
 def utc_us_of(ts: float) -> int:
     """``datetime.fromtimestamp(ts, UTC)`` as integer microseconds, rounded as CPython does."""
     frac, whole = math.modf(ts)
     us = round(frac * 1e6)  # half to even, like _PyTime_ROUND_HALF_EVEN
     return int(whole) * 1_000_000 + us
-
-
-def drop_row(drop: SeedDrop) -> SeedRow:
-    utc = drop.utc if drop.utc.tzinfo is not None else drop.utc.replace(tzinfo=UTC)
-    delta = utc - _EPOCH
-    return (
-        (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds, drop.row,
-        drop.lat, drop.lon, drop.fix, drop.speed_kmh, drop.heading_deg, drop.heading_source,
-        drop.extrapolated, drop.method, drop.spacing_m,
-    )
 
 
 class Landing:
@@ -702,7 +698,7 @@ class Landing:
         if drop is None:
             us, row, lat, lon, fix, speed, heading, source, extrap, method, spacing = self.stored
             drop = _new_drop(
-                row, _EPOCH + timedelta(microseconds=us), lat, lon, fix, speed, heading,
+                row, us_to_utc(us), lat, lon, fix, speed, heading,
                 source, extrap, method, spacing,
             )
             self._drop = drop

@@ -7,7 +7,7 @@ store turns it into a ``SeedRecord`` by giving it its durable ``id``.
 
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import UTC, datetime, timedelta
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -59,3 +59,36 @@ class AlarmEvent(_Payload):
     severity: AlarmSeverity = "warning"
     message: str
     utc: datetime
+
+
+# ---------------------------------------------------------------- the stored form
+
+UNIX_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+
+# One seed as the record store writes it: (utc_us, row, lat, lon, fix, speed_kmh,
+# heading_deg, heading_source, extrapolated, method, spacing_m), the column order of its
+# INSERT. The positioner produces these directly on the hot path (no ``SeedDrop`` per seed).
+SeedRow = tuple[
+    int, int, float, float, FixQuality, float, float | None, HeadingSource, bool,
+    PositionMethod, float | None,
+]
+
+
+def utc_to_us(t: datetime) -> int:
+    """Integer microseconds since the Unix epoch (a naive stamp is UTC, as receivers speak)."""
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=UTC)
+    delta = t - UNIX_EPOCH
+    return (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
+
+
+def us_to_utc(us: int) -> datetime:
+    return UNIX_EPOCH + timedelta(microseconds=us)
+
+
+def drop_row(drop: SeedDrop) -> SeedRow:
+    """A ``SeedDrop`` in the store's column order."""
+    return (
+        utc_to_us(drop.utc), drop.row, drop.lat, drop.lon, drop.fix, drop.speed_kmh,
+        drop.heading_deg, drop.heading_source, drop.extrapolated, drop.method, drop.spacing_m,
+    )

@@ -37,13 +37,18 @@ from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from itertools import chain as _chain
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from gateway.errors import GatewayError
-from gateway.records import AlarmEvent, SeedDrop, SeedRecord
-
-if TYPE_CHECKING:
-    from gateway.positioning import SeedRow
+from gateway.records import (
+    AlarmEvent,
+    SeedDrop,
+    SeedRecord,
+    SeedRow,
+    drop_row,
+    us_to_utc,
+    utc_to_us,
+)
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +61,6 @@ PRUNE_CHUNK_ROWS = 5000
 QUERY_CHUNK_ROWS = 5000  # rows fetched per step by query_seeds, so exports stream
 MAX_OUTBOX_LIMIT = 10_000  # one outbox read never materialises more than this many records
 
-_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS seeds (
@@ -120,17 +124,6 @@ def _insert_sql(rows: int) -> str:
         "heading_source, extrapolated, method, spacing_m) VALUES "
         + ",".join(["(?,?,?,?,?,?,?,?,?,?,?)"] * rows)
     )
-
-
-def _to_us(t: datetime) -> int:
-    if t.tzinfo is None:
-        t = t.replace(tzinfo=UTC)
-    delta = t - _EPOCH
-    return (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
-
-
-def _from_us(us: int) -> datetime:
-    return _EPOCH + timedelta(microseconds=us)
 
 
 def _id_ranges(ids: Sequence[int]) -> list[tuple[int, int]]:
@@ -265,13 +258,7 @@ class RecordStore:
         """
         if not drops:
             return range(0)
-        return self.append_rows([
-            (
-                _to_us(d.utc), d.row, d.lat, d.lon, d.fix, d.speed_kmh, d.heading_deg,
-                d.heading_source, d.extrapolated, d.method, d.spacing_m,
-            )
-            for d in drops
-        ])
+        return self.append_rows([drop_row(d) for d in drops])
 
     def append_rows(self, rows: Sequence[SeedRow]) -> range:
         """``append_seeds`` for records already in column form (``Landing.stored``).
@@ -312,7 +299,10 @@ class RecordStore:
         try:
             cur = self._db.execute(
                 "INSERT INTO alarms (utc_us, code, active, severity, message) VALUES (?,?,?,?,?)",
-                (_to_us(event.utc), event.code, int(event.active), event.severity, event.message),
+                (
+                    utc_to_us(event.utc), event.code, int(event.active), event.severity,
+                    event.message,
+                ),
             )
         except sqlite3.Error as exc:
             raise StoreError(f"cannot write alarm: {exc}") from exc
@@ -405,7 +395,7 @@ class RecordStore:
         ).fetchall()
         return [
             AlarmEvent(
-                id=r[0], machine_id=self.machine_id, utc=_from_us(r[1]), code=r[2],
+                id=r[0], machine_id=self.machine_id, utc=us_to_utc(r[1]), code=r[2],
                 active=bool(r[3]), severity=r[4], message=r[5],
             )
             for r in rows
@@ -450,7 +440,7 @@ class RecordStore:
     def _seed(self, r: tuple[Any, ...]) -> SeedRecord:
         # Rows were validated as SeedDrops on the way in; skip re-validation on the hot path.
         return _fast_record({
-            "row": r[2], "utc": _from_us(r[1]), "lat": r[3], "lon": r[4], "fix": r[5],
+            "row": r[2], "utc": us_to_utc(r[1]), "lat": r[3], "lon": r[4], "fix": r[5],
             "speed_kmh": r[6], "heading_deg": r[7], "heading_source": r[8],
             "extrapolated": bool(r[9]), "method": r[10], "spacing_m": r[11], "id": r[0],
             "machine_id": self.machine_id,
@@ -467,10 +457,10 @@ class RecordStore:
         args: list[Any] = []
         if since is not None:
             sql += " AND utc_us >= ?"
-            args.append(_to_us(since))
+            args.append(utc_to_us(since))
         if until is not None:
             sql += " AND utc_us < ?"
-            args.append(_to_us(until))
+            args.append(utc_to_us(until))
         if rows is not None:
             wanted = sorted({int(r) for r in rows})
             if not wanted:
@@ -501,7 +491,7 @@ class RecordStore:
 
         Returns the rows deleted and whether a table may have more to prune.
         """
-        cutoff = _to_us(now - self.retention)
+        cutoff = utc_to_us(now - self.retention)
         self._begin()
         deleted, more = 0, False
         for table in ("seeds", "alarms"):
