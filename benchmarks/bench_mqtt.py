@@ -32,6 +32,7 @@ import argparse
 import asyncio
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -79,6 +80,7 @@ REFRESH_S = 0.05  # < 1 / POLL_HZ
 FEED_TICK_S = 0.01
 DAEMON_WARMUP_S = 4.0
 DAEMON_MEASURE_S = 20.0
+CPU_RUNS = 3
 BASELINE_MEASURE_S = 8.0
 PROXY_READ_BYTES = 65_536
 MACHINE = "bench"
@@ -377,8 +379,17 @@ def _proc_kb(pid: int, key: str) -> float:
 
 
 async def _daemon_run(broker_port: int, tmp: Path, name: str, seeds_per_s: float,
-                      measure_s: float) -> dict[str, float]:
-    """Simulated machine here, daemon in a child: its CPU, RSS and control latency."""
+                      measure_s: float, *, every_tick: bool = True) -> dict[str, float]:
+    """Simulated machine here, daemon in a child: its CPU, RSS and control latency.
+
+    ``every_tick``: poll at POLL_HZ and rewrite the duty every tick (the latency runs); else
+    the daemon's default control settings (the CPU runs: what a box runs at).
+    """
+    control: dict[str, Any] = {"control": {"start_working": True}}
+    if every_tick:
+        # rewrite the duty every tick, so every tick yields a latency sample (at a steady
+        # speed the duty barely changes and writes would be rare)
+        control |= {"rs485": {"poll_hz": POLL_HZ}, "actuators": {"refresh_s": REFRESH_S}}
     from simulator.machine import SimulatedMachine
     from simulator.plant import Drive, Leg
 
@@ -389,13 +400,7 @@ async def _daemon_run(broker_port: int, tmp: Path, name: str, seeds_per_s: float
     async with SimulatedMachine(drive=drive, crop="wheat") as machine:
         config = machine.write_config(
             tmp / f"{name}.toml",
-            **_planter({
-                "control": {"start_working": True}, "rs485": {"poll_hz": POLL_HZ},
-                # rewrite the duty every tick, so every tick yields a latency sample (at a
-                # steady speed the duty barely changes and writes would be rare)
-                "actuators": {"refresh_s": REFRESH_S},
-                "mqtt": {"enabled": True, "port": broker_port},
-            }),
+            **_planter({**control, "mqtt": {"enabled": True, "port": broker_port}}),
         )
         run_s = DAEMON_WARMUP_S + measure_s + 1.0
         proc = await asyncio.create_subprocess_exec(
@@ -446,6 +451,20 @@ async def _measure() -> dict[str, float]:
             for key, value in (await _daemon_run(broker.port, tmp, name, rate,
                                                  seconds)).items():
                 fig[f"{name}_{key}"] = value
+        # CPU at the default control settings: the median of CPU_RUNS runs, because one
+        # 20 s reading on a shared 2-core machine varies by about ±0.5 points of a core
+        for name, rate, seconds in (("default_idle", 0.0, BASELINE_MEASURE_S),
+                                    ("default", NOMINAL_PER_S, DAEMON_MEASURE_S)):
+            runs = [
+                await _daemon_run(broker.port, tmp, f"{name}{k}", rate, seconds,
+                                  every_tick=False)
+                for k in range(CPU_RUNS if rate else 1)
+            ]
+            cpu = sorted(r["cpu_pct"] - r["feeder_cpu_pct"] for r in runs)
+            fig[f"{name}_cpu_pct"] = statistics.median(cpu)
+            fig[f"{name}_cpu_min"], fig[f"{name}_cpu_max"] = cpu[0], cpu[-1]
+            fig[f"{name}_hwm_mb"] = max(r["hwm_mb"] for r in runs)
+            fig[f"{name}_feeder_cpu_pct"] = statistics.median(r["feeder_cpu_pct"] for r in runs)
     return fig
 
 
@@ -504,11 +523,23 @@ def run() -> dict[str, object]:
         f"| {f['nominal_cpu_pct']:.1f} % | {feeder:.1f} % | {f['nominal_rss_mb']:.0f} MB "
         f"({f['nominal_hwm_mb']:.0f} MB) | {f['nominal_stored']:,.0f} / "
         f"{f['nominal_published']:,.0f} |\n\n"
+        "CPU at the daemon's default control settings (RS485 polled at 3 Hz, duty rewritten "
+        f"when it changes or every 2 s), same feed; median of {CPU_RUNS} runs of "
+        f"{DAEMON_MEASURE_S:g} s, the synthetic feeder's making of events left out:\n\n"
+        "| daemon, default settings | CPU (% of one core), median | min – max "
+        "| feeder (left out) | RSS peak |\n|---|---|---|---|---|\n"
+        f"| no seeds | {f['default_idle_cpu_pct']:.1f} % | – | – "
+        f"| {f['default_idle_hwm_mb']:.0f} MB |\n"
+        f"| {NOMINAL_PER_S:,.0f} seeds/s | {f['default_cpu_pct']:.1f} % "
+        f"| {f['default_cpu_min']:.1f} – {f['default_cpu_max']:.1f} % "
+        f"| {f['default_feeder_cpu_pct']:.1f} % | {f['default_hwm_mb']:.0f} MB |\n\n"
         f"Targets at nominal load: RSS ≤ {TARGET_RSS_MB:g} MB: "
-        f"{ok(f['nominal_hwm_mb'] <= TARGET_RSS_MB)}; CPU ≤ {TARGET_CPU_PCT:g} % of a core: "
-        f"{ok(daemon_cpu <= TARGET_CPU_PCT)} ({daemon_cpu:.1f} %: the child's CPU less the "
-        "feeder's making of the synthetic events, which in the field the GNSS and seed-tube "
-        "drivers' parsing replaces and which is not measured here); control p99 ≤ "
+        f"{ok(max(f['nominal_hwm_mb'], f['default_hwm_mb']) <= TARGET_RSS_MB)}; "
+        f"CPU ≤ {TARGET_CPU_PCT:g} % of a core at the default settings: "
+        f"{ok(f['default_cpu_pct'] <= TARGET_CPU_PCT)} ({f['default_cpu_pct']:.1f} %; "
+        f"{daemon_cpu:.1f} % with 10 Hz polling and a duty write every tick). Not in these "
+        "figures: the GNSS and seed-tube drivers' own parsing, which the synthetic feed "
+        "replaces. Control p99 ≤ "
         f"{TARGET_P99_MS:g} ms: "
         f"{ok(p99 <= TARGET_P99_MS)} ({p99 / p99_idle if p99_idle else 0:.2f} × the "
         "no-seed p99).\n"

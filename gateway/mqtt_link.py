@@ -70,7 +70,8 @@ KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
     "speed_cal": SpeedCalCommand,
 }
 DISCONNECT_TIMEOUT_S = 3.0
-STATE_POLL_S = 0.1  # how often the state snapshot is compared for changes (max 10 msg/s)
+# State messages are at least this far apart (max 10 msg/s) however often it changes.
+STATE_MIN_GAP_S = 0.1
 ALARMS_PER_READ = 100
 OFFLINE_PUBLISH_TIMEOUT_S = 2.0  # clean shutdown must not hang on a dead link
 ERROR_TEXT_MAX_CHARS = 500
@@ -193,6 +194,7 @@ class MqttLink:
         except StoreError:
             log.exception("cannot store alarm %s", event.code)
         self._alarms_wake.set()
+        self._state_wake.set()  # the state lists the active alarms
 
     def _on_commit(self) -> None:
         self._seeds_wake.set()
@@ -207,7 +209,12 @@ class MqttLink:
         )
 
     def notify_state_changed(self) -> None:
-        """Publish the state soon (within ``STATE_POLL_S``) instead of at the next period."""
+        """The state may have changed: compare it now, publish it if it did.
+
+        The daemon calls this after every control tick, which is when speed, duty and work
+        state change; the link itself adds alarms. Comparing on these notices instead of on a
+        timer of its own costs the box no extra wake-ups.
+        """
         self._state_wake.set()
 
     # -- connection loop -------------------------------------------------------------------
@@ -353,7 +360,8 @@ class MqttLink:
                         return batch
             timeout = None if deadline is None else max(0.0, deadline - now)
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._seeds_wake.wait(), timeout)
+                async with asyncio.timeout(timeout):
+                    await self._seeds_wake.wait()
 
     async def _publish_batch(
         self, client: aiomqtt.Client, batch: OutboxBatch, slots: asyncio.Semaphore
@@ -398,6 +406,7 @@ class MqttLink:
             return None
 
     async def _state_loop(self, client: aiomqtt.Client) -> None:
+        """Publish at ``state_hz`` and on every change (``notify_state_changed``)."""
         period = 1.0 / self.cfg.state_hz
         last: StatePayload | None = None
         last_at = -float("inf")
@@ -405,7 +414,11 @@ class MqttLink:
             self._state_wake.clear()
             snap = self._snapshot()
             now = time.monotonic()
-            if snap is not None and (not snap.same_as(last) or now - last_at >= period):
+            changed = snap is not None and not snap.same_as(last)
+            if snap is not None and (changed or now - last_at >= period):
+                if changed and now - last_at < STATE_MIN_GAP_S:
+                    await asyncio.sleep(STATE_MIN_GAP_S - (now - last_at))
+                    continue  # and look again: it may have changed once more meanwhile
                 await client.publish(
                     self.topics.state,
                     snap.model_dump_json().encode(),
@@ -415,8 +428,11 @@ class MqttLink:
                 )
                 self.stats.states_published += 1
                 last, last_at = snap, now
+            # until the next period is due; a failing snapshot is retried every min gap
+            due = last_at + period - time.monotonic()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._state_wake.wait(), STATE_POLL_S)
+                async with asyncio.timeout(max(STATE_MIN_GAP_S if snap is None else 0.0, due)):
+                    await self._state_wake.wait()
 
     # -- commands ------------------------------------------------------------------------------
 

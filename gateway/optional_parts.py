@@ -201,12 +201,9 @@ def _attach_mqtt(daemon: Daemon, store: Any) -> None:
 
     link = MqttLink(daemon.settings, store, daemon, lambda: state_payload(daemon), daemon.alarms)
     daemon.components["mqtt"] = link
-    last_state: list[str] = [""]
 
     def on_tick(out: ControlOutputs) -> None:
-        if out.state.value != last_state[0]:
-            last_state[0] = out.state.value
-            link.notify_state_changed()
+        link.notify_state_changed()  # a tick is when speed, duty and work state change
 
     daemon.tick_hooks.append(on_tick)
     daemon.add_task("mqtt", link.run)

@@ -7,10 +7,13 @@ store turns it into a ``SeedRecord`` by giving it its durable ``id``.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+from pydantic_core import to_json
 
 FixQuality = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
 HeadingSource = Literal["dual_antenna", "course", "none"]
@@ -92,3 +95,34 @@ def drop_row(drop: SeedDrop) -> SeedRow:
         utc_to_us(drop.utc), drop.row, drop.lat, drop.lon, drop.fix, drop.speed_kmh,
         drop.heading_deg, drop.heading_source, drop.extrapolated, drop.method, drop.spacing_m,
     )
+
+
+_UTC_SECOND_FORMAT = "%Y-%m-%dT%H:%M:%S"
+
+
+def seed_batch_json(machine_id: str, ids: Sequence[int], rows: Sequence[SeedRow]) -> bytes:
+    """The ``seeds`` payload (a ``SeedBatch``) for stored rows, without a model per record.
+
+    This runs for every seed published, so it builds plain dicts and lets pydantic-core's
+    serialiser write them (about 2 µs a record against 8 µs through ``SeedRecord`` objects).
+    The output equals ``SeedBatch(...).model_dump_json()`` value for value (a test checks),
+    with ``utc`` always carrying six fraction digits. Seeds of one second share the
+    formatted second.
+    """
+    records: list[dict[str, object]] = []
+    append = records.append
+    last_s = -1
+    second = ""
+    for i, (us, row, lat, lon, fix, speed, heading, source, extrapolated, method, spacing) in zip(
+        ids, rows, strict=True
+    ):
+        s, frac = divmod(us, 1_000_000)
+        if s != last_s:
+            last_s, second = s, time.strftime(_UTC_SECOND_FORMAT, time.gmtime(s))
+        append({
+            "row": row, "utc": f"{second}.{frac:06d}Z", "lat": lat, "lon": lon, "fix": fix,
+            "speed_kmh": speed, "heading_deg": heading, "heading_source": source,
+            "extrapolated": bool(extrapolated), "method": method, "spacing_m": spacing,
+            "id": i, "machine_id": machine_id,
+        })
+    return to_json({"machine_id": machine_id, "records": records})

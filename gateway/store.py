@@ -17,6 +17,17 @@ every commit, blocking the event loop five times a second on a slow SD card).
 Ids. ``INTEGER PRIMARY KEY AUTOINCREMENT`` keeps the high-water mark in ``sqlite_sequence``, so
 an id is never reused, even after pruning deleted the newest delivered rows.
 
+Delivery. What the broker acknowledged is kept as id ranges in ``delivered`` (see
+``gateway.id_ranges``), not as a flag per row: marking a 500-record batch is one range merged
+in memory and a few rows rewritten at the next commit, where an UPDATE of 500 rows rewrote
+pages written a moment before (half the WAL traffic at 2 100 seeds/s). A store written by an
+older sowgate, with a ``delivered`` column, is converted when it is opened for writing.
+
+The outbox reads recent records from memory: ``append_rows`` keeps the last
+``TAIL_MAX_ROWS`` rows it wrote, so the live link renders them straight to JSON and SQLite is
+read only for a backlog older than that (after an outage or a restart). The tail is a cache
+of committed rows and nothing else: rows whose commit failed are dropped from it.
+
 Space. Nothing undelivered is ever deleted; ``prune`` only removes delivered rows older than the
 retention. When the undelivered backlog passes ``backlog_alarm_records`` the ``on_backlog``
 callback says so (once per crossing), so an operator learns the link is down long before the
@@ -27,7 +38,6 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import json
 import logging
 import sqlite3
 import threading
@@ -40,12 +50,14 @@ from pathlib import Path
 from typing import Any
 
 from gateway.errors import GatewayError
+from gateway.id_ranges import IdRanges
 from gateway.records import (
     AlarmEvent,
     SeedDrop,
     SeedRecord,
     SeedRow,
     drop_row,
+    seed_batch_json,
     us_to_utc,
     utc_to_us,
 )
@@ -59,6 +71,9 @@ PRUNE_INTERVAL_S = 3600.0
 # the watchdog) for seconds on an SD card.
 PRUNE_CHUNK_ROWS = 5000
 QUERY_CHUNK_ROWS = 5000  # rows fetched per step by query_seeds, so exports stream
+# Rows the outbox can read from memory: about 5 s of a 48-row planter at 16 km/h (~3 MB). A
+# link further behind than that reads SQLite, as after an outage.
+TAIL_MAX_ROWS = 10_000
 MAX_OUTBOX_LIMIT = 10_000  # one outbox read never materialises more than this many records
 
 
@@ -75,10 +90,8 @@ CREATE TABLE IF NOT EXISTS seeds (
     heading_source TEXT NOT NULL,
     extrapolated INTEGER NOT NULL,
     method TEXT NOT NULL,
-    spacing_m REAL,
-    delivered INTEGER NOT NULL DEFAULT 0
+    spacing_m REAL
 );
-CREATE INDEX IF NOT EXISTS seeds_pending ON seeds(id) WHERE delivered = 0;
 CREATE INDEX IF NOT EXISTS seeds_utc ON seeds(utc_us);
 CREATE TABLE IF NOT EXISTS alarms (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -86,25 +99,22 @@ CREATE TABLE IF NOT EXISTS alarms (
     code TEXT NOT NULL,
     active INTEGER NOT NULL,
     severity TEXT NOT NULL,
-    message TEXT NOT NULL,
-    delivered INTEGER NOT NULL DEFAULT 0
+    message TEXT NOT NULL
 );
-CREATE INDEX IF NOT EXISTS alarms_pending ON alarms(id) WHERE delivered = 0;
+-- ids the broker acknowledged, per table, as closed ranges (see gateway.id_ranges)
+CREATE TABLE IF NOT EXISTS delivered (
+    tbl TEXT NOT NULL,
+    lo INTEGER NOT NULL,
+    hi INTEGER NOT NULL,
+    PRIMARY KEY (tbl, lo)
+) WITHOUT ROWID;
 """
+
+_TABLES = ("seeds", "alarms")
 
 _SEED_COLUMNS = (
     "id, utc_us, row, lat, lon, fix, speed_kmh, heading_deg, heading_source, extrapolated, "
     "method, spacing_m"
-)
-
-# One SeedRecord as JSON, field order and spelling as pydantic writes it.
-_SEED_JSON = (
-    "json_object('row', row, 'utc', printf('%s.%06dZ', "
-    "strftime('%Y-%m-%dT%H:%M:%S', utc_us / 1000000, 'unixepoch'), utc_us % 1000000), "
-    "'lat', lat, 'lon', lon, 'fix', fix, 'speed_kmh', speed_kmh, 'heading_deg', heading_deg, "
-    "'heading_source', heading_source, "
-    "'extrapolated', json(CASE WHEN extrapolated THEN 'true' ELSE 'false' END), "
-    "'method', method, 'spacing_m', spacing_m, 'id', id, 'machine_id', ?)"
 )
 
 BacklogCallback = Callable[[int, bool], None]
@@ -124,17 +134,6 @@ def _insert_sql(rows: int) -> str:
         "heading_source, extrapolated, method, spacing_m) VALUES "
         + ",".join(["(?,?,?,?,?,?,?,?,?,?,?)"] * rows)
     )
-
-
-def _id_ranges(ids: Sequence[int]) -> list[tuple[int, int]]:
-    """Contiguous runs, so marking a 500-record batch is one UPDATE, not 500."""
-    out: list[tuple[int, int]] = []
-    for i in sorted(set(ids)):
-        if out and i == out[-1][1] + 1:
-            out[-1] = (out[-1][0], i)
-        else:
-            out.append((i, i))
-    return out
 
 
 def _fast_record(fields: dict[str, Any]) -> SeedRecord:
@@ -193,15 +192,21 @@ class RecordStore:
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.executescript(SCHEMA)
+                self._convert_delivered_columns()
+            self._acked = {table: IdRanges(self._load_delivered(table)) for table in _TABLES}
         except sqlite3.Error as exc:
             raise StoreError(f"cannot open record store {self.path}: {exc}") from exc
+        self._acked_dirty: set[str] = set()
         self._in_tx = False
         # Highest ids the outbox may see: rows above them are not committed yet.
         self._visible_seed_id = self._max_id("seeds")
         self._visible_alarm_id = self._max_id("alarms")
         self._last_seed_id = self._visible_seed_id
-        self._pending_seeds = self._scalar("SELECT COUNT(*) FROM seeds WHERE delivered = 0")
-        self._pending_alarms = self._scalar("SELECT COUNT(*) FROM alarms WHERE delivered = 0")
+        self._pending_seeds = self._count_undelivered("seeds")
+        self._pending_alarms = self._count_undelivered("alarms")
+        # The outbox's in-memory tail: _tail[k] is the row of id _tail_first + k.
+        self._tail: list[SeedRow] = []
+        self._tail_first = self._last_seed_id + 1
         self._uncommitted_seeds = 0
         self._uncommitted_alarms = 0
         self._last_sync = time.monotonic()
@@ -227,6 +232,70 @@ class RecordStore:
 
     def _max_id(self, table: str) -> int:
         return self._scalar(f"SELECT MAX(id) FROM {table}")
+
+    def _has_column(self, table: str, column: str) -> bool:
+        return any(r[1] == column for r in self._db.execute(f"PRAGMA table_info({table})"))
+
+    def _has_table(self, table: str) -> bool:
+        return self._db.execute(
+            "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (table,)
+        ).fetchone() is not None
+
+    def _load_delivered(self, table: str) -> list[tuple[int, int]]:
+        """The acknowledged id ranges: from ``delivered``, or from an older store's flags."""
+        if self._has_table("delivered"):
+            ranges = self._db.execute(
+                "SELECT lo, hi FROM delivered WHERE tbl = ? ORDER BY lo", (table,)
+            ).fetchall()
+            if ranges or not self._has_column(table, "delivered"):
+                return [(int(lo), int(hi)) for lo, hi in ranges]
+        if not self._has_column(table, "delivered"):
+            return []
+        # runs of consecutive delivered ids (gaps and islands); ids below the oldest row were
+        # pruned, and only delivered rows are ever pruned
+        runs = [(int(lo), int(hi)) for lo, hi in self._db.execute(
+            f"SELECT MIN(id), MAX(id) FROM (SELECT id, id - ROW_NUMBER() OVER (ORDER BY id) AS g "
+            f"FROM {table} WHERE delivered = 1) GROUP BY g ORDER BY 1"
+        )]
+        oldest = self._scalar(f"SELECT MIN(id) FROM {table}")
+        if oldest > 1:
+            runs.insert(0, (1, oldest - 1))
+        return runs
+
+    def _convert_delivered_columns(self) -> None:
+        """Turn an older store's per-row ``delivered`` flags into ranges, in one transaction."""
+        old = [t for t in _TABLES if self._has_column(t, "delivered")]
+        if not old:
+            return
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            for table in old:
+                runs = self._load_delivered(table)
+                self._db.execute("DELETE FROM delivered WHERE tbl = ?", (table,))
+                self._db.executemany(
+                    "INSERT INTO delivered (tbl, lo, hi) VALUES (?, ?, ?)",
+                    [(table, lo, hi) for lo, hi in runs],
+                )
+                self._db.execute(f"DROP INDEX IF EXISTS {table}_pending")
+                self._db.execute(f"ALTER TABLE {table} DROP COLUMN delivered")
+            self._db.execute("COMMIT")
+        except sqlite3.Error:
+            self._db.execute("ROLLBACK")
+            raise
+        log.info("record store %s: delivery flags converted to id ranges", self.path)
+
+    def _count_undelivered(self, table: str) -> int:
+        """Rows not acknowledged: a count above the fully-acknowledged prefix, less the runs."""
+        acked = self._acked[table]
+        through = acked.through()
+        n = self._scalar(f"SELECT COUNT(*) FROM {table} WHERE id > ?", through)
+        for lo, hi in acked:
+            if hi > through:
+                n -= self._scalar(
+                    f"SELECT COUNT(*) FROM {table} WHERE id BETWEEN ? AND ?",
+                    max(lo, through + 1), hi,
+                )
+        return n
 
     def _begin(self) -> None:
         if self.readonly:
@@ -291,7 +360,20 @@ class RecordStore:
         first = last - len(rows) + 1
         self._last_seed_id = last
         self._uncommitted_seeds += len(rows)
+        self._remember(first, rows)
         return range(first, last + 1)
+
+    def _remember(self, first: int, rows: Sequence[SeedRow]) -> None:
+        """Keep the rows in the outbox's tail (bounded by ``TAIL_MAX_ROWS``)."""
+        tail = self._tail
+        if first != self._tail_first + len(tail):  # not contiguous: start the tail afresh
+            tail.clear()
+            self._tail_first = first
+        tail.extend(rows)
+        excess = len(tail) - TAIL_MAX_ROWS
+        if excess > 0:
+            del tail[:excess]
+            self._tail_first += excess
 
     def add_alarm(self, event: AlarmEvent) -> AlarmEvent:
         """Store an alarm event and commit at once: alarms are rare and must not wait."""
@@ -316,8 +398,15 @@ class RecordStore:
         if not self._in_tx:
             return
         try:
+            self._write_delivered()
             self._db.execute("COMMIT")
         except sqlite3.Error as exc:
+            if not self._db.in_transaction:  # SQLite rolled it all back: forget those rows
+                self._in_tx = False
+                self._last_seed_id = self._visible_seed_id
+                self._uncommitted_seeds = self._uncommitted_alarms = 0
+                self._acked_dirty.update(_TABLES)
+            self._forget_uncommitted_tail()
             raise StoreError(f"cannot commit records: {exc}") from exc
         self._in_tx = False
         new = self._uncommitted_seeds + self._uncommitted_alarms
@@ -330,6 +419,22 @@ class RecordStore:
         if new:
             for listener in self._commit_listeners:
                 listener()
+
+    def _write_delivered(self) -> None:
+        """Rewrite the changed tables' acknowledged ranges (a handful of rows) in this commit."""
+        for table in self._acked_dirty:
+            self._db.execute("DELETE FROM delivered WHERE tbl = ?", (table,))
+            self._db.executemany(
+                "INSERT INTO delivered (tbl, lo, hi) VALUES (?, ?, ?)",
+                [(table, lo, hi) for lo, hi in self._acked[table]],
+            )
+        self._acked_dirty.clear()
+
+    def _forget_uncommitted_tail(self) -> None:
+        """The tail may only hold committed rows: a failed commit may never become one."""
+        keep = self._visible_seed_id - self._tail_first + 1
+        if keep < len(self._tail):
+            del self._tail[max(0, keep):]
 
     def sync(self) -> None:
         """fsync the WAL (via a passive checkpoint): bounds what a power cut can take back."""
@@ -348,51 +453,77 @@ class RecordStore:
 
     # -- outbox ------------------------------------------------------------------------------
 
-    def pending_seeds(self, limit: int, after_id: int = 0) -> list[SeedRecord]:
-        """Committed, undelivered seed records with ``id > after_id``, oldest first."""
-        limit = max(0, min(limit, MAX_OUTBOX_LIMIT))
-        rows = self._db.execute(
-            f"SELECT {_SEED_COLUMNS} FROM seeds "
-            "WHERE delivered = 0 AND id > ? AND id <= ? ORDER BY id LIMIT ?",
-            (after_id, self._visible_seed_id, limit),
-        ).fetchall()
-        return [self._seed(r) for r in rows]
+    def _undelivered(self, limit: int, after_id: int) -> tuple[list[int], list[SeedRow]]:
+        """Ids and rows of up to ``limit`` committed, undelivered seeds after ``after_id``.
 
-    def count_pending_seeds(self, after_id: int = 0, cap: int = MAX_OUTBOX_LIMIT) -> int:
-        """How many committed undelivered records follow ``after_id``, counting at most cap."""
-        return self._scalar(
-            "SELECT COUNT(*) FROM (SELECT 1 FROM seeds WHERE delivered = 0 AND id > ? "
-            "AND id <= ? LIMIT ?)",
-            after_id, self._visible_seed_id, max(0, cap),
-        )
-
-    def pending_seed_batch(self, limit: int, after_id: int = 0) -> OutboxBatch | None:
-        """Like ``pending_seeds`` but straight to ``SeedBatch`` JSON, built by SQLite in C.
-
-        The outbox reads every record once more than it writes it; building the JSON in the
-        query instead of through models is what lets the link keep up (see bench_mqtt). The
-        JSON equals ``SeedBatch(...).model_dump_json()`` value for value (tested), except
-        that floats carry 15 significant digits (1e-13° of latitude: nanometres).
+        From the in-memory tail where it reaches, from SQLite below it.
         """
         limit = max(0, min(limit, MAX_OUTBOX_LIMIT))
-        rows = self._db.execute(
-            f"SELECT id, {_SEED_JSON} FROM seeds "
-            "WHERE delivered = 0 AND id > ? AND id <= ? ORDER BY id LIMIT ?",
-            (self.machine_id, after_id, self._visible_seed_id, limit),
-        ).fetchall()
-        if not rows:
+        ids: list[int] = []
+        rows: list[SeedRow] = []
+        tail_first = self._tail_first
+        for lo, hi in self._acked["seeds"].gaps(after_id, self._visible_seed_id):
+            need = limit - len(ids)
+            if need <= 0:
+                break
+            if lo < tail_first:
+                cold = self._db.execute(
+                    f"SELECT {_SEED_COLUMNS} FROM seeds WHERE id BETWEEN ? AND ? "
+                    "ORDER BY id LIMIT ?",
+                    (lo, min(hi, tail_first - 1), need),
+                ).fetchall()
+                for r in cold:
+                    ids.append(r[0])
+                    rows.append(r[1:])
+                need -= len(cold)
+                lo = tail_first
+                if need <= 0 or lo > hi:
+                    continue
+            hi = min(hi, lo + need - 1)
+            ids.extend(range(lo, hi + 1))
+            rows.extend(self._tail[lo - tail_first : hi - tail_first + 1])
+        return ids, rows
+
+    def pending_seeds(self, limit: int, after_id: int = 0) -> list[SeedRecord]:
+        """Committed, undelivered seed records with ``id > after_id``, oldest first."""
+        ids, rows = self._undelivered(limit, after_id)
+        return [self._seed((i, *r)) for i, r in zip(ids, rows, strict=True)]
+
+    def count_pending_seeds(self, after_id: int = 0, cap: int = MAX_OUTBOX_LIMIT) -> int:
+        """How many committed undelivered ids follow ``after_id``, counting at most ``cap``.
+
+        Counted from the ranges, not the rows: in a store converted from an older version a
+        pruned id can count, which at worst makes a batch go out a little smaller.
+        """
+        n = 0
+        for lo, hi in self._acked["seeds"].gaps(after_id, self._visible_seed_id):
+            n += hi - lo + 1
+            if n >= cap:
+                return max(0, cap)
+        return n
+
+    def pending_seed_batch(self, limit: int, after_id: int = 0) -> OutboxBatch | None:
+        """Like ``pending_seeds`` but straight to ``SeedBatch`` JSON (the MQTT hot path).
+
+        Equals ``SeedBatch(...).model_dump_json()`` value for value (tested); see
+        ``seed_batch_json`` for why it builds no models.
+        """
+        ids, rows = self._undelivered(limit, after_id)
+        if not ids:
             return None
-        head = '{"machine_id":' + json.dumps(self.machine_id) + ',"records":['
-        payload = head + ",".join(r[1] for r in rows) + "]}"
-        return OutboxBatch([r[0] for r in rows], payload.encode())
+        return OutboxBatch(ids, seed_batch_json(self.machine_id, ids, rows))
 
     def pending_alarms(self, limit: int, after_id: int = 0) -> list[AlarmEvent]:
         limit = max(0, min(limit, MAX_OUTBOX_LIMIT))
-        rows = self._db.execute(
-            "SELECT id, utc_us, code, active, severity, message FROM alarms "
-            "WHERE delivered = 0 AND id > ? AND id <= ? ORDER BY id LIMIT ?",
-            (after_id, self._visible_alarm_id, limit),
-        ).fetchall()
+        rows: list[Any] = []
+        for lo, hi in self._acked["alarms"].gaps(after_id, self._visible_alarm_id):
+            if len(rows) >= limit:
+                break
+            rows.extend(self._db.execute(
+                "SELECT id, utc_us, code, active, severity, message FROM alarms "
+                "WHERE id BETWEEN ? AND ? ORDER BY id LIMIT ?",
+                (lo, hi, limit - len(rows)),
+            ).fetchall())
         return [
             AlarmEvent(
                 id=r[0], machine_id=self.machine_id, utc=us_to_utc(r[1]), code=r[2],
@@ -402,17 +533,19 @@ class RecordStore:
         ]
 
     def _mark(self, table: str, ids: Sequence[int]) -> int:
+        """Merge into the acknowledged ranges; written at the next commit. Returns new ids."""
         if not ids:
             return 0
         self._begin()
-        changed = 0
-        for lo, hi in _id_ranges(ids):
-            cur = self._db.execute(
-                f"UPDATE {table} SET delivered = 1 "
-                "WHERE id BETWEEN ? AND ? AND delivered = 0",
-                (lo, hi),
-            )
-            changed += cur.rowcount
+        acked = self._acked[table]
+        changed = acked.add_ids(ids)
+        if changed:
+            self._acked_dirty.add(table)
+            if table == "seeds":  # the tail never needs what was acknowledged from its start
+                done = acked.through() - self._tail_first + 1
+                if done > 0:
+                    del self._tail[:done]
+                    self._tail_first += done
         return changed
 
     def mark_seeds_delivered(self, ids: Sequence[int]) -> None:
@@ -494,11 +627,12 @@ class RecordStore:
         cutoff = utc_to_us(now - self.retention)
         self._begin()
         deleted, more = 0, False
-        for table in ("seeds", "alarms"):
+        for table in _TABLES:
+            # only ids in the fully acknowledged prefix; runs above it join it soon enough
             cur = self._db.execute(
                 f"DELETE FROM {table} WHERE id IN (SELECT id FROM {table} "
-                "WHERE delivered = 1 AND utc_us < ? ORDER BY id LIMIT ?)",
-                (cutoff, PRUNE_CHUNK_ROWS),
+                "WHERE id <= ? AND utc_us < ? ORDER BY id LIMIT ?)",
+                (self._acked[table].through(), cutoff, PRUNE_CHUNK_ROWS),
             )
             deleted += cur.rowcount
             more = more or cur.rowcount >= PRUNE_CHUNK_ROWS

@@ -27,7 +27,7 @@ async def test_hmi_write_timeout_from_the_config_is_what_the_link_waits(tmp_path
             while not link.available:
                 assert time.monotonic() < deadline, "HMI port never opened"
                 await asyncio.sleep(0.02)
-            page = {f"t{i}": "x" * 250 for i in range(300)}  # more than a pty buffers
+            page = {f"t{i}": "x" * 250 for i in range(3000)}  # far more than a pty buffers
             started = time.monotonic()
             await link.show_many(page)
             waited = time.monotonic() - started

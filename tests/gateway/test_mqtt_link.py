@@ -94,11 +94,13 @@ class Running:
 
 
 @contextlib.asynccontextmanager
-async def running_link(settings: Settings, db: Path) -> AsyncIterator[Running]:
+async def running_link(
+    settings: Settings, db: Path, state: Callable[[], StatePayload] = state_now
+) -> AsyncIterator[Running]:
     store = RecordStore(db, MACHINE, commit_interval_s=0.05, backlog_alarm_records=100_000)
     alarms = AlarmBoard(MACHINE)
     sink = StubController()
-    link = MqttLink(settings, store, sink, state_now, alarms)
+    link = MqttLink(settings, store, sink, state, alarms)
     store_task = asyncio.create_task(store.run(), name="test-store")
     link_task = asyncio.create_task(link.run(), name="test-link")
     try:
@@ -149,6 +151,47 @@ async def test_records_alarms_state_and_status_reach_the_broker(
         await eventually(lambda: sub.on("status")[-1] == b"offline", 5, "offline on shutdown")
     retained = [r for t, _, r in sub.messages if t == f"{BASE}/status"]
     assert retained  # status is retained on the broker
+
+
+async def test_state_follows_change_notices_at_most_ten_times_a_second(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """The daemon says after each control tick that the state may have changed: a change goes
+    out at once (not at the next period), a burst of changes is capped at 10 messages/s, and
+    a notice without a change publishes nothing."""
+    settings = parse_config({
+        "machine": {"id": MACHINE},
+        "mqtt": {"enabled": True, "port": mosquitto.port, "keepalive": 5, "state_hz": 0.2},
+    })
+    speed = [8.0]
+
+    def state() -> StatePayload:
+        return StatePayload(machine_id=MACHINE, utc=datetime.now(UTC), work_state="seeding",
+                            speed_kmh=speed[0], speed_source="radar")
+
+    def speeds() -> list[float]:
+        return [json.loads(p)["speed_kmh"] for p in sub.on("state")]
+
+    async with (
+        subscriber(mosquitto.port, BASE) as sub,
+        running_link(settings, tmp_path / "r.db", state) as run,
+    ):
+        await eventually(lambda: speeds() == [8.0], 5, "the first state")
+        speed[0] = 9.0
+        run.link.notify_state_changed()
+        await eventually(lambda: speeds()[-1:] == [9.0], 1.0, "the change, within 1 s")
+        for _ in range(20):  # a 10 ms control tick changing the speed every time
+            speed[0] += 0.5
+            run.link.notify_state_changed()
+            await asyncio.sleep(0.01)
+        await eventually(lambda: speeds()[-1:] == [speed[0]], 1.0, "the final speed")
+        burst = len(speeds()) - 2
+        assert 1 <= burst <= 5  # ~0.3 s of changes at ≤ 10 messages/s
+        for _ in range(5):  # notices without a change
+            run.link.notify_state_changed()
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.3)
+        assert len(speeds()) == burst + 2
 
 
 async def test_bad_commands_get_precise_error_acks_and_change_nothing(
@@ -328,12 +371,16 @@ async def test_sigkill_mid_stream_resends_unacked_and_the_will_says_offline(
         assert stored == list(range(1, len(stored) + 1))
         assert unacked > 0 or set(sub.seed_ids()) == set(stored)
         proc = _spawn(mosquitto.port, db, "drain")
+
+        def statuses_after_kill() -> list[bytes]:
+            return [p for t, p, _ in sub.messages[kill_index:] if t == f"{BASE}/status"]
+
         try:
             await eventually(lambda: set(sub.seed_ids()) >= set(stored), 20, "resent records")
-            # the restarted process announced itself after the will (the broker may deliver
-            # the will and the new birth in either order if it notices the dead socket late)
-            after_kill = [p for t, p, _ in sub.messages[kill_index:] if t == f"{BASE}/status"]
-            assert b"online" in after_kill
+            # the restarted process announces itself after the will (the broker may deliver
+            # the will and the new birth in either order if it notices the dead socket late;
+            # and when every record had arrived before the kill, the resend is instant)
+            await eventually(lambda: b"online" in statuses_after_kill(), 20, "the new birth")
         finally:
             _reap(proc)
         assert sorted(set(sub.seed_ids())) == stored

@@ -5,12 +5,14 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import textwrap
 import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -252,7 +254,11 @@ def test_outbox_json_matches_the_seed_batch_model(store: RecordStore) -> None:
     batch = store.pending_seed_batch(10, after_id=1)
     assert batch is not None and batch.ids == [2, 3, 4]
     parsed = SeedBatch.model_validate_json(batch.payload)
-    assert parsed == SeedBatch(machine_id="seeder-01", records=store.pending_seeds(10, after_id=1))
+    written = [*drops(3), odd][1:]
+    assert parsed == SeedBatch(machine_id="seeder-01", records=[
+        SeedRecord(**d.model_dump(), id=i, machine_id="seeder-01")
+        for i, d in zip([2, 3, 4], written, strict=True)
+    ])
     assert store.count_pending_seeds(after_id=1, cap=2) == 2
     assert store.pending_seed_batch(10, after_id=4) is None
 
@@ -336,3 +342,150 @@ def test_batches_of_any_size_keep_ids_and_values(store: RecordStore, sizes: list
         SeedRecord(**d.model_dump(), id=i, machine_id="seeder-01")
         for i, d in zip(ids, written, strict=True)
     ]
+
+
+def _payloads(store: RecordStore, limit: int = MAX_OUTBOX_LIMIT) -> tuple[list[int], bytes]:
+    batch = store.pending_seed_batch(limit)
+    assert batch is not None
+    return batch.ids, batch.payload
+
+
+def test_the_outbox_reads_the_same_records_from_memory_and_from_disk(tmp_path: Path) -> None:
+    """The live link reads recent rows from memory; after a restart they come from SQLite.
+    Both give the same bytes."""
+    path = tmp_path / "r.sqlite3"
+    odd = SeedDrop(row=3, utc=T0 + timedelta(seconds=1), lat=-0.000001, lon=-179.999999999,
+                   fix="none", speed_kmh=0.0, heading_deg=359.999, extrapolated=True,
+                   spacing_m=1e-9)
+    with RecordStore(path, "m") as s:
+        s.append_seeds([*drops(5), odd])
+        s.flush()
+        hot = _payloads(s)
+    with RecordStore(path, "m") as s:
+        cold = _payloads(s)
+    assert hot == cold
+    assert SeedBatch.model_validate_json(hot[1]).records[-1] == SeedRecord(
+        **odd.model_dump(), id=6, machine_id="m")
+
+
+def test_a_link_behind_the_memory_tail_reads_the_older_rows_from_disk(
+    store: RecordStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only the newest rows stay in memory; a batch spanning the edge joins both, skipping
+    what the broker already acknowledged."""
+    monkeypatch.setattr("gateway.store.TAIL_MAX_ROWS", 5)
+    written = drops(12)
+    for i in range(0, 12, 4):
+        store.append_seeds(written[i:i + 4])
+    store.flush()
+    store.mark_seeds_delivered([3, 4, 9])
+    ids, payload = _payloads(store)
+    assert ids == [1, 2, 5, 6, 7, 8, 10, 11, 12]
+    assert SeedBatch.model_validate_json(payload).records == [
+        SeedRecord(**written[i - 1].model_dump(), id=i, machine_id="seeder-01") for i in ids
+    ]
+    assert store.pending_seed_batch(4, after_id=6) is not None
+    assert store.pending_seed_batch(4, after_id=6).ids == [7, 8, 10, 11]  # type: ignore[union-attr]
+    assert store.count_pending_seeds(after_id=6) == 5
+
+
+def test_acknowledgements_in_any_order_are_kept_as_a_few_ranges(tmp_path: Path) -> None:
+    """Batches acknowledged out of order merge; what is on disk is a handful of ranges."""
+    path = tmp_path / "r.sqlite3"
+    with RecordStore(path, "m") as s:
+        s.append_seeds(drops(10))
+        s.flush()
+        s.mark_seeds_delivered([5, 6, 7, 8])
+        assert s.backlog() == 6
+        s.mark_seeds_delivered([1, 2, 3, 4])
+        s.mark_seeds_delivered([4, 5])  # a duplicate PUBACK changes nothing
+        assert s.backlog() == 2
+    with RecordStore(path, "m") as s:
+        assert [r.id for r in s.pending_seeds(10)] == [9, 10]
+        assert s.backlog() == 2
+        assert s._db.execute("SELECT tbl, lo, hi FROM delivered").fetchall() == [("seeds", 1, 8)]
+
+
+OLD_SCHEMA = """
+CREATE TABLE seeds (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, utc_us INTEGER NOT NULL, row INTEGER NOT NULL,
+    lat REAL NOT NULL, lon REAL NOT NULL, fix TEXT NOT NULL, speed_kmh REAL NOT NULL,
+    heading_deg REAL, heading_source TEXT NOT NULL, extrapolated INTEGER NOT NULL,
+    method TEXT NOT NULL, spacing_m REAL, delivered INTEGER NOT NULL DEFAULT 0);
+CREATE INDEX seeds_pending ON seeds(id) WHERE delivered = 0;
+CREATE INDEX seeds_utc ON seeds(utc_us);
+CREATE TABLE alarms (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, utc_us INTEGER NOT NULL, code TEXT NOT NULL,
+    active INTEGER NOT NULL, severity TEXT NOT NULL, message TEXT NOT NULL,
+    delivered INTEGER NOT NULL DEFAULT 0);
+CREATE INDEX alarms_pending ON alarms(id) WHERE delivered = 0;
+"""
+
+
+def test_a_store_from_an_older_version_keeps_its_delivery_marks(tmp_path: Path) -> None:
+    """An upgrade on a box with a backlog neither resends what was delivered nor loses what
+    was not: the per-row flags become ranges (ids 1-2 were pruned, so delivered)."""
+    path = tmp_path / "r.sqlite3"
+    db = sqlite3.connect(path)
+    db.executescript(OLD_SCHEMA)
+    for i in range(3, 11):
+        db.execute(
+            "INSERT INTO seeds VALUES (?, ?, 1, 52.0, 13.0, 'rtk_fixed', 8.0, NULL, 'none', 0, "
+            "'interpolated', NULL, ?)", (i, i * 1_000_000, int(i in (3, 4, 7))),
+        )
+    for i, done in ((1, 1), (2, 0)):
+        db.execute("INSERT INTO alarms VALUES (?, 0, 'radar.lost', 1, 'warning', 'x', ?)",
+                   (i, done))
+    db.commit()
+    db.close()
+    with RecordStore(path, "m", retention_days=1) as s:
+        assert [r.id for r in s.pending_seeds(100)] == [5, 6, 8, 9, 10]
+        assert [a.id for a in s.pending_alarms(10)] == [2]
+        assert s.backlog() == 6
+        assert not s._has_column("seeds", "delivered")
+        s.mark_seeds_delivered([5, 6])
+        assert s.prune(datetime(1970, 1, 3, tzinfo=UTC)) == 5 + 1  # seeds 3-7, alarm 1
+        assert [r.id for r in s.query_seeds()] == [8, 9, 10]
+        assert list(s.append_seeds(drops(1))) == [11]
+    with RecordStore(path, "m") as s:
+        assert [r.id for r in s.pending_seeds(100)] == [8, 9, 10, 11]
+        assert s._db.execute(
+            "SELECT name FROM sqlite_master WHERE name LIKE '%pending'"
+        ).fetchall() == []
+
+
+class _CommitFailsAndRollsBack:
+    """A connection whose COMMIT fails the way a full disk can: SQLite rolls the whole
+    transaction back and reports the error. Everything else goes to the real connection."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+        self.fail = True
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        if sql == "COMMIT" and self.fail:
+            self._db.execute("ROLLBACK")
+            raise sqlite3.OperationalError("database or disk is full")
+        return self._db.execute(sql, *args)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._db, name)
+
+
+def test_rows_of_a_failed_commit_are_never_published(store: RecordStore) -> None:
+    """The outbox's memory holds committed rows only: after a rolled-back commit the ids are
+    handed out again, and the outbox shows the new rows under them, never the lost ones."""
+    real = store._db
+    failing = _CommitFailsAndRollsBack(real)
+    store._db = failing  # type: ignore[assignment]
+    store.append_seeds(drops(3, row=1))
+    with pytest.raises(StoreError, match="disk is full"):
+        store.flush()
+    assert store.pending_seeds(10) == [] and store.backlog() == 0
+    failing.fail = False
+    again = store.append_seeds(drops(3, row=7))
+    store.flush()
+    assert list(again) == [1, 2, 3]
+    assert [r.row for r in store.pending_seeds(10)] == [7, 7, 7]
+    assert store.backlog() == 3
+    store._db = real
