@@ -198,7 +198,8 @@ class MqttLink:
 
     def _on_commit(self) -> None:
         self._seeds_wake.set()
-        self._alarms_wake.set()
+        if self.store.pending_alarm_count():  # most commits hold seeds only
+            self._alarms_wake.set()
 
     def _on_backlog(self, count: int, over: bool) -> None:
         self.alarms.set(

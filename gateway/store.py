@@ -556,6 +556,10 @@ class RecordStore:
     def mark_alarms_delivered(self, ids: Sequence[int]) -> None:
         self._pending_alarms -= self._mark("alarms", ids)
 
+    def pending_alarm_count(self) -> int:
+        """Committed alarm events the broker has not acknowledged."""
+        return self._pending_alarms
+
     def backlog(self) -> int:
         """Committed records (seeds and alarms) not yet acknowledged by the broker."""
         return self._pending_seeds + self._pending_alarms

@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 
 from drivers.seed_sensors import SeedEdgeEvent
 from gateway.config import Settings, parse_config
-from gateway.positioning import ClockMap, LocalFrame
+from gateway.positioning import ClockMap, LocalFrame, SeedPositioner
 from gateway.records import SeedDrop, SeedRecord
-from gateway.seed_recorder import SeedRecorder
+from gateway.seed_recorder import MAX_QUEUED_EVENTS, SeedRecorder
 from gateway.store import RecordStore
 from simulator.plant import Drive, Leg
 from tests.gateway.test_positioning import FRAME, LATENCY_S, MONO0, epoch_from_pose
@@ -38,7 +38,8 @@ def store(tmp_path: Path) -> Iterator[RecordStore]:
     s.close()
 
 
-def feed(rec: SeedRecorder, edges: list[tuple[int, float]], until: float) -> None:
+def _events(edges: list[tuple[int, float]], until: float) -> list[object]:
+    """10 Hz epochs of DRIVE up to ``until`` s and the given (row, s) edges, in time order."""
     events: list[tuple[float, object]] = []
     k = 0
     while k * 0.1 <= until:
@@ -47,7 +48,11 @@ def feed(rec: SeedRecorder, edges: list[tuple[int, float]], until: float) -> Non
         k += 1
     events += [(MONO0 + t, SeedEdgeEvent(row, MONO0 + t)) for row, t in edges]
     events.sort(key=lambda x: x[0])
-    for _t, ev in events:
+    return [ev for _t, ev in events]
+
+
+def feed(rec: SeedRecorder, edges: list[tuple[int, float]], until: float) -> None:
+    for ev in _events(edges, until):
         if isinstance(ev, SeedEdgeEvent):
             rec.on_edge(ev)
         else:
@@ -191,3 +196,58 @@ async def test_the_periodic_loop_stores_ids_only_and_keeps_the_row_statistics(
     assert rec.last_spacing_m[2] == pytest.approx(0.2, abs=0.02)
     store.flush()
     assert [r.id for r in store.query_seeds()] == [1, 2, 3, 4]
+
+
+# ---------------------------------------------------------------- one burst per flush
+
+
+def test_driver_callbacks_only_queue_and_the_flush_positions_in_arrival_order(
+    store: RecordStore,
+) -> None:
+    """The seed path runs in one burst per flush; the records are exactly those of feeding
+    the positioner live, event by event."""
+    edges = [(1 + i % 6, 1.0 + 0.05 * i) for i in range(30)]
+    queued = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
+    feed(queued, edges, until=2.8)
+    assert queued.positioner.stats.epochs == 0 and queued.snapshot()["queued"] > 30
+    live = SeedPositioner(settings().positioning)
+    landed = []
+    for ev in _events(edges, until=2.8):
+        if isinstance(ev, SeedEdgeEvent):
+            landed += live.add_edge(ev.row, ev.t_mono)
+        else:
+            landed += live.add_epoch(ev)
+    landed += live.poll(MONO0 + 3.0)
+    records = queued.flush()
+    assert [(r.row, r.utc, r.lat, r.lon, r.spacing_m) for r in records] == [
+        (la.drop.row, la.drop.utc, la.drop.lat, la.drop.lon, la.drop.spacing_m) for la in landed
+    ]
+    assert len(records) == 30 and queued.snapshot()["queued"] == 0
+
+
+def test_a_stalled_flush_loop_positions_inline_so_the_queue_stays_bounded(
+    store: RecordStore,
+) -> None:
+    rec = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
+    feed(rec, [(1, 0.5 + i * 0.001) for i in range(MAX_QUEUED_EVENTS + 50)], until=2.8)
+    assert rec.snapshot()["queued"] < MAX_QUEUED_EVENTS
+    assert rec.positioner.stats.epochs > 0
+
+
+async def test_the_periodic_loop_commits_what_it_stored_in_the_same_burst(
+    store: RecordStore,
+) -> None:
+    """The outbox sees stored seeds at once, not at the store's next commit tick."""
+    rec = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
+    feed(rec, [(2, 1.0 + 0.1 * i) for i in range(4)], until=2.5)
+    task = asyncio.create_task(rec.run(), name="seed-recorder")
+    try:
+        for _ in range(50):
+            await asyncio.sleep(0.02)
+            if store.pending_seeds(10):
+                break
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    assert [r.id for r in store.pending_seeds(10)] == [1, 2, 3, 4]
