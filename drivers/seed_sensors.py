@@ -50,6 +50,11 @@ NS_PER_S = 1_000_000_000
 # already sent may still be in the USB adapter, whose latency timer is 16 ms by default), but
 # never longer than DRAIN_TIMEOUT_S: a planter still moving would never go quiet.
 DRAIN_QUIET_S = 0.05
+# The GPIO lines are read at most this often. The kernel stamps every edge, so reading them in
+# batches loses no timing, while waking per edge (up to 2 000 a second on a 48-row planter)
+# would cost the daemon more CPU than everything it does with the seeds. The kernel queues
+# 16 events per line meanwhile (a row sees at most ~50 seeds/s).
+GPIO_READ_INTERVAL_S = 0.01
 DRAIN_TIMEOUT_S = 0.3
 
 
@@ -288,6 +293,7 @@ class GpioSeedSensors:
         self._backoff = backoff if backoff is not None else Backoff(initial_s=0.5, cap_s=10.0)
         self._last_ns: dict[int, int] = {}
         self._connected = False
+        self._pause: asyncio.TimerHandle | None = None  # the reader's rest between reads
         self._stats = SeedSensorStats()
 
     @property
@@ -310,6 +316,7 @@ class GpioSeedSensors:
             broken: asyncio.Future[str] = loop.create_future()
             fd = request.fd
             loop.add_reader(fd, self._readable, request, broken)
+            self._pause = None
             self._connected = True
             self._stats.connects += 1
             self._backoff.reset()
@@ -320,6 +327,8 @@ class GpioSeedSensors:
                 raise
             finally:
                 self._connected = False
+                if self._pause is not None:
+                    self._pause.cancel()
                 loop.remove_reader(fd)
                 with contextlib.suppress(OSError):
                     request.release()
@@ -343,6 +352,12 @@ class GpioSeedSensors:
             return
         for event in events:
             self.handle_event(event)
+        # let edges gather in the kernel for GPIO_READ_INTERVAL_S before the next read
+        loop = asyncio.get_running_loop()
+        loop.remove_reader(request.fd)
+        self._pause = loop.call_later(
+            GPIO_READ_INTERVAL_S, loop.add_reader, request.fd, self._readable, request, broken
+        )
 
     def handle_event(self, event: EdgeEventLike) -> None:
         """One kernel edge event → a seed edge (or a counted bounce / stray)."""

@@ -16,6 +16,7 @@ import pytest
 from drivers.backoff import Backoff
 from drivers.errors import DeviceUnavailable
 from drivers.seed_sensors import (
+    GPIO_READ_INTERVAL_S,
     GpioSeedSensors,
     SeedEdgeEvent,
     SeedSensorSource,
@@ -206,7 +207,10 @@ class FakeLineRequest:
         self.queue.extend(events)
         os.write(self._w, b"x")
 
+    reads: int = 0
+
     def read_edge_events(self) -> list[FakeEdgeEvent]:
+        self.reads += 1
         with contextlib.suppress(BlockingIOError):
             os.read(self._r, 64)
         if self.fail_reads:
@@ -252,6 +256,24 @@ async def test_gpio_falling_edges_map_lines_to_rows_with_kernel_timestamps() -> 
         await wait_for(lambda: len(got) == 2)
     assert got == [SeedEdgeEvent(2, 100.5), SeedEdgeEvent(3, 100.6)]
     assert chip.requests[0].released
+
+
+async def test_gpio_lines_are_read_in_batches_not_once_per_edge() -> None:
+    """At 2 000 edges/s a wake-up per edge would cost more CPU than the seeds themselves; the
+    kernel's timestamps make batching free, so the lines are read at most every 10 ms."""
+    got: list[SeedEdgeEvent] = []
+    chip = FakeChip()
+    src = GpioSeedSensors("chip", [5, 6], 0.0, got.append, request_factory=chip)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        t0 = time.monotonic()
+        for k in range(100):  # an edge every ~1 ms for ~0.1 s
+            chip.requests[0].push(falling(5 + k % 2, 1.0 + k * 0.001))
+            await asyncio.sleep(0.001)
+        await wait_for(lambda: len(got) == 100)
+        elapsed = time.monotonic() - t0
+    assert [e.t_mono for e in got] == [1.0 + k * 0.001 for k in range(100)]
+    assert chip.requests[0].reads <= elapsed / GPIO_READ_INTERVAL_S + 2
 
 
 async def test_gpio_edges_the_kernel_already_queued_are_delivered_when_stopped() -> None:
