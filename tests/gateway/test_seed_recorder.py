@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import pymap3d
@@ -178,20 +178,30 @@ def test_a_clock_step_restarts_the_offset_window() -> None:
     assert clock.offset_s == pytest.approx(9.0)
 
 
+async def four_seeds_through_the_loop(
+    store: RecordStore, until: Callable[[SeedRecorder], bool]
+) -> SeedRecorder:
+    """Four seeds of row 2, 0.2 m apart, then the periodic loop until ``until`` (≤ 1 s)."""
+    rec = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
+    feed(rec, [(2, 1.0 + 0.1 * i) for i in range(4)], until=2.5)
+    task = asyncio.create_task(rec.run(), name="seed-recorder")
+    try:
+        for _ in range(50):
+            await asyncio.sleep(0.02)
+            if until(rec):
+                break
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    return rec
+
+
 async def test_the_periodic_loop_stores_ids_only_and_keeps_the_row_statistics(
     store: RecordStore,
 ) -> None:
     """Without an on_records listener the loop stores drops without building records."""
-    rec = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
-    feed(rec, [(2, 1.0 + 0.1 * i) for i in range(4)], until=2.5)
-    task = asyncio.create_task(rec.run(), name="seed-recorder")
-    for _ in range(50):
-        await asyncio.sleep(0.02)
-        if rec.records_stored == 4:
-            break
-    task.cancel()
-    with contextlib.suppress(asyncio.CancelledError):
-        await task
+    rec = await four_seeds_through_the_loop(store, until=lambda r: r.records_stored == 4)
     assert rec.records_stored == 4 and rec.seeds_per_row[2] == 4
     assert rec.last_spacing_m[2] == pytest.approx(0.2, abs=0.02)
     store.flush()
@@ -238,16 +248,5 @@ async def test_the_periodic_loop_commits_what_it_stored_in_the_same_burst(
     store: RecordStore,
 ) -> None:
     """The outbox sees stored seeds at once, not at the store's next commit tick."""
-    rec = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
-    feed(rec, [(2, 1.0 + 0.1 * i) for i in range(4)], until=2.5)
-    task = asyncio.create_task(rec.run(), name="seed-recorder")
-    try:
-        for _ in range(50):
-            await asyncio.sleep(0.02)
-            if store.pending_seeds(10):
-                break
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+    await four_seeds_through_the_loop(store, until=lambda _r: bool(store.pending_seeds(10)))
     assert [r.id for r in store.pending_seeds(10)] == [1, 2, 3, 4]
