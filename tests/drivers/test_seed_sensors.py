@@ -145,22 +145,32 @@ async def test_serial_a_missing_port_is_retried_not_fatal(tmp_path: Path) -> Non
     assert "cannot open" in (src.stats.last_error or "")
 
 
-async def test_serial_lines_already_sent_still_become_edges_when_stopped(pty: PtyPair) -> None:
-    """A graceful stop right after the module sent lines: none of them may be dropped."""
-    got: list[SeedEdgeEvent] = []
-    src = SerialSeedSensors(pty.device_path, 115200, rows=6, on_edge=got.append, backoff=FAST)
+async def stopped_right_after(
+    src: SeedSensorSource, deliver: Callable[[], object]
+) -> asyncio.Task[None]:
+    """Run ``src`` until available, ``deliver`` edges, and cancel at once: no await between,
+    so the driver has not read them yet when the stop comes."""
     task = asyncio.create_task(src.run(), name="seed-sensors-under-test")
     try:
         await wait_for(lambda: src.available)
-        os.write(pty.master_fd, b"".join(b"D,%d\r\n" % (k % 6 + 1) for k in range(30)))
-        task.cancel()  # no await in between: the driver has not read a byte of them yet
+        deliver()
+        task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
-        await asyncio.sleep(0.05)
+    return task
+
+
+async def test_serial_lines_already_sent_still_become_edges_when_stopped(pty: PtyPair) -> None:
+    """A graceful stop right after the module sent lines: none of them may be dropped."""
+    got: list[SeedEdgeEvent] = []
+    src = SerialSeedSensors(pty.device_path, 115200, rows=6, on_edge=got.append, backoff=FAST)
+    lines = b"".join(b"D,%d\r\n" % (k % 6 + 1) for k in range(30))
+    task = await stopped_right_after(src, lambda: os.write(pty.master_fd, lines))
+    await asyncio.sleep(0.05)  # let the serial transport close its fd
     assert task.cancelled()  # the stop is honoured, only after the handover
     assert [e.row for e in got] == [k % 6 + 1 for k in range(30)]
 
@@ -280,17 +290,9 @@ async def test_gpio_edges_the_kernel_already_queued_are_delivered_when_stopped()
     got: list[SeedEdgeEvent] = []
     chip = FakeChip()
     src = GpioSeedSensors("chip", [5, 6], 2.0, got.append, request_factory=chip)
-    task = asyncio.create_task(src.run(), name="seed-sensors-under-test")
-    try:
-        await wait_for(lambda: src.available)
-        chip.requests[0].push(falling(5, 1.0), falling(6, 1.1))
-        task.cancel()  # before the loop has polled the request's fd
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+    task = await stopped_right_after(
+        src, lambda: chip.requests[0].push(falling(5, 1.0), falling(6, 1.1))
+    )
     assert task.cancelled()
     assert got == [SeedEdgeEvent(1, 1.0), SeedEdgeEvent(2, 1.1)]
     assert chip.requests[0].released
