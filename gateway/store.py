@@ -202,6 +202,7 @@ class RecordStore:
         self._visible_seed_id = self._max_id("seeds")
         self._visible_alarm_id = self._max_id("alarms")
         self._last_seed_id = self._visible_seed_id
+        self._last_alarm_id = self._visible_alarm_id
         self._pending_seeds = self._count_undelivered("seeds")
         self._pending_alarms = self._count_undelivered("alarms")
         # The outbox's in-memory tail: _tail[k] is the row of id _tail_first + k.
@@ -389,6 +390,7 @@ class RecordStore:
         except sqlite3.Error as exc:
             raise StoreError(f"cannot write alarm: {exc}") from exc
         alarm_id = int(cur.lastrowid or 0)
+        self._last_alarm_id = alarm_id
         self._uncommitted_alarms += 1
         self.flush()
         return event.model_copy(update={"id": alarm_id, "machine_id": self.machine_id})
@@ -404,6 +406,7 @@ class RecordStore:
             if not self._db.in_transaction:  # SQLite rolled it all back: forget those rows
                 self._in_tx = False
                 self._last_seed_id = self._visible_seed_id
+                self._last_alarm_id = self._visible_alarm_id
                 self._uncommitted_seeds = self._uncommitted_alarms = 0
                 self._acked_dirty.update(_TABLES)
             self._forget_uncommitted_tail()
@@ -411,7 +414,7 @@ class RecordStore:
         self._in_tx = False
         new = self._uncommitted_seeds + self._uncommitted_alarms
         self._visible_seed_id = self._last_seed_id
-        self._visible_alarm_id = self._max_id("alarms")
+        self._visible_alarm_id = self._last_alarm_id
         self._pending_seeds += self._uncommitted_seeds
         self._pending_alarms += self._uncommitted_alarms
         self._uncommitted_seeds = self._uncommitted_alarms = 0
