@@ -14,7 +14,9 @@ Issue 4 §8. Everything runs against one mosquitto started here on a free port.
     ``simulator.machine.SimulatedMachine`` (RS485 and HMI on ptys, as in bench_latency), with
     its own record store and MQTT link; synthetic epochs/edges are fed in real time at the
     nominal 2 100 seeds/s into a ``SeedRecorder`` on that store (the GNSS and seed-tube
-    drivers are replaced by the feeder, which runs on the daemon's event loop like they do).
+    drivers are replaced by the feeder, which runs on the daemon's event loop like they do:
+    the edges on the GPIO driver's tick grid, every ``GPIO_READ_INTERVAL_S``; each epoch on
+    its own wake-up as it would arrive from the receiver, ``GNSS_LATENCY_S`` after its time).
     ``daemon.latencies_s`` (reply → PWM write) gives the p99; the reference is the same daemon
     with no seeds.
 (c) RSS and CPU. The daemon runs in a child process (``python -m benchmarks.bench_mqtt
@@ -48,7 +50,8 @@ from typing import Any
 import aiomqtt
 
 from drivers.gnss_reader import GnssEpoch
-from drivers.seed_sensors import SeedEdgeEvent
+from drivers.seed_sensors import GPIO_READ_INTERVAL_S, SeedEdgeEvent
+from drivers.ticks import sleep_to_next_tick
 from gateway.alarms import AlarmBoard
 from gateway.commands import Command
 from gateway.config import Settings, load_config, parse_config
@@ -77,7 +80,7 @@ TARGET_P99_MS = 5.0
 RTT_S = 0.1
 POLL_HZ = 10.0
 REFRESH_S = 0.05  # < 1 / POLL_HZ
-FEED_TICK_S = 0.01
+GNSS_LATENCY_S = 0.02  # from an epoch's UTC time to its arrival at the host
 DAEMON_WARMUP_S = 4.0
 DAEMON_MEASURE_S = 20.0
 CPU_RUNS = 3
@@ -111,24 +114,44 @@ class SyntheticField:
     def until(self, t_s: float) -> list[GnssEpoch | SeedEdgeEvent]:
         """Every event up to ``t_s`` after t0 not handed out yet, in time order."""
         out: list[GnssEpoch | SeedEdgeEvent] = []
-        v = SPEED_KMH / 3.6
         while True:
             te = self.next_epoch * EPOCH_S
             ts = self.next_seed / self.seeds_per_s
             if min(te, ts) > t_s:
                 return out
             if te <= ts:
-                out.append(GnssEpoch(
-                    utc=UTC0 + timedelta(seconds=te), t_mono=self.t0_mono + te + 0.02,
-                    lat=ORIGIN[0] + v * te / 111_120.0, lon=ORIGIN[1], alt_m=200.0,
-                    fix="rtk_fixed", speed_kmh=SPEED_KMH, course_deg=0.0, heading_deg=0.0,
-                    heading_valid=True, num_sv=24,
-                ))
-                self.next_epoch += 1
+                out.append(self._epoch())
             else:
-                out.append(SeedEdgeEvent(row=1 + self.next_seed % ROWS,
-                                         t_mono=self.t0_mono + ts))
-                self.next_seed += 1
+                out.append(self._edge())
+
+    def epochs_until(self, t_s: float) -> list[GnssEpoch]:
+        """The epochs up to ``t_s`` after t0 not handed out yet."""
+        out: list[GnssEpoch] = []
+        while self.next_epoch * EPOCH_S <= t_s:
+            out.append(self._epoch())
+        return out
+
+    def edges_until(self, t_s: float) -> list[SeedEdgeEvent]:
+        """The seed edges up to ``t_s`` after t0 not handed out yet."""
+        out: list[SeedEdgeEvent] = []
+        while self.next_seed / self.seeds_per_s <= t_s:
+            out.append(self._edge())
+        return out
+
+    def _epoch(self) -> GnssEpoch:
+        te = self.next_epoch * EPOCH_S
+        self.next_epoch += 1
+        return GnssEpoch(
+            utc=UTC0 + timedelta(seconds=te), t_mono=self.t0_mono + te + GNSS_LATENCY_S,
+            lat=ORIGIN[0] + SPEED_KMH / 3.6 * te / 111_120.0, lon=ORIGIN[1], alt_m=200.0,
+            fix="rtk_fixed", speed_kmh=SPEED_KMH, course_deg=0.0, heading_deg=0.0,
+            heading_valid=True, num_sv=24,
+        )
+
+    def _edge(self) -> SeedEdgeEvent:
+        ts = self.next_seed / self.seeds_per_s
+        self.next_seed += 1
+        return SeedEdgeEvent(row=1 + (self.next_seed - 1) % ROWS, t_mono=self.t0_mono + ts)
 
 
 def _feed(recorder: SeedRecorder, events: list[GnssEpoch | SeedEdgeEvent]) -> None:
@@ -325,7 +348,7 @@ async def _raw(port: int, records: list[SeedRecord]) -> float:
 
 async def _daemon_child(config: Path, state_dir: Path, run_s: float,
                         seeds_per_s: float) -> dict[str, Any]:
-    from gateway.daemon import Daemon
+    from gateway.daemon import Daemon, settle_gc
 
     settings = load_config(config)
     daemon = Daemon(settings, state_dir)
@@ -336,24 +359,42 @@ async def _daemon_child(config: Path, state_dir: Path, run_s: float,
     if seeds_per_s > 0:
         recorder = SeedRecorder(settings, daemon.components["store"])
 
-        async def feed() -> None:
+        field = SyntheticField(t0_mono=time.monotonic(), seeds_per_s=seeds_per_s)
+
+        async def feed_edges() -> None:
+            # as GpioSeedSensors does: a read of what the kernel queued on each tick of the grid
             assert recorder is not None
-            field = SyntheticField(t0_mono=time.monotonic(), seeds_per_s=seeds_per_s)
             while True:
-                await asyncio.sleep(FEED_TICK_S)
+                await sleep_to_next_tick(GPIO_READ_INTERVAL_S)
                 c0 = time.thread_time()
-                events = field.until(time.monotonic() - field.t0_mono)
+                edges = field.edges_until(time.monotonic() - field.t0_mono)
                 making["cpu_s"] += time.thread_time() - c0
-                _feed(recorder, events)
+                for edge in edges:
+                    recorder.on_edge(edge)
                 making["seeds"] = field.next_seed
 
-        daemon.add_task("bench-seed-feed", feed)
+        async def feed_epochs() -> None:
+            # as GnssReader does: each epoch as it arrives, GNSS_LATENCY_S after its UTC time
+            assert recorder is not None
+            loop = asyncio.get_running_loop()
+            while True:
+                due = field.t0_mono + field.next_epoch * EPOCH_S + GNSS_LATENCY_S
+                await asyncio.sleep(max(0.0, due - time.monotonic()))
+                c0 = time.thread_time()
+                epochs = field.epochs_until(loop.time() - field.t0_mono - GNSS_LATENCY_S)
+                making["cpu_s"] += time.thread_time() - c0
+                for epoch in epochs:
+                    recorder.on_epoch(epoch)
+
+        daemon.add_task("bench-seed-edges", feed_edges)
+        daemon.add_task("bench-gnss-epochs", feed_epochs)
         daemon.add_task("seed-recorder", recorder.run)
 
     async def stop_later() -> None:
         await asyncio.sleep(run_s)
         daemon.request_stop()
 
+    settle_gc()  # as ``sowgate run`` does once the daemon is built
     stopper = asyncio.create_task(stop_later(), name="bench-stop")
     await daemon.run()
     await stopper

@@ -87,10 +87,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(line, file=sys.stderr)
         return EXIT_CONFIG
     _setup_logging(args.verbose)
-    from gateway.daemon import Daemon
+    from gateway.daemon import Daemon, settle_gc
 
     async def main() -> None:
         daemon = Daemon(settings, state_dir())
+        settle_gc()
         if args.tui:
             await _with_live_view(daemon, daemon.run())
         else:

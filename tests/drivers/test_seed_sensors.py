@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import os
 import time
 from collections.abc import AsyncIterator, Callable, Iterator, Sequence
@@ -193,6 +194,7 @@ class FakeEdgeEvent:
     event_type: FakeEdgeType
     timestamp_ns: int
     line_offset: int
+    global_seqno: int = 0  # 0: not numbered (the tests that do not care about overflow)
 
 
 @dataclass
@@ -270,20 +272,62 @@ async def test_gpio_falling_edges_map_lines_to_rows_with_kernel_timestamps() -> 
 
 async def test_gpio_lines_are_read_in_batches_not_once_per_edge() -> None:
     """At 2 000 edges/s a wake-up per edge would cost more CPU than the seeds themselves; the
-    kernel's timestamps make batching free, so the lines are read at most every 10 ms."""
+    kernel's timestamps make batching free, so the lines are read at most once per tick."""
     got: list[SeedEdgeEvent] = []
     chip = FakeChip()
     src = GpioSeedSensors("chip", [5, 6], 0.0, got.append, request_factory=chip)
     async with running(src):
         await wait_for(lambda: src.available)
         t0 = time.monotonic()
-        for k in range(100):  # an edge every ~1 ms for ~0.1 s
+        for k in range(200):  # an edge every ~1 ms for ~0.2 s
             chip.requests[0].push(falling(5 + k % 2, 1.0 + k * 0.001))
             await asyncio.sleep(0.001)
-        await wait_for(lambda: len(got) == 100)
+        await wait_for(lambda: len(got) == 200)
         elapsed = time.monotonic() - t0
-    assert [e.t_mono for e in got] == [1.0 + k * 0.001 for k in range(100)]
+    assert [e.t_mono for e in got] == pytest.approx([1.0 + k * 0.001 for k in range(200)], abs=1e-9)
     assert chip.requests[0].reads <= elapsed / GPIO_READ_INTERVAL_S + 2
+
+
+async def test_gpio_reads_fall_on_the_shared_tick_grid() -> None:
+    """Each read after the first waits for the next multiple of GPIO_READ_INTERVAL_S on the
+    loop clock, where the recorder's and the store's ticks fall too: one wake-up for all."""
+    loop = asyncio.get_running_loop()
+    read_at: list[float] = []
+    chip = FakeChip()
+    src = GpioSeedSensors("chip", [5], 0.0, lambda e: read_at.append(loop.time()),
+                          request_factory=chip)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        for k in range(40):
+            chip.requests[0].push(falling(5, 1.0 + k * 0.01))
+            await asyncio.sleep(0.005)
+        await wait_for(lambda: len(read_at) == 40)
+    reads = sorted(set(read_at))[1:]  # the first read comes as soon as the first edge does
+    assert reads
+    for t in reads:
+        ticks = t / GPIO_READ_INTERVAL_S
+        # on the grid, give or take the loop's lateness (well under a tenth of a period)
+        assert ticks - math.floor(ticks) < 0.1, (t, ticks)
+
+
+async def test_gpio_edges_lost_to_a_kernel_queue_overflow_are_counted() -> None:
+    """The kernel numbers every event of a request; a gap means its queue was full and edges
+    were dropped. Nothing can bring them back, but they are counted and logged, not hidden."""
+    got: list[SeedEdgeEvent] = []
+    chip = FakeChip()
+    src = GpioSeedSensors("chip", [5], 0.0, got.append, request_factory=chip)
+
+    def numbered(seqno: int, t_s: float) -> FakeEdgeEvent:
+        return FakeEdgeEvent(FakeEdgeType.FALLING_EDGE, round(t_s * 1e9), 5, seqno)
+
+    async with running(src):
+        await wait_for(lambda: src.available)
+        chip.requests[0].push(numbered(1, 1.0), numbered(2, 1.1), numbered(6, 1.5))
+        await wait_for(lambda: len(got) == 3)
+        assert src.stats.lost == 3
+        chip.requests[0].push(numbered(7, 1.6))
+        await wait_for(lambda: len(got) == 4)
+    assert src.stats.lost == 3
 
 
 async def test_gpio_edges_the_kernel_already_queued_are_delivered_when_stopped() -> None:
