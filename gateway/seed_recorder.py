@@ -28,14 +28,16 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
+from operator import itemgetter
 from typing import Any, Protocol
 
 from drivers.seed_sensors import SeedEdgeEvent
 from drivers.ticks import sleep_to_next_tick
 from gateway.config import Settings
 from gateway.positioning import AntennaEpoch, Landing, SeedPositioner
-from gateway.records import SeedDrop, SeedRecord
+from gateway.records import SeedDrop, SeedRecord, SeedRow
 from gateway.spacing_quality import RowQualityAccumulator
 
 log = logging.getLogger(__name__)
@@ -49,6 +51,7 @@ MAX_BUFFERED_DROPS = 10_000
 # Epochs and edges waiting for the next flush (~0.4 s at 2 100 seeds/s plus 10 Hz epochs): if
 # the loop stalls beyond this, they are positioned inline so memory stays bounded.
 MAX_QUEUED_EVENTS = 1_000
+_ROW, _SPACING = itemgetter(1), itemgetter(10)  # in a stored record row (gateway.records)
 
 
 class SeedSink(Protocol):
@@ -108,13 +111,30 @@ class SeedRecorder:
             self._position_queued()
 
     def _position_queued(self) -> None:
-        """Hand the queued epochs and edges to the positioner, in the order they came."""
+        """Hand the queued epochs and edges to the positioner, in the order they came: each
+        run of edges between two epochs in one call (``SeedPositioner.add_edges``)."""
         events, self._events = self._events, []
+        edges: list[SeedEdgeEvent] = []
         for event in events:
             if type(event) is SeedEdgeEvent:
-                self._edge(event)
+                edges.append(event)
             else:
+                if edges:
+                    self._edges(edges)
+                    edges = []
                 self._take(self.positioner.add_epoch(event))  # type: ignore[arg-type]
+        if edges:
+            self._edges(edges)
+
+    def _edges(self, edges: list[SeedEdgeEvent]) -> None:
+        try:
+            landed = self.positioner.add_edges([e.row for e in edges], [e.t_mono for e in edges])
+        except ValueError:  # a row the config does not know: one by one, to count it alone
+            for event in edges:
+                self._edge(event)
+            return
+        if landed:  # usually empty: the seeds wait for the epoch after their landing
+            self._take(landed)
 
     def _edge(self, event: SeedEdgeEvent) -> None:
         try:
@@ -175,9 +195,10 @@ class SeedRecorder:
         if not want_records and self.on_records is None:
             append = getattr(self.store, "append_rows", None)
         records: list[SeedRecord] = []
+        stored = [la.stored for la in drops]  # (utc_us, row, ..., spacing_m)
         try:
             if append is not None:
-                append([la.stored for la in drops])  # ids only: no objects nobody reads
+                append(stored)  # ids only: no objects nobody reads
             else:
                 records = self.store.add_seeds([la.drop for la in drops])
         except Exception as exc:  # keep positioning; RecordingHealth raises the alarm
@@ -194,20 +215,38 @@ class SeedRecorder:
             return []
         self.store_error = None
         self.records_stored += len(drops)
-        seeds_per_row, last_spacing, quality = self.seeds_per_row, self.last_spacing_m, self.quality
-        for la in drops:
-            stored = la.stored  # (utc_us, row, ..., spacing_m): indexed, not star-unpacked
-            row, spacing = stored[1], stored[10]
-            seeds_per_row[row] = seeds_per_row.get(row, 0) + 1
-            last_spacing[row] = spacing
-            if spacing is not None and row in quality:
-                quality[row].add(spacing)
+        self._tally(stored)
         if self.on_records is not None and records:
             try:
                 self.on_records(records)
             except Exception:
                 log.exception("on_records callback failed")
         return records
+
+    def _tally(self, stored: list[SeedRow]) -> None:
+        """Per-row counts, last spacings and spacing quality for stored records, in order.
+
+        Every seed passes here, so the counting and the last-spacing update run in C
+        (``Counter``, ``dict.update``) and each row's spacings go to its accumulator in one
+        ``add_many`` call."""
+        rows = list(map(_ROW, stored))
+        spacings = list(map(_SPACING, stored))
+        seeds_per_row = self.seeds_per_row
+        for row, count in Counter(rows).items():
+            seeds_per_row[row] = seeds_per_row.get(row, 0) + count
+        self.last_spacing_m.update(zip(rows, spacings, strict=True))
+        by_row: dict[int, list[float]] = {}
+        for row, spacing in zip(rows, spacings, strict=True):
+            if spacing is not None:
+                same_row = by_row.get(row)
+                if same_row is None:
+                    by_row[row] = [spacing]
+                else:
+                    same_row.append(spacing)
+        quality = self.quality
+        for row, values in by_row.items():
+            if row in quality:
+                quality[row].add_many(values)
 
     async def run(self) -> None:
         """Flush every FLUSH_INTERVAL_S; on cancellation position and store what is pending."""

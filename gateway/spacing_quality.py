@@ -95,6 +95,36 @@ class RowQualityAccumulator:
             self._mean += d / self._singles
             self._m2 += d * (spacing_m - self._mean)
 
+    def add_many(self, spacings: Iterable[float]) -> None:
+        """``add`` for each spacing in turn (same state after, bit for bit), with the running
+        sums kept in locals: the recorder feeds every seed through here, ~2 000 a second."""
+        if self.x_ref is None:
+            for x in spacings:
+                self.add(x)
+            return
+        multiple_at, miss_above = MULTIPLE_LIMIT * self.x_ref, MISS_LIMIT * self.x_ref
+        n, total, multiples, misses = self.n, self._sum, self.multiples, self.misses
+        singles, mean, m2 = self._singles, self._mean, self._m2
+        isfinite = math.isfinite
+        try:
+            for x in spacings:
+                if not isfinite(x) or x < 0:
+                    raise ValueError(f"spacing must be a finite distance >= 0, got {x}")
+                n += 1
+                total += x
+                if x <= multiple_at:
+                    multiples += 1
+                elif x > miss_above:
+                    misses += 1
+                else:
+                    singles += 1
+                    d = x - mean
+                    mean += d / singles
+                    m2 += d * (x - mean)
+        finally:  # what was added before a bad value stays added, as with add()
+            self.n, self._sum, self.multiples, self.misses = n, total, multiples, misses
+            self._singles, self._mean, self._m2 = singles, mean, m2
+
     def result(self) -> SpacingQuality:
         if self.x_ref is None:
             return spacing_quality(self._window) if self._window else EMPTY

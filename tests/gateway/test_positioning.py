@@ -7,6 +7,7 @@ import math
 import random
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime, timedelta
+from typing import Any
 
 import pymap3d
 import pytest
@@ -417,6 +418,21 @@ def test_repeated_epochs_are_ignored() -> None:
     assert (pos.stats.epochs, pos.stats.epochs_ignored) == (1, 1)
 
 
+@pytest.mark.parametrize("seeds_per_s", [2_100, 6_000])
+def test_a_fast_wide_planter_keeps_every_seed_interpolated(seeds_per_s: int) -> None:
+    """Up to a 96-row planter at 20 km/h (~5 000 seeds/s): with epochs coming steadily no seed
+    may be pushed out to extrapolation because too many wait for their epoch at once."""
+    pos = SeedPositioner(settings())
+    seconds = 3.0
+    n = int(seeds_per_s * seconds)
+    edges = [(1 + k % 6, 0.3 + k / seeds_per_s) for k in range(n)]
+    out = run(pos, straight(0.0, kmh=20.0, seconds=seconds + 1.0), FRAME, edges,
+              until=seconds + 0.8) + pos.flush()
+    assert len(out) == n
+    assert pos.stats.pending_overflow == 0
+    assert pos.stats.extrapolated == 0
+
+
 def test_flush_positions_every_pending_seed() -> None:
     drive = straight(0.0)
     pos = SeedPositioner(settings())
@@ -592,6 +608,85 @@ def test_a_run_of_seeds_is_positioned_exactly_as_one_at_a_time() -> None:
     assert short_pos._previous == one_by_one._previous
 
 
+def test_a_run_inside_the_history_takes_the_column_path_with_the_same_numbers() -> None:
+    """Every seed bracketed by epochs with headings: spacings and record rows are computed
+    over whole columns. Rows seen before the run, a row new to it, and a row whose previous
+    seed is older than the spacing reset gap must all come out as one at a time."""
+    pos = SeedPositioner(settings())
+    _busy_field(pos)
+    t_last = pos._sample_time(pos._samples[-1])
+    gap = pos.settings.spacing_reset_gap_s
+    ready = [(1 + k % 6, t_last - 1.0 + k * 0.0031) for k in range(300)]
+    pos._previous.pop(6)  # as if row 6 had no seed before the run
+    pos._previous[5] = (0.0, 0.0, t_last - 1.0 - 2 * gap)  # long ago: no spacing for row 5
+    one_by_one, batched = copy.deepcopy(pos), copy.deepcopy(pos)
+    expected = [one_by_one._interpolate(p) for p in ready]
+    calls: list[int] = []
+    original = batched._landings_of_columns
+
+    def spy(*args: Any) -> list[Landing]:
+        calls.append(len(args[0]))
+        return original(*args)
+
+    batched._landings_of_columns = spy  # type: ignore[method-assign]
+    got = batched._interpolate_many(ready)
+    assert calls == [len(ready)]
+    assert len(got) == len(expected)
+    for g, e in zip(got, expected, strict=True):
+        _assert_landing_close(g, e)
+    first_of_row_5 = next(g for g, p in zip(got, ready, strict=True) if p[0] == 5)
+    assert first_of_row_5.drop.spacing_m is None
+    assert batched.stats == one_by_one.stats
+    assert batched._previous.keys() == one_by_one._previous.keys()
+    for row, prev in batched._previous.items():
+        assert prev == pytest.approx(one_by_one._previous[row], rel=0, abs=1e-9)
+
+
+def test_edges_handed_over_as_a_run_give_what_one_at_a_time_gives() -> None:
+    """``add_edges`` (the recorder's runs of edges between two epochs) against ``add_edge``
+    per edge, over a turning field with jittered epochs: the same landings, bit for bit."""
+    drive = Drive(legs=[Leg(3.0, 14.0, yaw_rate_dps=25.0)], start_heading_deg=340.0,
+                  accel_ms2=100)
+    edges = [(1 + k % 6, 0.05 + k * 0.004) for k in range(600)]
+    live = SeedPositioner(settings())
+    expected = run(live, drive, FRAME, edges, until=3.0, jitter=0.02) + live.flush()
+    # the same arrival order, edges between two epochs handed over together
+    in_runs = SeedPositioner(settings())
+    rng = random.Random(3)  # as run() draws the epochs' jitter
+    epochs = []
+    k = 0
+    while k * 0.1 <= 3.0:
+        epochs.append(epoch_from_pose(drive.pose_at(k * 0.1), FRAME,
+                                      jitter_s=rng.uniform(0, 0.02)))
+        k += 1
+    events = sorted([(e.t_mono, 0, e) for e in epochs]
+                    + [(MONO0 + t, 1, row) for row, t in edges], key=lambda x: x[0])
+    got: list[Landing] = []
+    run_rows: list[int] = []
+    run_times: list[float] = []
+    for t, kind, what in events:
+        if kind == 1:
+            run_rows.append(what)  # type: ignore[arg-type]
+            run_times.append(t)
+            continue
+        got += in_runs.add_edges(run_rows, run_times)
+        run_rows, run_times = [], []
+        got += in_runs.add_epoch(what)  # type: ignore[arg-type]
+    got += in_runs.add_edges(run_rows, run_times)
+    got += in_runs.flush()
+    assert len(got) == len(expected) > 500
+    assert got == expected
+    assert in_runs.stats == live.stats
+
+
+def test_a_run_with_a_row_out_of_range_is_refused_before_anything_is_queued() -> None:
+    pos = SeedPositioner(settings())
+    run(pos, straight(0.0), FRAME, [], until=0.5)
+    with pytest.raises(ValueError, match="row 99 outside"):
+        pos.add_edges([1, 2, 99], [MONO0 + 0.5, MONO0 + 0.51, MONO0 + 0.52])
+    assert pos.pending == 0
+
+
 def _assert_landing_close(got: Landing, expected: Landing) -> None:
     g, e = got.drop, expected.drop
     assert got.t_land == expected.t_land
@@ -601,7 +696,10 @@ def _assert_landing_close(got: Landing, expected: Landing) -> None:
     assert g.lon == pytest.approx(e.lon, rel=0, abs=1e-12)
     assert g.speed_kmh == pytest.approx(e.speed_kmh, rel=0, abs=1e-12)
     assert g.heading_deg == pytest.approx(e.heading_deg, rel=0, abs=1e-10)
-    assert g.spacing_m == pytest.approx(e.spacing_m, rel=0, abs=1e-9)
+    if e.spacing_m is None:
+        assert g.spacing_m is None
+    else:
+        assert g.spacing_m == pytest.approx(e.spacing_m, rel=0, abs=1e-9)
     approx = {"lat", "lon", "speed_kmh", "heading_deg", "spacing_m"}
     assert g.model_dump(exclude=approx) == e.model_dump(exclude=approx)
     assert got.stored[0] == expected.stored[0]  # the stored utc_us

@@ -7,6 +7,8 @@ import random
 import statistics
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from gateway.spacing_quality import (
     QUALITY_WINDOW,
@@ -89,3 +91,29 @@ def test_impossible_spacings_are_refused(bad: float) -> None:
 def test_a_non_positive_target_is_refused() -> None:
     with pytest.raises(ValueError, match="x_ref must be > 0"):
         RowQualityAccumulator(0.0)
+
+
+@given(
+    first=st.lists(st.floats(min_value=0.0, max_value=2.0), max_size=30),
+    second=st.lists(st.floats(min_value=0.0, max_value=2.0), max_size=30),
+    x_ref=st.sampled_from([0.05, 0.2, None]),
+)
+def test_adding_many_at_once_leaves_exactly_the_state_of_adding_one_by_one(
+    first: list[float], second: list[float], x_ref: float | None
+) -> None:
+    """The recorder feeds each row's spacings in one call; nothing may differ in the last bit."""
+    one, many = RowQualityAccumulator(x_ref), RowQualityAccumulator(x_ref)
+    for x in first + second:
+        one.add(x)
+    many.add_many(first)
+    many.add_many(second)
+    assert vars(many) == vars(one)
+    assert many.result() == one.result()
+
+
+@pytest.mark.parametrize("bad", [-0.1, math.nan, math.inf])
+def test_a_bad_spacing_among_many_is_refused_after_the_good_ones_before_it(bad: float) -> None:
+    acc = RowQualityAccumulator(0.2)
+    with pytest.raises(ValueError, match="spacing must be"):
+        acc.add_many([0.2, 0.21, bad, 0.19])
+    assert acc.n == 2
