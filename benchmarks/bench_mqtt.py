@@ -12,20 +12,22 @@ Issue 4 §8. Everything runs against one mosquitto started here on a free port.
     A third local row starts at the store (already positioned drops): the outbox's own cost.
 (b) Control latency under load. The real ``gateway.daemon.Daemon`` runs against
     ``simulator.machine.SimulatedMachine`` (RS485 and HMI on ptys, as in bench_latency), with
-    its own record store and MQTT link; synthetic epochs/edges are fed in real time at the
-    nominal 2 100 seeds/s into a ``SeedRecorder`` on that store (the GNSS and seed-tube
-    drivers are replaced by the feeder, which runs on the daemon's event loop like they do:
-    the edges on the GPIO driver's tick grid, every ``GPIO_READ_INTERVAL_S``; each epoch on
-    its own wake-up as it would arrive from the receiver, ``GNSS_LATENCY_S`` after its time).
+    its own record store and MQTT link; synthetic epochs and seed edges come in real time at
+    the nominal 2 100 seeds/s. The seed edges are read by the real ``GpioSeedSensors`` from a
+    synthetic kernel queue (``SyntheticLines``), with the driver's own read timing: ahead of
+    each epoch, as the daemon wires it, and on its own tick grid when no epoch comes. The
+    epochs (the GNSS reader is replaced by the feeder, on the daemon's event loop as it would
+    be) each come on their own wake-up, ``GNSS_LATENCY_S`` after their time.
     ``daemon.latencies_s`` (reply → PWM write) gives the p99; the reference is the same daemon
     with no seeds.
 (c) RSS and CPU. The daemon runs in a child process (``python -m benchmarks.bench_mqtt
     --daemon``); the simulator and the broker stay outside it. CPU is read from
     ``/proc/<pid>/stat`` (utime + stime) over ``DAEMON_MEASURE_S`` after a warm-up, RSS from
     ``/proc/<pid>/status`` (VmRSS at the end, VmHWM peak). The child's figure includes the
-    feeder's making of the synthetic events (a few µs per seed); the feeder times that part
-    with ``time.thread_time`` and it is shown apart and left out of the target check, since
-    in the field the drivers do it (handing the events to the recorder stays counted).
+    feeder's making of the synthetic epochs and kernel edge events (a few µs per seed); that
+    part is timed with ``time.thread_time``, shown apart and left out of the target check,
+    since in the field the receiver's parser and the kernel do it. The GPIO driver's reading
+    and the recorder stay counted.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -45,13 +48,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import aiomqtt
 
 from drivers.gnss_reader import GnssEpoch
-from drivers.seed_sensors import GPIO_READ_INTERVAL_S, SeedEdgeEvent
-from drivers.ticks import sleep_to_next_tick
+from drivers.seed_sensors import GpioSeedSensors, SeedEdgeEvent
 from gateway.alarms import AlarmBoard
 from gateway.commands import Command
 from gateway.config import Settings, load_config, parse_config
@@ -152,6 +154,59 @@ class SyntheticField:
         ts = self.next_seed / self.seeds_per_s
         self.next_seed += 1
         return SeedEdgeEvent(row=1 + (self.next_seed - 1) % ROWS, t_mono=self.t0_mono + ts)
+
+
+class _FallingEdge:
+    name = "FALLING_EDGE"
+
+
+class _KernelEdge(NamedTuple):
+    """What gpiod hands the driver for one edge (``gpiod.EdgeEvent``'s fields it reads)."""
+
+    event_type: type[_FallingEdge]
+    timestamp_ns: int
+    line_offset: int
+    global_seqno: int
+
+
+class SyntheticLines:
+    """A GPIO line request whose kernel queue is the synthetic field, for the real
+    ``GpioSeedSensors`` in the daemon child. Its fd is a pipe kept readable, so the driver
+    finds edges whenever it reads, on its own timer or from ``read_pending``: the reads, and
+    the wake-ups they need, are the driver's own. Line offset k is row k + 1."""
+
+    def __init__(self, field: SyntheticField, making: dict[str, float]) -> None:
+        self.field = field
+        self.making = making
+        self.seqno = 0
+        self._r, self._w = os.pipe()
+        os.write(self._w, b"x")  # never drained: always "readable"
+
+    @property
+    def fd(self) -> int:
+        return self._r
+
+    def read_edge_events(self) -> list[_KernelEdge]:
+        c0 = time.thread_time()
+        field = self.field
+        # the seeds SyntheticField.edges_until would give, made straight into kernel events
+        first = field.next_seed
+        end = math.floor((time.monotonic() - field.t0_mono) * field.seeds_per_s) + 1
+        t0_ns, ns_per_seed = field.t0_mono * 1e9, 1e9 / field.seeds_per_s
+        out = [
+            _KernelEdge(_FallingEdge, round(t0_ns + k * ns_per_seed), k % ROWS,
+                        self.seqno + 1 + k - first)
+            for k in range(first, max(first, end))
+        ]
+        field.next_seed = max(first, end)
+        self.seqno += len(out)
+        self.making["cpu_s"] += time.thread_time() - c0
+        self.making["seeds"] = field.next_seed
+        return out
+
+    def release(self) -> None:
+        os.close(self._r)
+        os.close(self._w)
 
 
 def _feed(recorder: SeedRecorder, events: list[GnssEpoch | SeedEdgeEvent]) -> None:
@@ -353,28 +408,23 @@ async def _daemon_child(config: Path, state_dir: Path, run_s: float,
     settings = load_config(config)
     daemon = Daemon(settings, state_dir)
     recorder: SeedRecorder | None = None
-    # CPU the feeder spends making up the synthetic events (work the real drivers' parsers
-    # would do instead, so it is reported apart); handing them to the recorder is not in it.
+    # CPU the feeder spends making up the synthetic epochs and kernel edge events (work the
+    # receiver's parser and the kernel would do instead, so it is reported apart); the GPIO
+    # driver reading the edges and handing them on, and the recorder, are counted.
     making = {"cpu_s": 0.0, "seeds": 0.0}
     if seeds_per_s > 0:
         recorder = SeedRecorder(settings, daemon.components["store"])
-
         field = SyntheticField(t0_mono=time.monotonic(), seeds_per_s=seeds_per_s)
-
-        async def feed_edges() -> None:
-            # as GpioSeedSensors does: a read of what the kernel queued on each tick of the grid
-            assert recorder is not None
-            while True:
-                await sleep_to_next_tick(GPIO_READ_INTERVAL_S)
-                c0 = time.thread_time()
-                edges = field.edges_until(time.monotonic() - field.t0_mono)
-                making["cpu_s"] += time.thread_time() - c0
-                for edge in edges:
-                    recorder.on_edge(edge)
-                making["seeds"] = field.next_seed
+        lines = SyntheticLines(field, making)
+        sensors = GpioSeedSensors(
+            "bench", list(range(ROWS)), settings.seed_sensors.debounce_ms, recorder.on_edge,
+            request_factory=lambda chip, offsets, bias: lines,
+        )
 
         async def feed_epochs() -> None:
-            # as GnssReader does: each epoch as it arrives, GNSS_LATENCY_S after its UTC time
+            # as GnssReader does: each epoch as it arrives, GNSS_LATENCY_S after its UTC
+            # time, to the listeners the daemon wires (gateway.optional_parts): the GPIO
+            # lines are read first, then the recorder queues the epoch
             assert recorder is not None
             loop = asyncio.get_running_loop()
             while True:
@@ -384,9 +434,10 @@ async def _daemon_child(config: Path, state_dir: Path, run_s: float,
                 epochs = field.epochs_until(loop.time() - field.t0_mono - GNSS_LATENCY_S)
                 making["cpu_s"] += time.thread_time() - c0
                 for epoch in epochs:
+                    sensors.read_pending()
                     recorder.on_epoch(epoch)
 
-        daemon.add_task("bench-seed-edges", feed_edges)
+        daemon.add_task("seed-sensors", sensors.run)
         daemon.add_task("bench-gnss-epochs", feed_epochs)
         daemon.add_task("seed-recorder", recorder.run)
 

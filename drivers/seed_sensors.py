@@ -32,7 +32,7 @@ import select
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from serial import SerialException
 from serial_asyncio_fast import open_serial_connection
@@ -60,6 +60,11 @@ DRAIN_QUIET_S = 0.05
 # ~100 ms a seed takes to fall, so an edge still reaches the positioner before the GNSS epoch
 # that brackets its landing.
 GPIO_READ_INTERVAL_S = 0.05
+# When something else reads the lines (``GpioSeedSensors.read_pending``: the daemon does ahead
+# of each GNSS epoch, in the wake-up the epoch brought), the driver's own next read waits this
+# long: more than the 0.1 s between epochs, so while the receiver talks the lines cost no
+# wake-up of their own (each one costs ~0.25 ms of CPU on the bench machine, bare).
+GPIO_MAX_WAIT_S = 0.15
 # Edge events the kernel keeps for us between reads: its maximum (GPIO_V2_LINES_MAX x 16; a
 # larger request is clamped). 0.5 s of edges at 2 100 seeds/s, ten read intervals. The default
 # would be 16 per requested line. Edges lost to an overflow show as gaps in the kernel's
@@ -68,9 +73,11 @@ GPIO_EVENT_BUFFER = 1024
 DRAIN_TIMEOUT_S = 0.3
 
 
-@dataclass(frozen=True)
-class SeedEdgeEvent:
-    """A seed passed the sensor of ``row`` (1-based) at host monotonic time ``t_mono``."""
+class SeedEdgeEvent(NamedTuple):
+    """A seed passed the sensor of ``row`` (1-based) at host monotonic time ``t_mono``.
+
+    A NamedTuple, not a frozen dataclass: one is made per seed (~2 000 a second), and a
+    frozen dataclass costs several times as much to build."""
 
     row: int
     t_mono: float
@@ -307,8 +314,11 @@ class GpioSeedSensors:
         self._backoff = backoff if backoff is not None else Backoff(initial_s=0.5, cap_s=10.0)
         self._last_ns: dict[int, int] = {}
         self._last_seqno: int | None = None  # the kernel numbers a request's events 1, 2, ...
+        self._falling: dict[Any, bool] = {}  # event type → is it a falling edge
         self._connected = False
         self._pause: asyncio.TimerHandle | None = None  # the reader's rest between reads
+        # the open request and the future that ends its reading, while one is open
+        self._reading: tuple[LineRequestLike, asyncio.Future[str]] | None = None
         self._stats = SeedSensorStats()
 
     @property
@@ -332,6 +342,7 @@ class GpioSeedSensors:
             fd = request.fd
             loop.add_reader(fd, self._readable, request, broken)
             self._pause = None
+            self._reading = (request, broken)
             self._last_seqno = None  # a new request numbers its events from 1 again
             self._connected = True
             self._stats.connects += 1
@@ -343,8 +354,10 @@ class GpioSeedSensors:
                 raise
             finally:
                 self._connected = False
+                self._reading = None
                 if self._pause is not None:
                     self._pause.cancel()
+                    self._pause = None
                 loop.remove_reader(fd)
                 with contextlib.suppress(OSError):
                     request.release()
@@ -359,22 +372,57 @@ class GpioSeedSensors:
                 for event in request.read_edge_events():
                     self.handle_event(event)
 
+    def read_pending(self) -> None:
+        """Read what the kernel has queued now, from a wake-up the loop had anyway, and put
+        the driver's own next read off by ``GPIO_MAX_WAIT_S``.
+
+        The daemon calls this ahead of each GNSS epoch: the edges reach the recorder before
+        the epoch that follows them, as they would with reads of their own, and with the
+        receiver sending 10 epochs a second the lines never need a wake-up of their own.
+        """
+        reading, pause = self._reading, self._pause
+        if reading is None or pause is None:
+            return  # not open, or the reader is armed: the next edge wakes it anyway
+        request, broken = reading
+        try:
+            queued = bool(select.select([request.fd], [], [], 0)[0])
+        except (OSError, ValueError) as exc:
+            if not broken.done():
+                broken.set_result(f"reading {self.chip} failed: {exc}")
+            return
+        if queued and not self._read(request, broken):
+            return
+        loop = asyncio.get_running_loop()
+        pause.cancel()
+        self._pause = loop.call_at(
+            loop.time() + GPIO_MAX_WAIT_S, self._resume, request, broken
+        )
+
     def _readable(self, request: LineRequestLike, broken: asyncio.Future[str]) -> None:
+        if not self._read(request, broken):
+            return
+        # let edges gather in the kernel until the next tick of the grid (see drivers.ticks)
+        loop = asyncio.get_running_loop()
+        loop.remove_reader(request.fd)
+        self._pause = loop.call_at(
+            next_tick(loop.time(), GPIO_READ_INTERVAL_S), self._resume, request, broken
+        )
+
+    def _resume(self, request: LineRequestLike, broken: asyncio.Future[str]) -> None:
+        self._pause = None
+        asyncio.get_running_loop().add_reader(request.fd, self._readable, request, broken)
+
+    def _read(self, request: LineRequestLike, broken: asyncio.Future[str]) -> bool:
+        """Hand every queued event on; False (and ``broken`` resolved) if the read failed."""
         try:
             events = list(request.read_edge_events())
         except OSError as exc:
             if not broken.done():
                 broken.set_result(f"reading {self.chip} failed: {exc}")
-            return
+            return False
         for event in events:
             self.handle_event(event)
-        # let edges gather in the kernel until the next tick of the grid (see drivers.ticks)
-        loop = asyncio.get_running_loop()
-        loop.remove_reader(request.fd)
-        self._pause = loop.call_at(
-            next_tick(loop.time(), GPIO_READ_INTERVAL_S),
-            loop.add_reader, request.fd, self._readable, request, broken,
-        )
+        return True
 
     def handle_event(self, event: EdgeEventLike) -> None:
         """One kernel edge event → a seed edge (or a counted bounce / stray)."""
@@ -388,7 +436,11 @@ class GpioSeedSensors:
                 self.chip,
             )
         self._last_seqno = seqno
-        if getattr(event.event_type, "name", str(event.event_type)) != "FALLING_EDGE":
+        kind = event.event_type
+        falling = self._falling.get(kind)
+        if falling is None:  # once per event type, not per event
+            falling = self._falling[kind] = getattr(kind, "name", str(kind)) == "FALLING_EDGE"
+        if not falling:
             return
         row = self._row_of.get(event.line_offset)
         if row is None:

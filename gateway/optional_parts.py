@@ -160,8 +160,12 @@ def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
 
     recorder = SeedRecorder(daemon.settings, store)
     daemon.components["seeds"] = recorder
-    daemon.epoch_listeners.append(recorder.on_epoch)
     sensors = _seed_sensor_source(daemon, recorder.on_edge)
+    if hasattr(sensors, "read_pending"):
+        # GPIO: the edges the kernel queued go to the recorder ahead of each epoch, in the
+        # wake-up the epoch brought, so they need none of their own (drivers.seed_sensors)
+        daemon.epoch_listeners.append(lambda _epoch: sensors.read_pending())
+    daemon.epoch_listeners.append(recorder.on_epoch)
     daemon.components["seed_sensors"] = sensors
     daemon.add_task("seed-sensors", sensors.run, stop_stage=STOP_FIRST)
     daemon.add_task("seed-recorder", recorder.run, stop_stage=STOP_RECORDER)

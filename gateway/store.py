@@ -12,7 +12,8 @@ last fsynced. ``run()`` bounds that window: it commits every ``commit_interval_s
 forces a passive checkpoint, which fsyncs the WAL, every ``SYNC_INTERVAL_S`` (1 s). So a power
 cut loses at most about the last second of records, which is the contract, while the
 fsync cost stays at ~2 per second whatever the seed rate (``synchronous=FULL`` would fsync on
-every commit, blocking the event loop five times a second on a slow SD card).
+every commit, blocking the event loop on a slow SD card). With nothing written, ``run()``
+sleeps until a write opens a transaction: an idle box wakes for no store tick at all.
 
 Ids. ``INTEGER PRIMARY KEY AUTOINCREMENT`` keeps the high-water mark in ``sqlite_sequence``, so
 an id is never reused, even after pruning deleted the newest delivered rows.
@@ -37,6 +38,7 @@ card fills.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import logging
 import sqlite3
@@ -168,7 +170,7 @@ class RecordStore:
         path: str | Path,
         machine_id: str,
         *,
-        commit_interval_s: float = 0.2,
+        commit_interval_s: float = 0.5,
         retention_days: float = 30.0,
         backlog_alarm_records: int = 200_000,
         on_backlog: BacklogCallback | None = None,
@@ -212,6 +214,8 @@ class RecordStore:
         self._uncommitted_seeds = 0
         self._uncommitted_alarms = 0
         self._last_sync = time.monotonic()
+        self._unsynced = False  # commits since the last fsync of the WAL
+        self._work = asyncio.Event()  # set when a transaction opens: run() has work
         # run() checkpoints on its own connection in a worker thread, so the fsync of a
         # checkpoint never stalls the event loop (and with it the control loop).
         self._ckpt_lock = threading.Lock()
@@ -305,6 +309,7 @@ class RecordStore:
         if not self._in_tx:
             self._db.execute("BEGIN")
             self._in_tx = True
+            self._work.set()  # run() has something to commit
 
     def add_commit_listener(self, listener: Callable[[], None]) -> None:
         """Called after each commit that made new records visible (the outbox wakes up)."""
@@ -413,6 +418,7 @@ class RecordStore:
             self._forget_uncommitted_tail()
             raise StoreError(f"cannot commit records: {exc}") from exc
         self._in_tx = False
+        self._unsynced = True  # in the WAL, not yet fsynced
         new = self._uncommitted_seeds + self._uncommitted_alarms
         self._visible_seed_id = self._last_seed_id
         self._visible_alarm_id = self._last_alarm_id
@@ -445,6 +451,7 @@ class RecordStore:
         self.flush()
         self._checkpoint()
         self._last_sync = time.monotonic()
+        self._unsynced = False
 
     def _checkpoint(self) -> None:
         """Passive checkpoint on a second connection; safe to call from a worker thread."""
@@ -691,24 +698,36 @@ class RecordStore:
         self._db.execute("PRAGMA wal_autocheckpoint=0")
         try:
             while True:
-                # on the shared grid: the recorder's flush and a GPIO read wake with it
-                await sleep_to_next_tick(self.commit_interval_s)
                 try:
+                    if time.monotonic() - last_prune >= PRUNE_INTERVAL_S:
+                        last_prune = time.monotonic()
+                        await self._prune_in_steps(utcnow())
+                    if not self._in_tx and not self._unsynced:
+                        # nothing to commit or to fsync: no wake-ups until a write opens a
+                        # transaction (or the next prune is due)
+                        self._work.clear()
+                        until_prune = last_prune + PRUNE_INTERVAL_S - time.monotonic()
+                        with contextlib.suppress(TimeoutError):
+                            async with asyncio.timeout(max(0.0, until_prune)):
+                                await self._work.wait()
+                        continue
+                    # on the shared grid: the recorder's flush (which commits too) wakes
+                    # with it, so this tick usually finds nothing left but the fsync
+                    await sleep_to_next_tick(self.commit_interval_s)
                     self.flush()
                     self.commit_error = None
                     now = time.monotonic()
-                    if now - self._last_sync >= SYNC_INTERVAL_S:
+                    if self._unsynced and now - self._last_sync >= SYNC_INTERVAL_S:
                         self._last_sync = now
+                        self._unsynced = False
                         await asyncio.to_thread(self._checkpoint)
-                    if now - last_prune >= PRUNE_INTERVAL_S:
-                        last_prune = now
-                        await self._prune_in_steps(utcnow())
                 except (StoreError, sqlite3.Error) as exc:
                     # Keep the daemon running (control must go on); the records stay in the
                     # open transaction and are retried at the next tick.
                     if self.commit_error is None:
                         log.exception("record store: commit failed, retrying")
                     self.commit_error = str(exc)
+                    await sleep_to_next_tick(self.commit_interval_s)
         finally:
             self._db.execute("PRAGMA wal_autocheckpoint=1000")
             try:  # a stop commits here, as soon as the recorder has stored its last seeds

@@ -127,4 +127,6 @@ class StoreSection(Section):
     path: str | None = None  # default: <state dir>/records.sqlite3
     retention_days: float = Field(30.0, gt=0, le=3650)
     backlog_alarm_records: int = Field(200_000, ge=1)
-    commit_interval_s: float = Field(0.2, gt=0, le=1.0)
+    # the seed recorder flushes and commits every 0.5 s on the same tick grid
+    # (gateway.seed_recorder.FLUSH_INTERVAL_S), so the store's own tick shares its wake-up
+    commit_interval_s: float = Field(0.5, gt=0, le=1.0)

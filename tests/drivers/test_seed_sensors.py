@@ -310,6 +310,34 @@ async def test_gpio_reads_fall_on_the_shared_tick_grid() -> None:
         assert ticks - math.floor(ticks) < 0.1, (t, ticks)
 
 
+async def test_gpio_reads_ahead_of_each_epoch_leave_the_lines_no_wake_up_of_their_own() -> None:
+    """The daemon reads the lines ahead of each GNSS epoch (``read_pending``): the edges come
+    at once, and the driver's own timed read keeps being put off, so it never fires."""
+    got: list[SeedEdgeEvent] = []
+    chip = FakeChip()
+    src = GpioSeedSensors("chip", [5], 0.0, got.append, request_factory=chip)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        request = chip.requests[0]
+        request.push(falling(5, 1.0))
+        await wait_for(lambda: len(got) == 1)  # the driver's own read; it now rests
+        src.read_pending()  # nothing queued: no read, but its own next one is put off
+        reads = request.reads
+        for k in range(8):  # "epochs" 50 ms apart, an edge before each
+            request.push(falling(5, 1.1 + k * 0.1))
+            await asyncio.sleep(0.05)
+            src.read_pending()
+            assert len(got) == k + 2  # delivered by this read, not by a later one
+        assert request.reads == reads + 8  # and not one read of the driver's own
+    assert [e.t_mono for e in got] == pytest.approx([1.0 + k * 0.1 for k in range(9)])
+
+
+async def test_gpio_read_pending_before_the_lines_are_open_does_nothing() -> None:
+    src = GpioSeedSensors("chip", [5], 0.0, lambda e: None, request_factory=FakeChip())
+    src.read_pending()
+    assert src.stats.edges == 0
+
+
 async def test_gpio_edges_lost_to_a_kernel_queue_overflow_are_counted() -> None:
     """The kernel numbers every event of a request; a gap means its queue was full and edges
     were dropped. Nothing can bring them back, but they are counted and logged, not hidden."""

@@ -28,6 +28,30 @@ def test_state_reports_the_screen_and_the_seed_sensors_as_devices(tmp_path: Path
             close()
 
 
+def test_gpio_seed_sensors_are_read_ahead_of_each_epoch_reaching_the_recorder(
+    tmp_path: Path,
+) -> None:
+    """The wiring behind the GPIO driver's ``read_pending``: each GNSS epoch first has the
+    lines read (the edges before it join the recorder's queue first), then goes on."""
+    settings = parse_config({
+        "gnss": {"enabled": True},
+        "seed_sensors": {"enabled": True, "source": "gpio", "gpio_lines": [5, 6, 13, 19, 26, 21]},
+        "machine": {"rows": 6},
+    })
+    daemon = Daemon(settings, tmp_path / "state")
+    calls: list[str] = []
+    try:
+        sensors, recorder = daemon.components["seed_sensors"], daemon.components["seeds"]
+        sensors.read_pending = lambda: calls.append("read lines")
+        recorder._queue = lambda event: calls.append(f"queue {event}")
+        for listener in daemon.epoch_listeners:
+            listener("epoch")
+        assert calls == ["read lines", "queue epoch"]
+    finally:
+        for close in daemon.closers:
+            close()
+
+
 def test_devices_not_configured_are_not_listed(tmp_path: Path) -> None:
     daemon = Daemon(parse_config({"hmi": {"enabled": False}}), tmp_path / "state")
     assert "hmi" not in daemon.snapshot()["devices"]

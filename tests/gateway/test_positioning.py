@@ -128,6 +128,27 @@ def run(
     **epoch_kw: object,
 ) -> list[Landing]:
     """Feed epochs (10 Hz) and edges in host-arrival order; returns ENU landings + drops."""
+    out: list[Landing] = []
+    for t, kind, what in arrivals(drive, frame, edges, until=until, jitter=jitter, **epoch_kw):
+        landed = (
+            pos.add_epoch(what)  # type: ignore[arg-type]
+            if kind == "epoch"
+            else pos.add_edge(what, t)  # type: ignore[arg-type]
+        )
+        out += landed
+    return out
+
+
+def arrivals(
+    drive: Drive,
+    frame: LocalFrame,
+    edges: list[tuple[int, float]],
+    *,
+    until: float,
+    jitter: float = 0.0,
+    **epoch_kw: object,
+) -> list[tuple[float, str, object]]:
+    """(host time, "epoch" | "edge", epoch | row) for 10 Hz epochs and the edges, in order."""
     rng = random.Random(3)
     events: list[tuple[float, str, object]] = []
     k = 0
@@ -140,15 +161,7 @@ def run(
     for row, t in edges:
         events.append((MONO0 + t, "edge", row))
     events.sort(key=lambda x: x[0])
-    out: list[Landing] = []
-    for t, kind, what in events:
-        landed = (
-            pos.add_epoch(what)  # type: ignore[arg-type]
-            if kind == "epoch"
-            else pos.add_edge(what, t)  # type: ignore[arg-type]
-        )
-        out += landed
-    return out
+    return events
 
 
 FRAME = LocalFrame(45.75, 126.63, 150.0)
@@ -652,20 +665,12 @@ def test_edges_handed_over_as_a_run_give_what_one_at_a_time_gives() -> None:
     expected = run(live, drive, FRAME, edges, until=3.0, jitter=0.02) + live.flush()
     # the same arrival order, edges between two epochs handed over together
     in_runs = SeedPositioner(settings())
-    rng = random.Random(3)  # as run() draws the epochs' jitter
-    epochs = []
-    k = 0
-    while k * 0.1 <= 3.0:
-        epochs.append(epoch_from_pose(drive.pose_at(k * 0.1), FRAME,
-                                      jitter_s=rng.uniform(0, 0.02)))
-        k += 1
-    events = sorted([(e.t_mono, 0, e) for e in epochs]
-                    + [(MONO0 + t, 1, row) for row, t in edges], key=lambda x: x[0])
+    events = arrivals(drive, FRAME, edges, until=3.0, jitter=0.02)
     got: list[Landing] = []
     run_rows: list[int] = []
     run_times: list[float] = []
     for t, kind, what in events:
-        if kind == 1:
+        if kind == "edge":
             run_rows.append(what)  # type: ignore[arg-type]
             run_times.append(t)
             continue
@@ -677,6 +682,43 @@ def test_edges_handed_over_as_a_run_give_what_one_at_a_time_gives() -> None:
     assert len(got) == len(expected) > 500
     assert got == expected
     assert in_runs.stats == live.stats
+
+
+def test_seeds_held_for_a_burst_come_out_as_they_would_have_at_each_epoch() -> None:
+    """``defer_resolution``/``settle`` around half-second bursts (the recorder's flush)
+    against positioning at every epoch, over a turning field whose epochs arrive with
+    jitter, so the clock offset moves now and then and held seeds must be positioned first."""
+    drive = Drive(legs=[Leg(6.0, 14.0, yaw_rate_dps=25.0)], start_heading_deg=340.0,
+                  accel_ms2=100)
+    edges = [(1 + k % 6, 0.05 + k * 0.003) for k in range(1900)]
+    live = SeedPositioner(settings())
+    expected = run(live, drive, FRAME, edges, until=6.0, jitter=0.03) + live.flush()
+    held = SeedPositioner(settings())
+    moves: list[bool] = []
+    would_move = held._would_move_held
+
+    def spy(t_mono: float, utc_s: float) -> bool:
+        moves.append(would_move(t_mono, utc_s))
+        return moves[-1]
+
+    held._would_move_held = spy  # type: ignore[method-assign]
+    got: list[Landing] = []
+    burst_end = MONO0 + 0.5
+    held.defer_resolution()
+    for t, kind, what in arrivals(drive, FRAME, edges, until=6.0, jitter=0.03):
+        if t > burst_end:
+            got += held.settle()
+            held.defer_resolution()
+            burst_end += 0.5
+        got += (held.add_epoch(what) if kind == "epoch"  # type: ignore[arg-type]
+                else held.add_edge(what, t))  # type: ignore[arg-type]
+    got += held.settle() + held.flush()
+    assert any(moves) and not all(moves)  # held seeds were positioned early at times
+    assert len(got) == len(expected) == len(edges)
+    assert [g.stored[1] for g in got] == [e.stored[1] for e in expected]  # same order
+    for g, e in zip(got, expected, strict=True):
+        _assert_landing_close(g, e)
+    assert held.stats == live.stats
 
 
 def test_a_run_with_a_row_out_of_range_is_refused_before_anything_is_queued() -> None:

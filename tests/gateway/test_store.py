@@ -183,6 +183,45 @@ async def test_run_commits_periodically(store: RecordStore) -> None:
             await task
 
 
+async def test_run_sleeps_while_nothing_is_written_and_fsyncs_only_after_writes(
+    store: RecordStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An idle box must not wake for store ticks; once records come they are committed and
+    the WAL fsynced within the sync interval, and then the loop goes quiet again."""
+    import gateway.store as store_module
+
+    monkeypatch.setattr(store_module, "SYNC_INTERVAL_S", 0.05)
+    store.commit_interval_s = 0.05
+    checkpoints: list[float] = []
+    checkpoint = store._checkpoint
+
+    def counted() -> None:
+        checkpoints.append(time.monotonic())
+        checkpoint()
+
+    monkeypatch.setattr(store, "_checkpoint", counted)
+    task = asyncio.create_task(store.run(), name="store-run")
+    try:
+        await asyncio.sleep(0.3)  # the prune at start commits, and is fsynced, once
+        idle = len(checkpoints)
+        assert idle <= 1
+        await asyncio.sleep(0.3)
+        assert len(checkpoints) == idle  # nothing written since: no commit, no fsync
+        store.add_seeds(drops(2))
+        for _ in range(100):
+            if len(checkpoints) > idle:
+                break
+            await asyncio.sleep(0.01)
+        assert len(store.pending_seeds(10)) == 2  # committed
+        assert len(checkpoints) == idle + 1  # and fsynced
+        await asyncio.sleep(0.3)
+        assert len(checkpoints) == idle + 1  # quiet again
+    finally:
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+
 WRITER = textwrap.dedent(
     """
     import sys
