@@ -29,6 +29,11 @@ The outbox reads recent records from memory: ``append_rows`` keeps the last
 read only for a backlog older than that (after an outage or a restart). The tail is a cache
 of committed rows and nothing else: rows whose commit failed are dropped from it.
 
+Time. There is no index entry per seed (it cost every insert a second B-tree write): each
+appended batch, about two a second, records its ids and its time span in ``seed_spans``, and
+time-range queries and pruning read the ids from there. A store with the older per-seed index
+is converted when opened for writing (one span over its rows).
+
 Space. Nothing undelivered is ever deleted; ``prune`` only removes delivered rows older than the
 retention. When the undelivered backlog passes ``backlog_alarm_records`` the ``on_backlog``
 callback says so (once per crossing), so an operator learns the link is down long before the
@@ -48,6 +53,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from itertools import chain as _chain
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -95,7 +101,15 @@ CREATE TABLE IF NOT EXISTS seeds (
     method TEXT NOT NULL,
     spacing_m REAL
 );
-CREATE INDEX IF NOT EXISTS seeds_utc ON seeds(utc_us);
+-- the ids and time span of each batch of seeds appended (one a flush, ~2 a second): what
+-- time-range queries and pruning look up, instead of an index entry for every seed
+CREATE TABLE IF NOT EXISTS seed_spans (
+    first_id INTEGER PRIMARY KEY,
+    last_id INTEGER NOT NULL,
+    min_utc_us INTEGER NOT NULL,
+    max_utc_us INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS seed_spans_max_utc ON seed_spans(max_utc_us);
 CREATE TABLE IF NOT EXISTS alarms (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     utc_us INTEGER NOT NULL,
@@ -128,6 +142,7 @@ class StoreError(GatewayError):
 
 
 _INSERT_CHUNKS = (128, 32, 8, 1)
+_UTC_US = itemgetter(0)  # of a SeedRow
 
 
 @functools.cache
@@ -196,6 +211,7 @@ class RecordStore:
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.executescript(SCHEMA)
                 self._convert_delivered_columns()
+                self._convert_time_index()
             self._acked = {table: IdRanges(self._load_delivered(table)) for table in _TABLES}
         except sqlite3.Error as exc:
             raise StoreError(f"cannot open record store {self.path}: {exc}") from exc
@@ -290,6 +306,47 @@ class RecordStore:
             raise
         log.info("record store %s: delivery flags converted to id ranges", self.path)
 
+    def _convert_time_index(self) -> None:
+        """Replace an older store's per-seed time index by one span over its rows.
+
+        The index cost every insert a second B-tree write (a fifth of the insert); spans
+        (one row per appended batch) answer the same time-range questions. The old rows get
+        one span, found through the old index before it goes, so it is quick on any size.
+        """
+        if self._db.execute(
+            "SELECT 1 FROM sqlite_master WHERE type = 'index' AND name = 'seeds_utc'"
+        ).fetchone() is None:
+            return
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            self._db.execute(
+                "INSERT OR IGNORE INTO seed_spans (first_id, last_id, min_utc_us, max_utc_us) "
+                "SELECT MIN(id), MAX(id), MIN(utc_us), MAX(utc_us) FROM seeds HAVING COUNT(*) > 0"
+            )
+            self._db.execute("DROP INDEX seeds_utc")
+            self._db.execute("COMMIT")
+        except sqlite3.Error:
+            self._db.execute("ROLLBACK")
+            raise
+        log.info("record store %s: per-seed time index replaced by spans", self.path)
+
+    def _span_ids(self, since_us: int | None, until_us: int | None) -> tuple[int, int] | None:
+        """The id range holding every seed with ``since <= utc < until`` (None: no seed).
+
+        From the spans of appended batches; an older store opened read-only, not converted
+        yet, has none and is scanned whole (it still has its time index)."""
+        if not self._has_table("seed_spans"):
+            return 0, self._max_id("seeds")
+        row = self._db.execute(
+            "SELECT MIN(first_id), MAX(last_id) FROM seed_spans "
+            "WHERE max_utc_us >= ? AND min_utc_us < ?",
+            (-(2**63) if since_us is None else since_us,
+             2**63 - 1 if until_us is None else until_us),
+        ).fetchone()
+        if row is None or row[0] is None:
+            return None
+        return int(row[0]) - 1, int(row[1])
+
     def _count_undelivered(self, table: str) -> int:
         """Rows not acknowledged: a count above the fully-acknowledged prefix, less the runs."""
         acked = self._acked[table]
@@ -358,6 +415,11 @@ class RecordStore:
                     execute(_insert_sql(size), list(_chain(*rows[i:i + size])))
                     i += size
             last = self._scalar("SELECT last_insert_rowid()")
+            times = list(map(_UTC_US, rows))
+            execute(
+                "INSERT INTO seed_spans (first_id, last_id, min_utc_us, max_utc_us) "
+                "VALUES (?, ?, ?, ?)", (last - n + 1, last, min(times), max(times)),
+            )
             self._db.execute("RELEASE add_seeds")
         except sqlite3.Error as exc:
             self._db.execute("ROLLBACK TO add_seeds")
@@ -603,12 +665,14 @@ class RecordStore:
         """Committed records (delivered or not) in id order, ``since <= utc < until``."""
         sql = f"SELECT {_SEED_COLUMNS} FROM seeds WHERE id > ? AND id <= ?"
         args: list[Any] = []
-        if since is not None:
+        since_us = None if since is None else utc_to_us(since)
+        until_us = None if until is None else utc_to_us(until)
+        if since_us is not None:
             sql += " AND utc_us >= ?"
-            args.append(utc_to_us(since))
-        if until is not None:
+            args.append(since_us)
+        if until_us is not None:
             sql += " AND utc_us < ?"
-            args.append(utc_to_us(until))
+            args.append(until_us)
         if rows is not None:
             wanted = sorted({int(r) for r in rows})
             if not wanted:
@@ -618,6 +682,11 @@ class RecordStore:
         sql += " ORDER BY id LIMIT ?"
         ceiling = self._visible_seed_id if not self.readonly else self._max_id("seeds")
         after = 0
+        if since_us is not None or until_us is not None:
+            span = self._span_ids(since_us, until_us)
+            if span is None:
+                return
+            after, ceiling = max(after, span[0]), min(ceiling, span[1])
         while True:
             chunk = self._db.execute(sql, (after, ceiling, *args, QUERY_CHUNK_ROWS)).fetchall()
             for r in chunk:
@@ -644,13 +713,23 @@ class RecordStore:
         deleted, more = 0, False
         for table in _TABLES:
             # only ids in the fully acknowledged prefix; runs above it join it soon enough
+            bound = self._acked[table].through()
+            if table == "seeds":  # and no further than the last batch with a seed that old
+                bound = min(bound, self._scalar(
+                    "SELECT MAX(last_id) FROM seed_spans WHERE min_utc_us < ?", cutoff
+                ))
             cur = self._db.execute(
                 f"DELETE FROM {table} WHERE id IN (SELECT id FROM {table} "
                 "WHERE id <= ? AND utc_us < ? ORDER BY id LIMIT ?)",
-                (self._acked[table].through(), cutoff, PRUNE_CHUNK_ROWS),
+                (bound, cutoff, PRUNE_CHUNK_ROWS),
             )
             deleted += cur.rowcount
             more = more or cur.rowcount >= PRUNE_CHUNK_ROWS
+        oldest = self._db.execute("SELECT MIN(id) FROM seeds").fetchone()[0]
+        if oldest is None:
+            self._db.execute("DELETE FROM seed_spans")
+        else:
+            self._db.execute("DELETE FROM seed_spans WHERE last_id < ?", (oldest,))
         self.flush()
         return deleted, more
 

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from gateway.payloads import SeedBatch
-from gateway.records import AlarmEvent, SeedDrop, SeedRecord
+from gateway.records import AlarmEvent, SeedDrop, SeedRecord, utc_to_us
 from gateway.store import MAX_OUTBOX_LIMIT, RecordStore, StoreError
 
 T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
@@ -528,3 +528,66 @@ def test_rows_of_a_failed_commit_are_never_published(store: RecordStore) -> None
     assert [r.row for r in store.pending_seeds(10)] == [7, 7, 7]
     assert store.backlog() == 3
     store._db = real
+
+
+def test_time_queries_find_seeds_through_the_spans_of_their_batches(store: RecordStore) -> None:
+    """No index entry per seed: each appended batch records its id and time span, and a
+    time-range query reads only the batches that overlap it, even when the receiver's time
+    went backwards between batches (a time step)."""
+    store.append_seeds(drops(5, start=T0))  # ids 1-5, T0 .. T0+40 ms
+    store.append_seeds(drops(5, start=T0 + timedelta(hours=1)))  # ids 6-10
+    store.append_seeds(drops(5, start=T0 - timedelta(hours=1)))  # ids 11-15: time stepped back
+    store.flush()
+    assert not store._db.execute(
+        "SELECT 1 FROM sqlite_master WHERE type = 'index' AND tbl_name = 'seeds'"
+    ).fetchall()
+    assert store._db.execute("SELECT * FROM seed_spans ORDER BY first_id").fetchall() == [
+        (1, 5, utc_to_us(T0), utc_to_us(T0) + 40_000),
+        (6, 10, utc_to_us(T0) + 3_600_000_000, utc_to_us(T0) + 3_600_040_000),
+        (11, 15, utc_to_us(T0) - 3_600_000_000, utc_to_us(T0) - 3_599_960_000),
+    ]
+
+    def ids(since: datetime | None, until: datetime | None) -> list[int]:
+        return [r.id for r in store.query_seeds(since, until)]
+
+    assert ids(T0 + timedelta(milliseconds=20), T0 + timedelta(minutes=1)) == [3, 4, 5]
+    assert ids(T0 + timedelta(minutes=59), None) == [6, 7, 8, 9, 10]
+    assert ids(None, T0) == [11, 12, 13, 14, 15]
+    assert ids(T0 + timedelta(hours=2), None) == []
+
+
+def test_a_store_with_the_older_per_seed_time_index_gets_one_span_for_its_rows(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "r.sqlite3"
+    with RecordStore(path, "m") as s:
+        s.append_seeds(drops(6, start=T0))
+        s.flush()
+    db = sqlite3.connect(path)  # as an older sowgate left it: an index, no spans
+    db.execute("DELETE FROM seed_spans")
+    db.execute("CREATE INDEX seeds_utc ON seeds(utc_us)")
+    db.commit()
+    db.close()
+    with RecordStore(path, "m") as s:
+        assert s._db.execute("SELECT * FROM seed_spans").fetchall() == [
+            (1, 6, utc_to_us(T0), utc_to_us(T0) + 50_000)
+        ]
+        assert s._db.execute(
+            "SELECT 1 FROM sqlite_master WHERE name = 'seeds_utc'"
+        ).fetchone() is None
+        s.append_seeds(drops(2, start=T0 + timedelta(seconds=1)))
+        s.flush()
+        got = [r.id for r in s.query_seeds(T0 + timedelta(milliseconds=30), None)]
+        assert got == [4, 5, 6, 7, 8]
+
+
+def test_pruning_drops_the_spans_of_batches_it_removed(tmp_path: Path) -> None:
+    with RecordStore(tmp_path / "r.sqlite3", "m", retention_days=1) as s:
+        old = s.append_seeds(drops(4, start=T0))
+        s.append_seeds(drops(3, start=T0 + timedelta(days=3)))
+        s.flush()
+        s.mark_seeds_delivered(list(old))
+        s.flush()
+        assert s.prune(T0 + timedelta(days=3)) == 4
+        assert s._db.execute("SELECT first_id, last_id FROM seed_spans").fetchall() == [(5, 7)]
+        assert [r.id for r in s.query_seeds(T0 + timedelta(days=2), None)] == [5, 6, 7]
