@@ -655,14 +655,24 @@ def test_a_run_inside_the_history_takes_the_column_path_with_the_same_numbers() 
         assert prev == pytest.approx(one_by_one._previous[row], rel=0, abs=1e-9)
 
 
+def _turning_field_live(
+    seconds: float, edge_every_s: float, *, jitter: float
+) -> tuple[Drive, list[tuple[int, float]], SeedPositioner, list[Landing]]:
+    """A turning field with jittered epochs and its seeds positioned one event at a time:
+    the reference the batched ways of feeding the positioner are held to."""
+    drive = Drive(legs=[Leg(seconds, 14.0, yaw_rate_dps=25.0)], start_heading_deg=340.0,
+                  accel_ms2=100)
+    n = int((seconds - 0.35) / edge_every_s)
+    edges = [(1 + k % 6, 0.05 + k * edge_every_s) for k in range(n)]
+    live = SeedPositioner(settings())
+    expected = run(live, drive, FRAME, edges, until=seconds, jitter=jitter) + live.flush()
+    return drive, edges, live, expected
+
+
 def test_edges_handed_over_as_a_run_give_what_one_at_a_time_gives() -> None:
     """``add_edges`` (the recorder's runs of edges between two epochs) against ``add_edge``
     per edge, over a turning field with jittered epochs: the same landings, bit for bit."""
-    drive = Drive(legs=[Leg(3.0, 14.0, yaw_rate_dps=25.0)], start_heading_deg=340.0,
-                  accel_ms2=100)
-    edges = [(1 + k % 6, 0.05 + k * 0.004) for k in range(600)]
-    live = SeedPositioner(settings())
-    expected = run(live, drive, FRAME, edges, until=3.0, jitter=0.02) + live.flush()
+    drive, edges, live, expected = _turning_field_live(3.0, 0.004, jitter=0.02)
     # the same arrival order, edges between two epochs handed over together
     in_runs = SeedPositioner(settings())
     events = arrivals(drive, FRAME, edges, until=3.0, jitter=0.02)
@@ -688,11 +698,7 @@ def test_seeds_held_for_a_burst_come_out_as_they_would_have_at_each_epoch() -> N
     """``defer_resolution``/``settle`` around half-second bursts (the recorder's flush)
     against positioning at every epoch, over a turning field whose epochs arrive with
     jitter, so the clock offset moves now and then and held seeds must be positioned first."""
-    drive = Drive(legs=[Leg(6.0, 14.0, yaw_rate_dps=25.0)], start_heading_deg=340.0,
-                  accel_ms2=100)
-    edges = [(1 + k % 6, 0.05 + k * 0.003) for k in range(1900)]
-    live = SeedPositioner(settings())
-    expected = run(live, drive, FRAME, edges, until=6.0, jitter=0.03) + live.flush()
+    drive, edges, live, expected = _turning_field_live(6.0, 0.003, jitter=0.03)
     held = SeedPositioner(settings())
     moves: list[bool] = []
     would_move = held._would_move_held
