@@ -369,8 +369,7 @@ class GpioSeedSensors:
         deadline = time.monotonic() + DRAIN_TIMEOUT_S
         with contextlib.suppress(OSError, ValueError):  # a failing or closed fd: nothing more
             while time.monotonic() < deadline and select.select([request.fd], [], [], 0)[0]:
-                for event in request.read_edge_events():
-                    self.handle_event(event)
+                self.handle_events(request.read_edge_events())
 
     def read_pending(self) -> None:
         """Read what the kernel has queued now, from a wake-up the loop had anyway, and put
@@ -420,40 +419,61 @@ class GpioSeedSensors:
             if not broken.done():
                 broken.set_result(f"reading {self.chip} failed: {exc}")
             return False
-        for event in events:
-            self.handle_event(event)
+        self.handle_events(events)
         return True
 
     def handle_event(self, event: EdgeEventLike) -> None:
         """One kernel edge event → a seed edge (or a counted bounce / stray)."""
-        seqno = event.global_seqno
-        if self._last_seqno is not None and seqno > self._last_seqno + 1:
-            lost = seqno - self._last_seqno - 1
-            self._stats.lost += lost
-            log.error(
-                "GPIO seed sensors: the kernel's event queue overflowed, %d edges lost (%d in "
-                "all): the event loop did not read %s for too long", lost, self._stats.lost,
-                self.chip,
-            )
-        self._last_seqno = seqno
-        kind = event.event_type
-        falling = self._falling.get(kind)
-        if falling is None:  # once per event type, not per event
-            falling = self._falling[kind] = getattr(kind, "name", str(kind)) == "FALLING_EDGE"
-        if not falling:
-            return
-        row = self._row_of.get(event.line_offset)
-        if row is None:
-            self._stats.rejected += 1
-            self._stats.last_rejected = f"event on unrequested line {event.line_offset}"
-            return
-        last = self._last_ns.get(row)
-        if last is not None and event.timestamp_ns - last < self._debounce_ns:
-            self._stats.debounced += 1  # bounce: keep the first edge's time, the true one
-            return
-        self._last_ns[row] = event.timestamp_ns
-        self._stats.edges += 1
-        _deliver(self._on_edge, SeedEdgeEvent(row, event.timestamp_ns / NS_PER_S))
+        self.handle_events((event,))
+
+    def handle_events(self, events: Iterable[EdgeEventLike]) -> None:
+        """Kernel edge events, in order → seed edges (bounces and strays counted).
+
+        One loop over a read's events with the driver's state in locals: at 2 000 edges a
+        second the per-event method call and attribute look-ups were a fifth of the cost."""
+        stats, on_edge = self._stats, self._on_edge
+        falling_of, row_of, last_ns = self._falling, self._row_of, self._last_ns
+        debounce_ns, last_seqno = self._debounce_ns, self._last_seqno
+        try:
+            for event in events:
+                seqno = event.global_seqno
+                if last_seqno is not None and seqno > last_seqno + 1:
+                    self._lost(seqno - last_seqno - 1)
+                last_seqno = seqno
+                kind = event.event_type
+                falling = falling_of.get(kind)
+                if falling is None:  # once per event type, not per event
+                    falling = falling_of[kind] = (
+                        getattr(kind, "name", str(kind)) == "FALLING_EDGE"
+                    )
+                if not falling:
+                    continue
+                row = row_of.get(event.line_offset)
+                if row is None:
+                    stats.rejected += 1
+                    stats.last_rejected = f"event on unrequested line {event.line_offset}"
+                    continue
+                t_ns = event.timestamp_ns
+                last = last_ns.get(row)
+                if last is not None and t_ns - last < debounce_ns:
+                    stats.debounced += 1  # bounce: keep the first edge's time, the true one
+                    continue
+                last_ns[row] = t_ns
+                stats.edges += 1
+                try:
+                    on_edge(SeedEdgeEvent(row, t_ns / NS_PER_S))
+                except Exception:  # a consumer bug must not stop the sensors being read
+                    log.exception("seed edge callback failed")
+        finally:
+            self._last_seqno = last_seqno
+
+    def _lost(self, lost: int) -> None:
+        self._stats.lost += lost
+        log.error(
+            "GPIO seed sensors: the kernel's event queue overflowed, %d edges lost (%d in "
+            "all): the event loop did not read %s for too long", lost, self._stats.lost,
+            self.chip,
+        )
 
     def _failed(self, message: str) -> None:
         if message != self._stats.last_error:

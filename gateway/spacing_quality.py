@@ -98,14 +98,20 @@ class RowQualityAccumulator:
     def add_many(self, spacings: Iterable[float]) -> None:
         """``add`` for each spacing in turn (same state after, bit for bit), with the running
         sums kept in locals: the recorder feeds every seed through here, ~2 000 a second."""
-        if self.x_ref is None:
-            for x in spacings:
-                self.add(x)
+        isfinite = math.isfinite
+        if self.x_ref is None:  # the window of recent spacings (its median is the target)
+            good: list[float] = []
+            try:
+                for x in spacings:
+                    if not isfinite(x) or x < 0:
+                        raise ValueError(f"spacing must be a finite distance >= 0, got {x}")
+                    good.append(x)
+            finally:
+                self._window.extend(good)
             return
         multiple_at, miss_above = MULTIPLE_LIMIT * self.x_ref, MISS_LIMIT * self.x_ref
         n, total, multiples, misses = self.n, self._sum, self.multiples, self.misses
         singles, mean, m2 = self._singles, self._mean, self._m2
-        isfinite = math.isfinite
         try:
             for x in spacings:
                 if not isfinite(x) or x < 0:

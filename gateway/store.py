@@ -141,7 +141,10 @@ class StoreError(GatewayError):
     """The record store cannot be opened or written (disk full, read-only, corrupt file)."""
 
 
-_INSERT_CHUNKS = (128, 32, 8, 1)
+# rows per INSERT: 512 rows is 5 632 parameters (SQLite allows 32 766 since 3.32), and a
+# 512-row statement costs a quarter less per row than a 128-row one (the recorder stores
+# ~1 050 rows a flush)
+_INSERT_CHUNKS = (512, 128, 32, 8, 1)
 _UTC_US = itemgetter(0)  # of a SeedRow
 
 

@@ -111,9 +111,14 @@ def test_adding_many_at_once_leaves_exactly_the_state_of_adding_one_by_one(
     assert many.result() == one.result()
 
 
+@pytest.mark.parametrize("x_ref", [0.2, None])
 @pytest.mark.parametrize("bad", [-0.1, math.nan, math.inf])
-def test_a_bad_spacing_among_many_is_refused_after_the_good_ones_before_it(bad: float) -> None:
-    acc = RowQualityAccumulator(0.2)
+def test_a_bad_spacing_among_many_is_refused_after_the_good_ones_before_it(
+    bad: float, x_ref: float | None
+) -> None:
+    acc, one = RowQualityAccumulator(x_ref), RowQualityAccumulator(x_ref)
     with pytest.raises(ValueError, match="spacing must be"):
         acc.add_many([0.2, 0.21, bad, 0.19])
-    assert acc.n == 2
+    one.add(0.2)
+    one.add(0.21)
+    assert vars(acc) == vars(one)

@@ -365,7 +365,9 @@ async def test_run_prunes_at_start_and_raises_an_old_backlog(tmp_path: Path) -> 
         assert [r.id for r in s.query_seeds()] == list(range(4, 16))
 
 
-@pytest.mark.parametrize("sizes", [[1], [7, 9], [128], [129, 33], [300, 2, 161]])
+@pytest.mark.parametrize(
+    "sizes", [[1], [7, 9], [128], [129, 33], [300, 2, 161], [1_050, 513]]
+)
 def test_batches_of_any_size_keep_ids_and_values(store: RecordStore, sizes: list[int]) -> None:
     """Rows go in as multi-row INSERTs of a few fixed sizes: no row lost, reordered or
     renumbered, whatever the batch size."""
