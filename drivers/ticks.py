@@ -6,8 +6,9 @@ the seed-sensor reads went from a hundred wake-ups a second to twenty. Periodic 
 sleep "for a period" drift apart and each wake the process on its own; tasks that sleep until
 the next *multiple* of their period on the event loop's clock all wake at the same instants
 whenever their periods divide one another (the idea of the kernel's ``round_jiffies``). The
-GPIO seed sensors (every 50 ms), the seed recorder and the record store (every 200 ms) use it:
-every fourth sensor read, the recorder's flush and the store's commit share one wake-up.
+seed recorder's flush and the record store's commit (every 500 ms) share one wake-up this way,
+and so do the GPIO seed sensors' own reads (every 50 ms; they only need them when no GNSS
+epoch comes, since the daemon reads the lines ahead of each epoch).
 
 A tick is never more than one period away, so a task on the grid runs at least as often as
 one that sleeps its period after each run.

@@ -76,7 +76,8 @@ CLOCK_STEP_S = 2.0
 # Seeds waiting for their bracketing epoch; beyond this the oldest is extrapolated at once.
 # Every seed waits its fall time (~0.1 s), up to an epoch period for the next epoch, and the
 # receiver's output latency: ~0.25 s, so a 48-row planter at 16 km/h (2 100 seeds/s) keeps
-# ~500 waiting and a 96-row one at 20 km/h (~5 000/s) ~1 300. The cap only bounds memory
+# ~500 waiting and a 96-row one at 20 km/h (~5 000/s) ~1 300; the recorder's 0.5 s bursts
+# (defer_resolution) hold up to 0.5 s more of them, ~3 800 at most. The cap only bounds memory
 # (~100 bytes a seed) if epochs stop coming; pending_timeout_s extrapolates them before that.
 # It was 512, which extrapolated a third of the seeds at 3 000 seeds/s and all at 6 000.
 MAX_PENDING_SEEDS = 16_384

@@ -16,8 +16,9 @@ quality.
 Why one burst twice a second instead of a hundred small ones (one per serial read): on
 a mostly idle core each wake-up finds cold caches and a slow clock, and the same seed path
 measured 2.5 times dearer in CPU when cut into 10 ms pieces than when run in one go. The
-bursts fall on the shared tick grid (``drivers.ticks``), in the same wake-up as a GPIO read
-and the store's commit tick.
+bursts fall on the shared tick grid (``drivers.ticks``), in the same wake-up as the store's
+commit tick, and the positioner holds the seeds that become ready during a burst for one
+vector pass at its end (``SeedPositioner.defer_resolution``).
 
 Records are given to ``on_records`` only after the store has accepted them and given them
 ids; the store decides when the MQTT outbox sees them (after a commit), so nothing leaves the
