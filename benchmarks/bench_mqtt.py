@@ -133,12 +133,12 @@ class SyntheticField:
             out.append(self._epoch())
         return out
 
-    def edges_until(self, t_s: float) -> list[SeedEdgeEvent]:
-        """The seed edges up to ``t_s`` after t0 not handed out yet."""
-        out: list[SeedEdgeEvent] = []
-        while self.next_seed / self.seeds_per_s <= t_s:
-            out.append(self._edge())
-        return out
+    def take_seeds(self, t_s: float) -> range:
+        """The numbers of the seeds up to ``t_s`` after t0 not handed out yet: seed k passes
+        the sensor of row 1 + k % ROWS at t0 + k / seeds_per_s."""
+        first = self.next_seed
+        self.next_seed = max(first, math.floor(t_s * self.seeds_per_s) + 1)
+        return range(first, self.next_seed)
 
     def _epoch(self) -> GnssEpoch:
         te = self.next_epoch * EPOCH_S
@@ -189,16 +189,13 @@ class SyntheticLines:
     def read_edge_events(self) -> list[_KernelEdge]:
         c0 = time.thread_time()
         field = self.field
-        # the seeds SyntheticField.edges_until would give, made straight into kernel events
-        first = field.next_seed
-        end = math.floor((time.monotonic() - field.t0_mono) * field.seeds_per_s) + 1
+        seeds = field.take_seeds(time.monotonic() - field.t0_mono)
         t0_ns, ns_per_seed = field.t0_mono * 1e9, 1e9 / field.seeds_per_s
+        seqno = self.seqno + 1 - seeds.start
         out = [
-            _KernelEdge(_FallingEdge, round(t0_ns + k * ns_per_seed), k % ROWS,
-                        self.seqno + 1 + k - first)
-            for k in range(first, max(first, end))
+            _KernelEdge(_FallingEdge, round(t0_ns + k * ns_per_seed), k % ROWS, seqno + k)
+            for k in seeds
         ]
-        field.next_seed = max(first, end)
         self.seqno += len(out)
         self.making["cpu_s"] += time.thread_time() - c0
         self.making["seeds"] = field.next_seed

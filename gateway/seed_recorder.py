@@ -166,14 +166,17 @@ class SeedRecorder:
 
     def flush(self) -> list[SeedRecord]:
         """Position what is queued, resolve timed-out seeds, hand everything to the store."""
+        self._position_due()
+        return self._store(want_records=True)
+
+    def _position_due(self) -> None:
+        """The queued events, and the seeds whose epoch never came (GNSS outage)."""
         self._position_queued()
         self._take_quiet(self.positioner.poll(self._clock()))
-        return self._store(want_records=True)
 
     def _flush_quietly(self) -> None:
         """``flush`` for the periodic loop (nobody reads its return value), then commit."""
-        self._position_queued()
-        self._take_quiet(self.positioner.poll(self._clock()))
+        self._position_due()
         stored = self.records_stored
         self._store(want_records=False)
         if self.records_stored != stored:
@@ -262,7 +265,7 @@ class SeedRecorder:
         """Flush every FLUSH_INTERVAL_S; on cancellation position and store what is pending."""
         try:
             while True:
-                await sleep_to_next_tick(FLUSH_INTERVAL_S)  # with the GPIO reads and the store
+                await sleep_to_next_tick(FLUSH_INTERVAL_S)  # with the store's commit tick
                 self._flush_quietly()
         finally:
             self._position_queued()
