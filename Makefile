@@ -4,13 +4,25 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto demo test lint typecheck bench schemas clean
+.PHONY: mosquitto demo test lint typecheck bench schemas clean lock
 
-$(STAMP): pyproject.toml
+# Installs come from constraints.txt (every package pinned), so figures are reproducible;
+# `make lock` refreshes it within the ranges pyproject.toml allows.
+$(STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev]'
 	touch $(STAMP)
+
+lock:
+	rm -rf .venv-lock
+	$(PY) -m venv .venv-lock
+	.venv-lock/bin/pip install --quiet --upgrade pip
+	.venv-lock/bin/pip install --quiet -e '.[dev]'
+	{ echo "# Pinned versions of every dependency, resolved within pyproject.toml's ranges."; \
+	  echo "# make installs with 'pip install -c constraints.txt'; refresh with 'make lock'."; \
+	  .venv-lock/bin/pip freeze --exclude-editable | grep -vi '^sowgate'; } > constraints.txt
+	rm -rf .venv-lock
 
 mosquitto:
 	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || \
