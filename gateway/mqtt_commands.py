@@ -55,7 +55,7 @@ MAX_NESTING = 8
 # How much of a bad value or a key an error message quotes: enough to recognise it, and a
 # 64 KB string cannot make a 64 KB ack.
 QUOTE_MAX_CHARS = 40
-ERRORS_LISTED_MAX = 5  # then "(and N more)"
+ERRORS_LISTED_MAX = 5  # problems of one kind listed; then "and N more"
 
 
 class CommandPayloadError(CommandError):
@@ -107,8 +107,10 @@ def parse_command(name: str, payload: bytes, *, max_payload_bytes: int) -> Parse
 
 
 def _json_object(text: str, model: type[BaseModel]) -> dict[str, Any]:
-    if text.strip() == "" and model is EmptyCommand:
-        return {}  # start/stop/... may be sent as an empty message
+    if text.strip() == "":
+        if model is EmptyCommand:
+            return {}  # start/stop/... may be sent as an empty message
+        raise CommandPayloadError("payload is empty; this command needs a JSON object")
     if _nesting_exceeds(text, MAX_NESTING):
         raise CommandPayloadError(
             f"payload is nested more than {MAX_NESTING} levels deep; a command is one flat "
@@ -123,8 +125,6 @@ def _json_object(text: str, model: type[BaseModel]) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise CommandPayloadError(
             f"payload must be a JSON object, got {_json_type(data)}"
-            + (" (an empty payload is only allowed for start, stop, zero_tilt and tilt_critical)"
-               if text.strip() == "" else "")
         )
     return data
 
@@ -181,17 +181,21 @@ _TYPE_WORDS = {
 
 
 def _describe_validation(exc: ValidationError, model: type[BaseModel]) -> str:
-    """One ``field: what is allowed (got what)`` per problem, at most ``ERRORS_LISTED_MAX``."""
+    """``field: what is allowed (got what)`` per problem; unknown keys named in one part.
+
+    At most ``ERRORS_LISTED_MAX`` of each are listed, so a payload of 3000 unknown keys still
+    gets a short answer.
+    """
     parts = []
+    unknown = []
     errors = exc.errors(include_url=False)
-    for err in errors[:ERRORS_LISTED_MAX]:
-        loc = ".".join(_clip(str(p)) for p in err["loc"]) or "payload"
+    for err in errors:
+        loc = ".".join(_field_name(p) for p in err["loc"]) or "payload"
         kind = err["type"]
-        if kind == "missing":
+        if kind == "extra_forbidden":
+            unknown.append(loc)
+        elif kind == "missing":
             parts.append(f"{loc}: required field is missing")
-        elif kind == "extra_forbidden":
-            allowed = ", ".join(model.model_fields)
-            parts.append(f"{loc}: unknown field (allowed: {allowed})")
         else:
             words = _TYPE_WORDS.get(kind) or (
                 err["msg"]
@@ -200,8 +204,18 @@ def _describe_validation(exc: ValidationError, model: type[BaseModel]) -> str:
                 .replace("String should have ", "must have ")
             )
             parts.append(f"{loc}: {words} (got {_describe_value(err.get('input'))})")
-    if len(errors) > ERRORS_LISTED_MAX:
-        parts.append(f"(and {len(errors) - ERRORS_LISTED_MAX} more)")
+    if len(parts) > ERRORS_LISTED_MAX:
+        parts[ERRORS_LISTED_MAX:] = [f"and {len(parts) - ERRORS_LISTED_MAX} more problems"]
+    allowed = ", ".join(model.model_fields)
+    if len(unknown) == 1:
+        parts.append(f"{unknown[0]}: unknown field (allowed: {allowed})")
+    elif unknown:
+        names = ", ".join(unknown[:ERRORS_LISTED_MAX])
+        more = len(unknown) - ERRORS_LISTED_MAX
+        parts.append(
+            f"unknown fields {names}{f' and {more} more' if more > 0 else ''} "
+            f"(allowed: {allowed})"
+        )
     return "; ".join(parts)
 
 
@@ -229,6 +243,12 @@ def _describe_value(value: object) -> str:
 def _json_type(value: object) -> str:
     names = {dict: "object", list: "array", str: "string", bool: "boolean", type(None): "null"}
     return names.get(type(value), "number")
+
+
+def _field_name(key: str | int) -> str:
+    """A key as the message names it: bare when it looks like a field, else quoted."""
+    text = str(key)
+    return text if text.isidentifier() and len(text) <= QUOTE_MAX_CHARS else _quote(text)
 
 
 def _quote(text: str) -> str:

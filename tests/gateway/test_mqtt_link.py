@@ -284,6 +284,92 @@ async def test_a_deeply_nested_payload_gets_an_error_ack_and_the_session_stays_u
         assert sub.on("status") == [b"online"]
 
 
+async def test_hostile_commands_over_the_broker_never_restart_the_session(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """A handful of the worst payloads and topics, through a real broker: each one is a
+    refused command with an ack that says why, and the session they arrive on survives."""
+    settings = make_settings(mosquitto.port, enabled=["rate", "start", "speed_cal"],
+                             max_payload_bytes=65536)
+    # a topic of exactly MQTT's 65535 bytes: "/ack" makes the ack topic too long to publish
+    longest_name = "n" * (65535 - len(f"{BASE}/cmd/"))
+    hostile: list[tuple[str, bytes, str]] = [
+        ("rate", b"[" * 2000, "nested more than"),
+        ("rate", b'{"a": ' * 5000, "nested more than"),
+        ("rate", b'{"crop": "w", "rate_kg_ha": ' + b"9" * 5000 + b"}", "number out of range"),
+        ("rate", b'{"crop": "w", "rate_kg_ha": ' + b"9" * 400 + b"}", "integer too large"),
+        ("rate", b'{"crop": "w", "rate_kg_ha": -Infinity}', "must be a finite number"),
+        ("rate", b'{"crop": "w", "rate_kg_ha": "200"}', "must be a number (got string '200')"),
+        ("rate", b"\xff\xfe\x00\x00", "not UTF-8"),
+        ("rate", json.dumps({f"k{i}": [i] for i in range(3000)}).encode(),
+         "unknown fields k0, k1, k2, k3, k4 and 2995 more"),
+        ("speed_cal", b'{"action": {"action": "start"}}', "action: must be 'start'"),
+        ("start", b"[" * 60_000, "nested more than"),
+        ("", b"{}", "unknown command ''"),
+        ("r\u00e4te", b"{}", "unknown command 'r\u00e4te'"),
+        ("x" * 5000, b"[" * 2000, "unknown command 'xxxx"),
+    ]
+    async with (
+        subscriber(mosquitto.port, BASE) as sub,
+        running_link(settings, tmp_path / "r.db") as run,
+    ):
+        await eventually(lambda: sub.on("status") == [b"online"], what="birth")
+        for name, payload, expected_error in hostile:
+            before = len(sub.on(f"cmd/{name}/ack"))
+            await send(mosquitto.port, f"{BASE}/cmd/{name}", payload)
+            await eventually(lambda n=name, b=before: len(sub.on(f"cmd/{n}/ack")) > b,
+                             what=f"ack for {name[:20]!r} {payload[:20]!r}")
+            ack = json.loads(sub.on(f"cmd/{name}/ack")[-1])
+            assert ack["ok"] is False and expected_error in ack["error"], ack
+            assert len(ack["error"]) <= 500
+        rejected = run.link.stats.commands_rejected
+        await send(mosquitto.port, f"{BASE}/cmd/{longest_name}", b"[" * 2000)
+        await eventually(lambda: run.link.stats.commands_rejected > rejected, what="refusal")
+        # the session is the first one, and it still executes a good command
+        await send(mosquitto.port, f"{BASE}/cmd/rate", b'{"crop": "wheat", "rate_kg_ha": 200}')
+        await eventually(lambda: json.loads(sub.on("cmd/rate/ack")[-1])["ok"] is True,
+                         what="a good command afterwards")
+        assert run.sink.executed == [SetRate("wheat", 200.0)]
+        assert (run.link.stats.connects, run.link.stats.disconnects) == (1, 0)
+        assert sub.on("status") == [b"online"]
+
+
+async def test_a_command_that_fails_inside_the_gateway_is_an_error_ack_logged_once(
+    mosquitto: Mosquitto, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Not a refusal (CommandError) but a bug: any exception while executing a command is
+    acked as an internal error, logged once with its traceback, and the session goes on."""
+
+    class FailingController:
+        def execute(self, command: Command, source: str) -> str:
+            if isinstance(command, Start):
+                raise RecursionError("maximum recursion depth exceeded")
+            raise ZeroDivisionError("float division by zero")
+
+    settings = make_settings(mosquitto.port, enabled=["rate", "start"])
+    async with (
+        subscriber(mosquitto.port, BASE) as sub,
+        running_link(settings, tmp_path / "r.db") as run,
+    ):
+        run.link.commands = FailingController()
+        await eventually(lambda: sub.on("status") == [b"online"], what="birth")
+        await send(mosquitto.port, f"{BASE}/cmd/rate",
+                   b'{"crop": "wheat", "rate_kg_ha": 200, "request_id": "r9"}')
+        await send(mosquitto.port, f"{BASE}/cmd/start", b"")
+        await eventually(lambda: bool(sub.on("cmd/rate/ack") and sub.on("cmd/start/ack")),
+                         what="both acks")
+        assert json.loads(sub.on("cmd/rate/ack")[0]) == {
+            "ok": False, "error": "internal error: ZeroDivisionError: float division by zero",
+            "request_id": "r9"}
+        assert json.loads(sub.on("cmd/start/ack")[0])["error"] == (
+            "internal error: RecursionError: maximum recursion depth exceeded")
+        assert (run.link.stats.connects, run.link.stats.disconnects) == (1, 0)
+        assert run.link.stats.commands_rejected == 2
+    command_logs = [r for r in caplog.records if "mqtt command" in r.getMessage()]
+    assert [(r.levelname, r.exc_info is not None) for r in command_logs] == [
+        ("ERROR", True), ("ERROR", True)]
+
+
 async def test_broker_restart_mid_stream_loses_no_record(
     persistent_mosquitto: Mosquitto, tmp_path: Path
 ) -> None:
