@@ -118,14 +118,13 @@ def _json_object(text: str, model: type[BaseModel]) -> dict[str, Any]:
         )
     try:
         # pydantic's parser, not json.loads: it has its own depth limit, reads NaN/Infinity
-        # (refused below, by name) and reads huge integers without Python's digit limit
+        # (so the field refuses them by name) and reports a 5000-digit number as invalid
+        # JSON where json.loads raises a bare ValueError (Python's int digit limit)
         data = from_json(text)
     except ValueError as exc:
         raise CommandPayloadError(f"payload is not valid JSON: {exc}") from None
     if not isinstance(data, dict):
-        raise CommandPayloadError(
-            f"payload must be a JSON object, got {_json_type(data)}"
-        )
+        raise CommandPayloadError(f"payload must be a JSON object, got {_json_type(data)}")
     return data
 
 

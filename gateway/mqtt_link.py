@@ -11,7 +11,9 @@ Design rules, in order of importance:
   everything that can block on the network runs in this module's own tasks.
 * Remote commands go through the same ``CommandSink`` as the HMI. Each gets an ack (carrying
   the result text the cab screen shows, or the reason it was refused); a refused
-  command changes nothing. Commands are off unless listed in ``[commands] enabled``.
+  command changes nothing. Commands are off unless listed in ``[commands] enabled``. The
+  payload is parsed, strictly, by ``gateway.mqtt_commands`` (pure, fuzzed); no payload and no
+  failure while executing a command can end the session.
 * ``run()`` reconnects forever with capped, jittered backoff and never raises (except
   ``CancelledError``): a broker outage is a normal day on a tractor.
 """
