@@ -11,7 +11,9 @@ Design rules, in order of importance:
   everything that can block on the network runs in this module's own tasks.
 * Remote commands go through the same ``CommandSink`` as the HMI. Each gets an ack (carrying
   the result text the cab screen shows, or the reason it was refused); a refused
-  command changes nothing. Commands are off unless listed in ``[commands] enabled``.
+  command changes nothing. Commands are off unless listed in ``[commands] enabled``. The
+  payload is parsed, strictly, by ``gateway.mqtt_commands`` (pure, fuzzed); no payload and no
+  failure while executing a command can end the session.
 * ``run()`` reconnects forever with capped, jittered backoff and never raises (except
   ``CancelledError``): a broker outage is a normal day on a tractor.
 """
@@ -20,7 +22,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import ssl
 import time
@@ -30,45 +31,23 @@ from pathlib import Path
 from typing import Any
 
 import aiomqtt
-from pydantic import BaseModel, ValidationError
 
 from drivers.backoff import Backoff
 from gateway.alarms import AlarmBoard
-from gateway.commands import (
-    CalibrateSpeed,
-    Command,
-    CommandSink,
-    CriticalTilt,
-    SetChannelRate,
-    SetRate,
-    Start,
-    Stop,
-    ZeroTilt,
-)
+from gateway.commands import CommandSink
 from gateway.config import Settings
 from gateway.errors import CommandError
-from gateway.payloads import (
-    ChannelRateCommand,
-    CommandAck,
-    EmptyCommand,
-    RateCommand,
-    SpeedCalCommand,
-    StatePayload,
+from gateway.mqtt_commands import (
+    KNOWN_COMMANDS,
+    CommandPayloadError,
+    parse_command,
 )
+from gateway.payloads import CommandAck, StatePayload
 from gateway.records import AlarmEvent
 from gateway.store import OutboxBatch, RecordStore, StoreError
 
 log = logging.getLogger(__name__)
 
-KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
-    "rate": RateCommand,
-    "channel_rate": ChannelRateCommand,
-    "start": EmptyCommand,
-    "stop": EmptyCommand,
-    "zero_tilt": EmptyCommand,
-    "tilt_critical": EmptyCommand,
-    "speed_cal": SpeedCalCommand,
-}
 DISCONNECT_TIMEOUT_S = 3.0
 # State messages are at least this far apart (max 10 msg/s) however often it changes.
 STATE_MIN_GAP_S = 0.1
@@ -122,34 +101,6 @@ class Topics:
 
     def ack(self, name: str) -> str:
         return f"{self.base}/cmd/{name}/ack"
-
-
-def _describe_validation(exc: ValidationError) -> str:
-    parts = []
-    for err in exc.errors(include_url=False):
-        loc = ".".join(str(p) for p in err["loc"]) or "payload"
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] in {"missing", "extra_forbidden"}:
-            parts.append(f"{loc}: {msg}")
-        else:
-            parts.append(f"{loc}: {msg} (got {err.get('input')!r})")
-    return "; ".join(parts)
-
-
-def _to_command(name: str, payload: BaseModel) -> Command:
-    if isinstance(payload, RateCommand):
-        return SetRate(crop=payload.crop, rate_kg_ha=payload.rate_kg_ha)
-    if isinstance(payload, ChannelRateCommand):
-        return SetChannelRate(channel=payload.channel, rate_kg_ha=payload.rate_kg_ha)
-    if isinstance(payload, SpeedCalCommand):
-        return CalibrateSpeed(action=payload.action, distance_m=payload.distance_m)
-    simple: dict[str, Command] = {
-        "start": Start(),
-        "stop": Stop(),
-        "zero_tilt": ZeroTilt(),
-        "tilt_critical": CriticalTilt(),
-    }
-    return simple[name]
 
 
 class MqttLink:
@@ -447,75 +398,95 @@ class MqttLink:
             raw = message.payload
             payload = raw if isinstance(raw, bytes) else str(raw or "").encode()
             ack = self.handle_command(name, payload, retained=message.retain)
-            await client.publish(
-                self.topics.ack(name), ack.to_json(), qos=1, timeout=self.publish_timeout_s
-            )
+            try:
+                await client.publish(
+                    self.topics.ack(name), ack.to_json(), qos=1, timeout=self.publish_timeout_s
+                )
+            except ValueError as exc:
+                # paho refuses the ack topic itself: a name so long that "/ack" takes the
+                # topic past MQTT's 65535 bytes. Nowhere to answer; the link is fine.
+                log.warning("mqtt command %s: no ack sent: %s", _quote_name(name), exc)
 
     def handle_command(self, name: str, payload: bytes, *, retained: bool = False) -> CommandAck:
-        """Validate and execute one command; every outcome is an ack, nothing raises."""
-        ack = self._evaluate(name, payload, retained)
+        """Validate and execute one command; every outcome is an ack, nothing raises.
+
+        A refused command is logged as a warning. Any other exception (a bug in the gateway,
+        whether in parsing or in executing) is logged once with its traceback and acked as
+        an internal error: it must not escape into the session loop, which would drop the
+        link to the farm and let one bad message keep it down.
+        """
+        try:
+            ack = self._evaluate(name, payload, retained)
+        except Exception as exc:
+            failure = exc.failure if isinstance(exc, _ExecutionFailed) else exc
+            request_id = exc.request_id if isinstance(exc, _ExecutionFailed) else None
+            log.error("mqtt command %s failed in the gateway", _quote_name(name), exc_info=failure)
+            self.stats.commands_rejected += 1
+            return CommandAck(
+                ok=False,
+                error=f"internal error: {_exception_text(failure)}"[:ERROR_TEXT_MAX_CHARS],
+                request_id=request_id,
+            )
         if ack.ok:
             self.stats.commands_ok += 1
         else:
             self.stats.commands_rejected += 1
-            log.warning("mqtt command %r refused: %s", name, ack.error)
+            log.warning("mqtt command %s refused: %s", _quote_name(name), ack.error)
         return ack
 
     def _evaluate(self, name: str, payload: bytes, retained: bool) -> CommandAck:
-        model = KNOWN_COMMANDS.get(name)
-        if model is None:
-            known = ", ".join(KNOWN_COMMANDS)
-            return CommandAck(ok=False, error=f"unknown command {name!r} (known: {known})")
-        if name not in self.enabled_commands:
-            return CommandAck(
-                ok=False,
-                error=f"command {name!r} is disabled; enable it in [commands] enabled",
-            )
-        if retained:
-            return CommandAck(
-                ok=False,
-                error="retained command ignored: a retained command would replay "
-                "on every reconnect; publish commands with retain=false",
-            )
-        if len(payload) > self.max_payload_bytes:
-            return CommandAck(
-                ok=False,
-                error=f"payload too large: {len(payload)} bytes (max {self.max_payload_bytes})",
-            )
-        if payload.strip() == b"" and model is EmptyCommand:
-            data: Any = {}
-        else:
-            try:
-                data = json.loads(payload.decode("utf-8"))
-            except UnicodeDecodeError:
-                return CommandAck(ok=False, error="payload is not UTF-8 text")
-            except json.JSONDecodeError as exc:
-                return CommandAck(ok=False, error=f"payload is not valid JSON: {exc}")
-        if not isinstance(data, dict):
-            return CommandAck(
-                ok=False, error=f"payload must be a JSON object, got {type(data).__name__}"
-            )
-        rid = data.get("request_id")
-        request_id = rid if isinstance(rid, str) and len(rid) <= 128 else None
+        if name in KNOWN_COMMANDS:  # an unknown name is refused by parse_command, by name
+            if name not in self.enabled_commands:
+                return CommandAck(
+                    ok=False,
+                    error=f"command {name!r} is disabled; enable it in [commands] enabled",
+                )
+            if retained:
+                return CommandAck(
+                    ok=False,
+                    error="retained command ignored: a retained command would replay "
+                    "on every reconnect; publish commands with retain=false",
+                )
         try:
-            parsed = model.model_validate(data)
-        except ValidationError as exc:
-            return CommandAck(ok=False, error=_describe_validation(exc), request_id=request_id)
+            parsed = parse_command(name, payload, max_payload_bytes=self.max_payload_bytes)
+        except CommandPayloadError as exc:
+            return CommandAck(
+                ok=False, error=str(exc)[:ERROR_TEXT_MAX_CHARS], request_id=exc.request_id
+            )
         try:
-            reply = self.commands.execute(_to_command(name, parsed), "mqtt")
+            reply = self.commands.execute(parsed.command, "mqtt")
         except CommandError as exc:
-            return CommandAck(ok=False, error=str(exc), request_id=request_id)
-        except Exception as exc:  # report, keep the link alive
-            log.exception("command %r failed", name)
             return CommandAck(
-                ok=False,
-                error=f"internal error: {exc}"[:ERROR_TEXT_MAX_CHARS],
-                request_id=request_id,
+                ok=False, error=str(exc)[:ERROR_TEXT_MAX_CHARS], request_id=parsed.request_id
             )
+        except Exception as exc:
+            raise _ExecutionFailed(exc, parsed.request_id) from exc
         # the result text the cab screen shows (a calibration's factor, ...): the remote
         # operator's only view of it; capped like errors so one ack stays one small message
         message = reply.strip()[:ACK_TEXT_MAX_CHARS] or None
-        return CommandAck(ok=True, message=message, request_id=request_id)
+        return CommandAck(ok=True, message=message, request_id=parsed.request_id)
+
+
+class _ExecutionFailed(Exception):
+    """A command's execution raised ``failure``, something other than ``CommandError``."""
+
+    def __init__(self, failure: Exception, request_id: str | None) -> None:
+        super().__init__(failure, request_id)
+        self.failure = failure
+        self.request_id = request_id
+
+
+def _quote_name(name: str) -> str:
+    """A command name from a topic, for the log: a 64 KB topic is not a 64 KB log line."""
+    return repr(name if len(name) <= 40 else name[:40] + "…")
+
+
+def _exception_text(exc: BaseException) -> str:
+    try:
+        text = str(exc)
+    except Exception:  # a broken __str__ must not turn the ack into a second failure
+        text = ""
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def _flatten(exc: BaseException) -> str:

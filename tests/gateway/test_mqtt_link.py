@@ -35,7 +35,9 @@ REPO = Path(__file__).resolve().parents[2]
 T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
 
 
-def make_settings(port: int, enabled: list[str] | None = None) -> Settings:
+def make_settings(
+    port: int, enabled: list[str] | None = None, max_payload_bytes: int = 256
+) -> Settings:
     return parse_config({
         "machine": {"id": MACHINE},
         "mqtt": {
@@ -43,7 +45,7 @@ def make_settings(port: int, enabled: list[str] | None = None) -> Settings:
             "reconnect_max_s": 0.5, "batch_max_records": 200, "batch_max_ms": 100,
             "max_inflight_batches": 4, "state_hz": 2,
         },
-        "commands": {"enabled": enabled or [], "max_payload_bytes": 256},
+        "commands": {"enabled": enabled or [], "max_payload_bytes": max_payload_bytes},
     })
 
 
@@ -201,15 +203,23 @@ async def test_bad_commands_get_precise_error_acks_and_change_nothing(
     cases: list[tuple[str, bytes, str | None]] = [
         ("rate", b'{"crop": "wheat", "rate_kg_ha": 225.0, "request_id": "r1"}', None),
         ("rate", b'{"crop": "wheat", "rate_kg_ha": "lots"}', "rate_kg_ha"),
+        # strict: no lax coercion of a string or a boolean into a number, no NaN
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": "200"}',
+         "rate_kg_ha: must be a number (got string '200')"),
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": true}',
+         "rate_kg_ha: must be a number (got true)"),
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": NaN}',
+         "rate_kg_ha: must be a finite number (got NaN)"),
+        ("rate", b'{"crop": 7, "rate_kg_ha": 100}', "crop: must be a string (got number 7)"),
         ("rate", b'{"crop": "wheat", "rate_kg_ha": 900}', "outside 50–400"),
         ("rate", b'{"crop": "barley", "rate_kg_ha": 100}', "unknown crop"),
-        ("rate", b'{"crop": "wheat"}', "rate_kg_ha: Field required"),
-        ("rate", b"[1, 2]", "JSON object"),
+        ("rate", b'{"crop": "wheat"}', "rate_kg_ha: required field is missing"),
+        ("rate", b"[1, 2]", "payload must be a JSON object, got array"),
         ("rate", b"not json", "not valid JSON"),
         ("rate", b'{"crop": "' + b"w" * 300 + b'", "rate_kg_ha": 1}', "too large"),
         ("fly", b"{}", "unknown command 'fly'"),
         ("stop", b"{}", "disabled"),
-        ("start", b'{"force": true}', "Extra inputs"),
+        ("start", b'{"force": true}', "force: unknown field (allowed: request_id)"),
         ("start", b"", None),
     ]
     # A stale retained command would replay on every reconnect: it must be refused.
@@ -239,6 +249,125 @@ async def test_bad_commands_get_precise_error_acks_and_change_nothing(
         assert "retained" in json.loads(sub.on("cmd/zero_tilt/ack")[0])["error"]
         assert run.sink.executed == [SetRate("wheat", 225.0), Start()]
         assert run.link.stats.commands_ok == 2
+
+
+async def test_a_deeply_nested_payload_gets_an_error_ack_and_the_session_stays_up(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """``[`` x 2000 (2 KB, under the size cap) used to raise RecursionError in the JSON parser,
+    which took the MQTT session down: anyone allowed to publish on cmd/ could keep the link
+    down. Now it is one refused command, on a known and on an unknown topic alike."""
+    settings = make_settings(mosquitto.port, enabled=["rate", "start"], max_payload_bytes=4096)
+    hostile = b"[" * 2000
+    async with (
+        subscriber(mosquitto.port, BASE) as sub,
+        running_link(settings, tmp_path / "r.db") as run,
+    ):
+        await eventually(lambda: sub.on("status") == [b"online"], what="birth")
+        for name, expected_error in [
+            ("rate", "nested more than"),
+            ("start", "nested more than"),
+            ("whatever", "unknown command 'whatever'"),
+        ]:
+            await send(mosquitto.port, f"{BASE}/cmd/{name}", hostile)
+            await eventually(lambda n=name: bool(sub.on(f"cmd/{n}/ack")), what=f"{name} ack")
+            ack = json.loads(sub.on(f"cmd/{name}/ack")[0])
+            assert ack["ok"] is False and expected_error in ack["error"], ack
+        # the link still works: a good command afterwards is executed and acked
+        await send(mosquitto.port, f"{BASE}/cmd/rate", b'{"crop": "wheat", "rate_kg_ha": 200}')
+        await eventually(lambda: len(sub.on("cmd/rate/ack")) == 2, what="second rate ack")
+        assert json.loads(sub.on("cmd/rate/ack")[1])["ok"] is True
+        assert run.sink.executed == [SetRate("wheat", 200.0)]
+        # ... and it is the same session: no reconnect, no second birth
+        assert (run.link.stats.connects, run.link.stats.disconnects) == (1, 0)
+        assert run.link.stats.last_error == ""
+        assert sub.on("status") == [b"online"]
+
+
+async def test_hostile_commands_over_the_broker_never_restart_the_session(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """A handful of the worst payloads and topics, through a real broker: each one is a
+    refused command with an ack that says why, and the session they arrive on survives."""
+    settings = make_settings(mosquitto.port, enabled=["rate", "start", "speed_cal"],
+                             max_payload_bytes=65536)
+    # a topic of exactly MQTT's 65535 bytes: "/ack" makes the ack topic too long to publish
+    longest_name = "n" * (65535 - len(f"{BASE}/cmd/"))
+    hostile: list[tuple[str, bytes, str]] = [
+        ("rate", b"[" * 2000, "nested more than"),
+        ("rate", b'{"a": ' * 5000, "nested more than"),
+        ("rate", b'{"crop": "w", "rate_kg_ha": ' + b"9" * 5000 + b"}", "number out of range"),
+        ("rate", b'{"crop": "w", "rate_kg_ha": ' + b"9" * 400 + b"}", "integer too large"),
+        ("rate", b'{"crop": "w", "rate_kg_ha": -Infinity}', "must be a finite number"),
+        ("rate", b'{"crop": "w", "rate_kg_ha": "200"}', "must be a number (got string '200')"),
+        ("rate", b"\xff\xfe\x00\x00", "not UTF-8"),
+        ("rate", json.dumps({f"k{i}": [i] for i in range(3000)}).encode(),
+         "unknown fields k0, k1, k2, k3, k4 and 2995 more"),
+        ("speed_cal", b'{"action": {"action": "start"}}', "action: must be 'start'"),
+        ("start", b"[" * 60_000, "nested more than"),
+        ("", b"{}", "unknown command ''"),
+        ("r\u00e4te", b"{}", "unknown command 'r\u00e4te'"),
+        ("x" * 5000, b"[" * 2000, "unknown command 'xxxx"),
+    ]
+    async with (
+        subscriber(mosquitto.port, BASE) as sub,
+        running_link(settings, tmp_path / "r.db") as run,
+    ):
+        await eventually(lambda: sub.on("status") == [b"online"], what="birth")
+        for name, payload, expected_error in hostile:
+            before = len(sub.on(f"cmd/{name}/ack"))
+            await send(mosquitto.port, f"{BASE}/cmd/{name}", payload)
+            await eventually(lambda n=name, b=before: len(sub.on(f"cmd/{n}/ack")) > b,
+                             what=f"ack for {name[:20]!r} {payload[:20]!r}")
+            ack = json.loads(sub.on(f"cmd/{name}/ack")[-1])
+            assert ack["ok"] is False and expected_error in ack["error"], ack
+            assert len(ack["error"]) <= 500
+        rejected = run.link.stats.commands_rejected
+        await send(mosquitto.port, f"{BASE}/cmd/{longest_name}", b"[" * 2000)
+        await eventually(lambda: run.link.stats.commands_rejected > rejected, what="refusal")
+        # the session is the first one, and it still executes a good command
+        await send(mosquitto.port, f"{BASE}/cmd/rate", b'{"crop": "wheat", "rate_kg_ha": 200}')
+        await eventually(lambda: json.loads(sub.on("cmd/rate/ack")[-1])["ok"] is True,
+                         what="a good command afterwards")
+        assert run.sink.executed == [SetRate("wheat", 200.0)]
+        assert (run.link.stats.connects, run.link.stats.disconnects) == (1, 0)
+        assert sub.on("status") == [b"online"]
+
+
+async def test_a_command_that_fails_inside_the_gateway_is_an_error_ack_logged_once(
+    mosquitto: Mosquitto, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Not a refusal (CommandError) but a bug: any exception while executing a command is
+    acked as an internal error, logged once with its traceback, and the session goes on."""
+
+    class FailingController:
+        def execute(self, command: Command, source: str) -> str:
+            if isinstance(command, Start):
+                raise RecursionError("maximum recursion depth exceeded")
+            raise ZeroDivisionError("float division by zero")
+
+    settings = make_settings(mosquitto.port, enabled=["rate", "start"])
+    async with (
+        subscriber(mosquitto.port, BASE) as sub,
+        running_link(settings, tmp_path / "r.db") as run,
+    ):
+        run.link.commands = FailingController()
+        await eventually(lambda: sub.on("status") == [b"online"], what="birth")
+        await send(mosquitto.port, f"{BASE}/cmd/rate",
+                   b'{"crop": "wheat", "rate_kg_ha": 200, "request_id": "r9"}')
+        await send(mosquitto.port, f"{BASE}/cmd/start", b"")
+        await eventually(lambda: bool(sub.on("cmd/rate/ack") and sub.on("cmd/start/ack")),
+                         what="both acks")
+        assert json.loads(sub.on("cmd/rate/ack")[0]) == {
+            "ok": False, "error": "internal error: ZeroDivisionError: float division by zero",
+            "request_id": "r9"}
+        assert json.loads(sub.on("cmd/start/ack")[0])["error"] == (
+            "internal error: RecursionError: maximum recursion depth exceeded")
+        assert (run.link.stats.connects, run.link.stats.disconnects) == (1, 0)
+        assert run.link.stats.commands_rejected == 2
+    command_logs = [r for r in caplog.records if "mqtt command" in r.getMessage()]
+    assert [(r.levelname, r.exc_info is not None) for r in command_logs] == [
+        ("ERROR", True), ("ERROR", True)]
 
 
 async def test_broker_restart_mid_stream_loses_no_record(
@@ -388,7 +517,7 @@ async def test_sigkill_mid_stream_resends_unacked_and_the_will_says_offline(
 
 def test_tilt_critical_topic_maps_to_the_live_critical_angle_command() -> None:
     from gateway.commands import CriticalTilt
-    from gateway.mqtt_link import KNOWN_COMMANDS, _to_command
+    from gateway.mqtt_commands import KNOWN_COMMANDS, _to_command
     from gateway.payloads import EmptyCommand
 
     assert KNOWN_COMMANDS["tilt_critical"] is EmptyCommand
@@ -402,7 +531,7 @@ def test_channel_rate_topic_maps_to_the_channel_rate_command() -> None:
     from pydantic import ValidationError
 
     from gateway.commands import SetChannelRate
-    from gateway.mqtt_link import KNOWN_COMMANDS, _to_command
+    from gateway.mqtt_commands import KNOWN_COMMANDS, _to_command
     from gateway.payloads import ChannelRateCommand
 
     payload = KNOWN_COMMANDS["channel_rate"].model_validate_json(

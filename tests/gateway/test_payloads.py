@@ -72,6 +72,10 @@ def test_rate_command_accepts_the_documented_example() -> None:
         {"crop": "", "rate_kg_ha": 100},
         {"crop": "wheat", "rate_kg_ha": 100, "unexpected": 1},
         {"crop": 7, "rate_kg_ha": 100},
+        # commands are strict: no lax coercion of strings or booleans into numbers
+        {"crop": "wheat", "rate_kg_ha": "200"},
+        {"crop": "wheat", "rate_kg_ha": True},
+        {"crop": "wheat", "rate_kg_ha": 100, "request_id": 5},
     ],
 )
 def test_rate_command_rejects_bad_shapes(payload: dict[str, object]) -> None:

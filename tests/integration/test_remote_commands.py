@@ -100,3 +100,42 @@ async def test_live_speed_calibration_over_mqtt(tmp_path: Path) -> None:
                 await _send(broker.port, "speed_cal", b'{"action": "finish", "distance_m": 5}')
                 ack = await _ack(sub, "speed_cal", 3)
                 assert ack["ok"] is False and "not started" in str(ack["error"])
+
+
+async def test_hostile_commands_are_refused_and_the_farm_link_stays_up(tmp_path: Path) -> None:
+    """Issue 11: ``[`` x 2000 on cmd/rate restarted the daemon's MQTT session (an uncaught
+    RecursionError), so anyone allowed to publish commands could keep the link down. Each
+    hostile payload is now one refused command; the session, and the machine, carry on."""
+    hostile: list[tuple[str, bytes, str]] = [
+        ("rate", b"[" * 2000, "nested more than"),
+        ("whatever", b"[" * 2000, "unknown command 'whatever'"),
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": "200"}',
+         "rate_kg_ha: must be a number (got string '200')"),
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": NaN}', "rate_kg_ha: must be a finite number"),
+        ("rate", b'{"crop": "wheat", "rate_kg_ha": 200, "force": true}', "force: unknown field"),
+        ("start", b'\xff{"a": ' * 300, "not UTF-8"),
+        ("start", b'{"a": ' * 300, "nested more than"),
+    ]
+    with Mosquitto() as broker:
+        async with subscriber(broker.port, BASE) as sub:
+            overrides = {
+                "mqtt": {"enabled": True, "port": broker.port},
+                "commands": {"enabled": ["rate", "start"]},
+                "control": {"crop": "rapeseed", "rate_kg_ha": 6.0},
+            }
+            machine = SimulatedMachine(drive=steady_drive(), crop="wheat")
+            async with running(tmp_path, machine, **overrides) as rig:
+                await rig.until(lambda: sub.on("status") == [b"online"], what="online")
+                link = rig.daemon.components["mqtt"]
+                for name, payload, expected_error in hostile:
+                    count = len(sub.on(f"cmd/{name}/ack")) + 1
+                    await _send(broker.port, name, payload)
+                    ack = await _ack(sub, name, count)
+                    assert ack["ok"] is False and expected_error in str(ack["error"]), ack
+                assert rig.daemon.controller.crop == "rapeseed"  # nothing changed
+                # the same session still carries commands
+                await _send(broker.port, "rate", b'{"crop": "wheat", "rate_kg_ha": 200}')
+                assert (await _ack(sub, "rate", 5))["ok"] is True
+                assert rig.daemon.controller.rate_kg_ha == 200.0
+                assert (link.stats.connects, link.stats.disconnects) == (1, 0)
+                assert sub.on("status") == [b"online"]
