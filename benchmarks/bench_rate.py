@@ -1,177 +1,480 @@
-"""Paper A, Fig. 19 setting: applied-rate error over 50 m at three gears, both crops.
+"""Applied-rate error against drills the controller's model does not describe (issue 13 §1).
 
-Each run is simulated in simulated time (no ptys: bus timing is not what is measured here)
-with the real ``Controller`` in the loop: radar polled at 3 Hz with ~3 % noise, inclinometer
-with its offset, the metering motor with its lag and start-up dead band, discharge with slowly
-varying noise. The tractor's true speed is the gear's nominal speed off by a per-run factor
-(slip, load, engine droop: σ 6 %) plus slow fluctuations, as in the field.
+Paper A's chain is open loop: duty → shaft speed (eq. 5) → discharge (eq. 6). Its accuracy is
+the accuracy of those fitted curves on the drill at hand. So the simulated drills here are
+``simulator.drill_truth`` drills, which share no table or function with ``gateway``: a
+discharge curve of a different (saturating) shape fitted to pseudo-weighings around paper A's
+eq. (6), scaled by ±8 %; a motor line off by ±5 % in slope and ±1 r/min in offset; a radar
+off by ±2 % (mounting angle); seed-lot drift. Six such drills per crop (Latin hypercube).
 
-Baseline, in the same runs: open-loop constant duty, set for the gear's *nominal* speed, which
-is what a seeder without speed following does (paper A compares against exactly this).
-The applied rate is the seed really discharged over the measured 50 m (after a lead-in to reach
-steady state), as the paper's net bags collected it.
+Calibrations are done as a farmer does them, through the real CLI and the daemon's start-up:
+
+* rotation test (``sowgate calibrate rotation --model paper_a``): paper A's protocol (the
+  crop's ω range in 5 r/min steps, 3 repeats of 60 s) run on the truth drill; the operator
+  switches the meter at the CLI's start/stop (reaction σ 0.2 s each), counts shaft turns to
+  the nearest half turn, weighs with σ 2 g;
+* speed calibration, live on a ``Controller`` as ``cmd/speed_cal`` does it: ``start`` at the
+  first of two marks 50 m apart, ``finish`` with 50 m at the second (presses σ 0.15 s), at
+  slow 3 with the radar at 3 Hz; the same radar log also goes through ``sowgate calibrate
+  speed --samples`` for comparison (it integrates from the first to the last logged sample,
+  so a log taken between the presses comes out about a third of a second of travel short);
+* the results land in ``calibration.json`` and ``apply_calibrations`` lays them over the
+  config, exactly as the daemon does at start.
+
+Each 50 m run (paper A Fig. 19 setting) drives the real ``Controller`` in simulated time; every
+method in a run sees the same tractor speed, the same radar noise and the same discharge noise.
+The error is true mass over true area against the target.
 """
 
 from __future__ import annotations
 
+import io
 import random
 import statistics
-from dataclasses import dataclass
+import tempfile
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from rich.console import Console
 
 from gateway import commands as cmd
 from gateway.alarms import AlarmBoard
-from gateway.config import CropModel, parse_config
+from gateway.calibration_apply import apply_calibrations
+from gateway.calibration_cli import run_calibration
+from gateway.cli import build_parser
+from gateway.config import CropModel, Settings, parse_config
 from gateway.controller import Controller
-from gateway.rate_model import plan_duty
-from simulator.plant import MeteringPlant, SensorNoise, demo_drive
+from gateway.rate_model import duty_for_omega, plan_duty
+from simulator.drill_truth import (
+    LOT_DRIFT,
+    PAPER_A_MOTOR,
+    WORKING_WIDTH_M,
+    DrillTruth,
+    TruthMeter,
+    field_drills,
+)
+from simulator.plant import SensorNoise, demo_drive
 
 GEARS_KMH = {"slow 2": 2.5, "slow 3": 3.5, "slow 4": 4.5}  # paper A: 慢2/慢3/慢4 within 2-6 km/h
 CROPS = {"rapeseed": 6.0, "wheat": 225.0}  # paper A's test rates
+N_DRILLS = 6
+REPEATS = 2  # 50 m runs per drill, crop and gear (sensitivity cells use the first)
 DISTANCE_M = 50.0
 LEAD_IN_M = 15.0
-REPEATS = 3
-DT = 0.01
+DT = 0.02
 POLL_S = 1 / 3
-GEAR_FACTOR_SIGMA = 0.06
+GEAR_FACTOR_SIGMA = 0.06  # slip, load, engine droop per run
 SPEED_FLUCT_SIGMA = 0.03
+ROTATION_SECONDS = 60.0  # paper A: 60 s weighings
+ROTATION_REPEATS = 3
+ROTATION_STEP_RPM = 5.0
+SCALE_SIGMA_G = 2.0  # "±2 g per weighing", taken as one standard deviation
+REACTION_S = 0.2  # operator switching the meter at the CLI's start and stop
+SPEED_CAL_GEAR_KMH = 3.5
+SPEED_CAL_REACTION_S = 0.15  # pressing at the marks
+SPEED_CAL_DISTANCE_M = 50.0
+WORKING_TILT_DEG = -6.25  # paper A Table 5
+
+TARGET_ROTATION_PCT = 1.0
+
+
+class CalibrationRefused(Exception):
+    """The CLI refused a calibration (a farmer would repeat the test)."""
+
+
+# ---- calibrations through the real CLI ---------------------------------------------------
+
+
+def _cli(state_dir: Path, *argv: str) -> None:
+    args = build_parser().parse_args(["calibrate", "--state-dir", str(state_dir), *argv])
+    out = io.StringIO()
+    if run_calibration(args, console=Console(file=out, width=200)) != 0:
+        raise CalibrationRefused(out.getvalue().strip())
+
+
+def _nums(values: Iterable[float]) -> str:
+    return ",".join(repr(float(v)) for v in values)
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """How the rotation test is run: run length, repeats per set point, scale noise."""
+
+    seconds: float = ROTATION_SECONDS
+    repeats: int = ROTATION_REPEATS
+    scale_sigma_g: float = SCALE_SIGMA_G
 
 
 @dataclass
-class RunResult:
-    crop: str
-    gear: str
-    sowgate_err_pct: float
-    baseline_err_pct: float
+class MeterRuns:
+    """The true outcome of the timed rotation runs, before anything is weighed."""
+
+    duties: list[float]
+    counted_rpm: list[float]
+    true_mass_g: list[float]
+    scale_z: list[float]  # the scale's error per weighing, in standard deviations
 
 
-def _plant(m: CropModel, seed: int, bias: float) -> MeteringPlant:
-    return MeteringPlant(
-        slope=m.motor_slope,
-        intercept=m.motor_intercept,
-        startup_duty_pct=m.startup_duty_pct,
-        meter_a=m.meter_a * (1 + bias),
-        meter_b=m.meter_b * (1 + bias),
-        meter_c=m.meter_c * (1 + bias),
-        rng=random.Random(seed),
-    )
+def rotation_runs(drill: DrillTruth, model: CropModel, protocol: Protocol,
+                  rng: random.Random) -> MeterRuns:
+    """Run the meter at the configured model's set points on the truth drill."""
+    omegas: list[float] = []
+    w = model.omega_min_rpm
+    while w <= model.omega_max_rpm + 1e-9:
+        omegas.append(w)
+        w += ROTATION_STEP_RPM
+    duties = [duty_for_omega(w, model) for w in omegas for _ in range(protocol.repeats)]
+    runs = MeterRuns([], [], [], [])
+    for duty in duties:
+        meter = drill.meter(rng.randrange(2**31))
+        on_s = protocol.seconds + rng.gauss(0.0, REACTION_S) - rng.gauss(0.0, REACTION_S)
+        steps = round(on_s / 0.05)
+        for _ in range(steps):
+            meter.step(duty, 0.05)
+        for _ in range(200):  # run-down: the shaft coasts, seed still falls into the catch
+            meter.step(0.0, 0.05)
+        turns = round(meter.revolutions * 2.0) / 2.0  # counted to the nearest half turn
+        runs.duties.append(duty)
+        runs.counted_rpm.append(turns / (protocol.seconds / 60.0))
+        runs.true_mass_g.append(meter.mass_g)
+        runs.scale_z.append(rng.gauss(0.0, 1.0))
+    return runs
 
 
-def one_run(crop: str, gear_kmh: float, seed: int, bias_sigma: float) -> tuple[float, float]:
-    """Returns (sowgate error %, baseline error %) for one 50 m run.
+def rotation_test(drill: DrillTruth, model: CropModel, protocol: Protocol, rng: random.Random,
+                  state_dir: Path, runs: MeterRuns | None = None) -> int:
+    """``sowgate calibrate rotation --model paper_a``; returns how many attempts it took."""
+    for attempt in range(1, 4):
+        r = runs if runs is not None and attempt == 1 else rotation_runs(
+            drill, model, protocol, rng)
+        masses = [max(0.0, m + protocol.scale_sigma_g * z)
+                  for m, z in zip(r.true_mass_g, r.scale_z, strict=True)]
+        try:
+            _cli(state_dir, "rotation", "--channel", drill.crop, "--model", "paper_a",
+                 "--duties", _nums(r.duties), "--rpm", _nums(r.counted_rpm),
+                 "--seconds", repr(protocol.seconds), "--mass", _nums(masses), "--no-wait")
+            return attempt
+        except CalibrationRefused:
+            continue
+    raise CalibrationRefused(f"{drill.crop}: rotation test refused three times")
 
-    ``bias_sigma``: the machine's true discharge differs from the fitted eq. (6) by a factor
-    drawn per run (fit residuals, seed lot, wear); 0 means the model is exact.
+
+@dataclass(frozen=True)
+class SpeedCalResult:
+    """The factor's error against the truth, factor × (1 + radar bias) − 1, in %."""
+
+    live_err_pct: float  # the daemon's cmd/speed_cal start/finish (what is applied)
+    samples_err_pct: float  # `calibrate speed --samples` on the radar log between the presses
+
+
+def speed_calibration(drill: DrillTruth, rng: random.Random, state_dir: Path) -> SpeedCalResult:
+    """Drive 50 m between two marks at slow 3 and calibrate the radar as the farmer does.
+
+    The daemon's live calibration (``cmd/speed_cal``: start at the first mark, finish with
+    50 m at the second) runs on a real ``Controller`` and saves ``speed.radar`` in
+    ``state_dir``; that is what gets applied. The radar log between the two presses also goes
+    through ``sowgate calibrate speed --samples`` (into a scratch directory), to compare.
     """
-    rng = random.Random(seed)
-    bias = rng.gauss(0.0, bias_sigma)
-    settings = parse_config({"control": {"crop": crop, "rate_kg_ha": CROPS[crop]}})
-    model = settings.control.crops[crop]
-    width = settings.machine.working_width_m
-    noise = SensorNoise()
-    ctl = Controller(settings, AlarmBoard())
-    ctl.execute(cmd.Start(), "bench")
-    plants = {
-        "sowgate": _plant(model, seed + 1, bias),
-        "baseline": _plant(model, seed + 1, bias),
-    }
-    base_duty = plan_duty(CROPS[crop], width, gear_kmh, model).duty_pct
-    factor = 1.0 + rng.gauss(0.0, GEAR_FACTOR_SIGMA)
-    fluct = 0.0
-    t = 0.0
-    v = 0.0
-    x = 0.0
+    settings = settings_for(drill.crop, [])
+    ctl = Controller(settings, AlarmBoard(), state_dir=state_dir)
+    target = SPEED_CAL_GEAR_KMH * (1.0 + rng.gauss(0.0, GEAR_FACTOR_SIGMA))
+    mark1 = 10.0  # lead-in to reach speed
+    mark2 = mark1 + SPEED_CAL_DISTANCE_M
+    press1: float | None = None
+    press2: float | None = None
+    e1, e2 = rng.gauss(0.0, SPEED_CAL_REACTION_S), rng.gauss(0.0, SPEED_CAL_REACTION_S)
+    started = finished = False
+    t = x = v = fluct = 0.0
     next_poll = 0.0
-    mass = {"sowgate": 0.0, "baseline": 0.0}
-    tilt_raw = -6.25 + noise.tilt_mount_deg + noise.tilt_offset_deg
-    ctl.zero_offset_deg = noise.tilt_mount_deg
-    target_v = gear_kmh * factor
-    while x < LEAD_IN_M + DISTANCE_M:
+    samples: list[tuple[float, float]] = []
+    while not finished:
         fluct += DT / 3.0 * (rng.gauss(0.0, SPEED_FLUCT_SIGMA * 2.4) - fluct)
-        v_goal = target_v * (1.0 + fluct)
-        v += max(-0.6 * 3.6 * DT, min(0.6 * 3.6 * DT, v_goal - v))
+        v += max(-0.6 * 3.6 * DT, min(0.6 * 3.6 * DT, target * (1.0 + fluct) - v))
+        x_new = x + v / 3.6 * DT
+        if press1 is None and x_new >= mark1:
+            press1 = t + DT * (mark1 - x) / (x_new - x) + e1
+        if press2 is None and x_new >= mark2:
+            press2 = t + DT * (mark2 - x) / (x_new - x) + e2
+        x = x_new
+        t += DT
+        if press1 is not None and not started and t >= press1:
+            ctl.execute(cmd.CalibrateSpeed("start"), "bench")
+            started = True
+        if press2 is not None and started and t >= press2:
+            ctl.execute(cmd.CalibrateSpeed("finish", SPEED_CAL_DISTANCE_M), "bench")
+            finished = True
         if t >= next_poll:
             next_poll += POLL_S
-            radar = v * (1.0 + rng.gauss(0.0, noise.radar_cv)) if v > 0 else 0.0
-            ctl.on_speed("radar", radar, t)
-            ctl.on_tilt(tilt_raw + rng.gauss(0.0, noise.tilt_sigma_deg), t)
-            out = ctl.tick(t)
-            plants["sowgate"].duty_pct = out.motor_pct
-            plants["baseline"].duty_pct = base_duty if v > 0.3 else 0.0
-        x += v / 3.6 * DT
-        for name, plant in plants.items():
-            grams = plant.step(DT)
-            if x >= LEAD_IN_M:
-                mass[name] += grams
-        t += DT
-    expected_g = CROPS[crop] * width * DISTANCE_M / 10.0  # kg/ha * m2 / 10000 * 1000
-    return (
-        (mass["sowgate"] / expected_g - 1.0) * 100.0,
-        (mass["baseline"] / expected_g - 1.0) * 100.0,
-    )
+            reading = drill.radar_kmh(v, rng.gauss(0.0, 1.0))
+            ctl.on_speed("radar", reading, t)
+            if started and not finished:
+                samples.append((t, reading))
+    live = settings_for(drill.crop, [state_dir]).speed.correction["radar"]
+    with tempfile.TemporaryDirectory(prefix="speed-cli-") as scratch:
+        log = Path(scratch) / "speed_run.csv"
+        log.write_text("time_s,speed_kmh\n" + "".join(f"{a!r},{b!r}\n" for a, b in samples))
+        _cli(Path(scratch), "speed", "--source", "radar", "--distance",
+             repr(SPEED_CAL_DISTANCE_M), "--samples", str(log))
+        logged = settings_for(drill.crop, [Path(scratch)]).speed.correction["radar"]
+    truth = 1.0 + drill.radar_bias
+    return SpeedCalResult((live * truth - 1.0) * 100.0, (logged * truth - 1.0) * 100.0)
 
 
-SCENARIOS = {
-    "model exact (calibrated machine)": 0.0,
-    "model off by σ 1 % per run (fit residual, R² 0.99)": 0.01,
-}
+def settings_for(crop: str, state_dirs: Iterable[Path], speed_filter: str = "trend",
+                 rate_kg_ha: float | None = None) -> Settings:
+    """The config the daemon starts with, calibrations of each directory laid over it.
+
+    The rate is paper A's test rate of the crop unless given (``0``: the crop's default)."""
+    rate = CROPS[crop] if rate_kg_ha is None else (rate_kg_ha or None)
+    settings = parse_config({"control": {"crop": crop, "rate_kg_ha": rate},
+                             "radar": {"filter": speed_filter}})
+    for d in state_dirs:
+        apply_calibrations(settings, d)
+    return settings
 
 
-def _table(bias_sigma: float) -> tuple[list[str], dict[str, float]]:
-    results: list[RunResult] = []
-    seed = 100
-    for crop in CROPS:
-        for gear, kmh in GEARS_KMH.items():
-            for _ in range(REPEATS):
-                seed += 7
-                s, b = one_run(crop, kmh, seed, bias_sigma)
-                results.append(RunResult(crop, gear, s, b))
-    lines = [
-        "| crop | gear | sowgate mean abs error % | baseline (open loop) mean abs error % |",
-        "|---|---|---|---|",
-    ]
-    for crop in CROPS:
-        for gear, kmh in GEARS_KMH.items():
-            rs = [r for r in results if r.crop == crop and r.gear == gear]
-            s = statistics.fmean(abs(r.sowgate_err_pct) for r in rs)
-            b = statistics.fmean(abs(r.baseline_err_pct) for r in rs)
-            lines.append(
-                f"| {crop} {CROPS[crop]:g} kg/ha | {gear} ({kmh} km/h) | {s:.2f} | {b:.2f} |"
-            )
-    s_all = statistics.fmean(abs(r.sowgate_err_pct) for r in results)
-    b_all = statistics.fmean(abs(r.baseline_err_pct) for r in results)
-    s_max = max(abs(r.sowgate_err_pct) for r in results)
-    lines.append(
-        f"| **all** | {len(results)} runs | **{s_all:.2f}** (max {s_max:.2f}) | {b_all:.2f} |"
-    )
-    return lines, {"mean": s_all, "max": s_max, "baseline": b_all}
+# ---- the field run -------------------------------------------------------------------------
 
 
-def field_drive(filt: str, crop: str, seed: int) -> tuple[float, float]:
-    """The demo field drive (gears, headland turns, a pause): (rate error %, g wasted)."""
+@dataclass
+class Driver:
+    """What sets the motor duty: the real controller on a radar, or a constant duty."""
+
+    drill: DrillTruth  # whose radar the controller reads
+    settings: Settings | None = None
+    fixed_duty: float = 0.0
+    gear_duty: dict[str, float] | None = None  # open loop: duty set per gear
+    controller: Controller | None = None
+    duty: float = 0.0
+
+    def reset(self) -> None:
+        self.duty = 0.0
+        self.controller = None
+        if self.settings is not None:
+            self.controller = Controller(self.settings, AlarmBoard())
+            self.controller.execute(cmd.Start(), "bench")
+            self.controller.zero_offset_deg = SensorNoise().tilt_mount_deg
+
+
+@dataclass
+class Lane:
+    """One method on one truth drill in one run: a driver, a meter, what it sowed."""
+
+    key: tuple[str, ...]
+    driver: Driver
+    drill: DrillTruth
+    progress: float = 0.0  # how far into the seed-lot drift
+    meter: TruthMeter | None = None
+    mass_g: float = 0.0
+
+
+def field_run(drivers: list[Driver], lanes: list[Lane], crop: str, gear_kmh: float,
+              seed: int) -> dict[tuple[str, ...], float]:
+    """One 50 m run (after a lead-in) for every lane; rate error % per lane key."""
     rng = random.Random(seed)
-    settings = parse_config({"control": {"crop": crop}, "radar": {"filter": filt}})
-    model = settings.control.crops[crop]
-    width = settings.machine.working_width_m
+    noise = SensorNoise()
+    for d in drivers:
+        d.reset()
+    meter_seed = rng.randrange(2**31)
+    for lane in lanes:
+        lane.meter = lane.drill.meter(meter_seed, lane.progress)  # same discharge noise
+        lane.mass_g = 0.0
+    target_v = gear_kmh * (1.0 + rng.gauss(0.0, GEAR_FACTOR_SIGMA))
+    tilt_raw = WORKING_TILT_DEG + noise.tilt_mount_deg + noise.tilt_offset_deg
+    fluct = t = v = x = next_poll = area = 0.0
+    while x < LEAD_IN_M + DISTANCE_M:
+        fluct += DT / 3.0 * (rng.gauss(0.0, SPEED_FLUCT_SIGMA * 2.4) - fluct)
+        v += max(-0.6 * 3.6 * DT, min(0.6 * 3.6 * DT, target_v * (1.0 + fluct) - v))
+        if t >= next_poll:
+            next_poll += POLL_S
+            z = rng.gauss(0.0, 1.0)  # one radar noise draw for every method
+            tilt = tilt_raw + rng.gauss(0.0, noise.tilt_sigma_deg)
+            for d in drivers:
+                if d.controller is not None:
+                    d.controller.on_speed("radar", d.drill.radar_kmh(v, z), t)
+                    d.controller.on_tilt(tilt, t)
+                    d.duty = d.controller.tick(t).motor_pct
+                else:
+                    d.duty = d.fixed_duty if v > 0.3 else 0.0
+        step_m = v / 3.6 * DT
+        x += step_m
+        measured = x >= LEAD_IN_M
+        if measured:
+            area += step_m * WORKING_WIDTH_M
+        for lane in lanes:
+            assert lane.meter is not None
+            grams = lane.meter.step(lane.driver.duty, DT)
+            if measured:
+                lane.mass_g += grams
+        t += DT
+    expected_g = CROPS[crop] * area / 10.0  # kg/ha × m² / 10 000 × 1000
+    return {lane.key: (lane.mass_g / expected_g - 1.0) * 100.0 for lane in lanes}
+
+
+# ---- one drill's session ------------------------------------------------------------------
+
+METHODS = (  # key, label, calibrations done
+    ("none", "sowgate, uncalibrated (paper A's published fits)", "none"),
+    ("speed", "sowgate, speed calibration only", "speed (50 m)"),
+    ("rotation", "sowgate, rotation test only", "rotation test"),
+    ("both", "sowgate, rotation test + speed calibration", "rotation test, speed (50 m)"),
+    ("open_none", "open loop, uncalibrated", "none (speed calibration changes nothing: "
+     "open loop reads no speed)"),
+    ("open_rotation", "open loop, rotation test", "rotation test"),
+)
+FACTORS = (-0.08, -0.04, 0.0, 0.04, 0.08)
+RADAR_BIASES = (-0.02, 0.0, 0.02)
+MOTOR_OFFSETS = (-1.0, 0.0, 1.0)  # r/min off paper A's eq. (5) intercept
+DRIFTS = (0.0, 0.01, 0.03, 0.05)
+SCALE_SIGMAS = (0.5, 2.0, 5.0, 10.0)
+PROTOCOLS = tuple(Protocol(seconds=s, repeats=n) for n in (1, 3) for s in (30.0, 60.0, 120.0))
+
+
+@dataclass
+class Session:
+    drivers: list[Driver] = field(default_factory=list)
+    main: list[Lane] = field(default_factory=list)
+    sensitivity: list[Lane] = field(default_factory=list)
+    speed_cal: SpeedCalResult | None = None
+    rotation_attempts: list[int] = field(default_factory=list)
+
+    def driver(self, drill: DrillTruth, settings: Settings | None = None,
+               fixed: float = 0.0) -> Driver:
+        d = Driver(drill, settings, fixed)
+        self.drivers.append(d)
+        return d
+
+
+def build_session(drill: DrillTruth, seed: int, root: Path) -> Session:
+    """Calibrate one drill every way the tables need and lay out the lanes of its runs."""
+    crop = drill.crop
+    rng = random.Random(seed)
+    base = settings_for(crop, [])
+    model0 = base.control.crops[crop]
+    width = base.machine.working_width_m
+    if width != WORKING_WIDTH_M:
+        raise RuntimeError(f"config width {width} m is not the truth drill's {WORKING_WIDTH_M} m")
+    s = Session()
+
+    def newdir(name: str) -> Path:
+        d = root / f"{crop}-{seed}-{name}"
+        d.mkdir()
+        return d
+
+    def rotate(truth: DrillTruth, protocol: Protocol, name: str,
+               runs: MeterRuns | None = None) -> Path:
+        d = newdir(name)
+        s.rotation_attempts.append(rotation_test(truth, model0, protocol, rng, d, runs))
+        return d
+
+    def speedcal(truth: DrillTruth, name: str) -> tuple[Path, SpeedCalResult]:
+        d = newdir(name)
+        return d, speed_calibration(truth, rng, d)
+
+    main_runs = rotation_runs(drill, model0, Protocol(), rng)
+    rot = rotate(drill, Protocol(), "rot", main_runs)
+    spd, s.speed_cal = speedcal(drill, "speed")
+    settings = {
+        "none": base,
+        "speed": settings_for(crop, [spd]),
+        "rotation": settings_for(crop, [rot]),
+        "both": settings_for(crop, [rot, spd]),
+    }
+    drv = {k: s.driver(drill, v) for k, v in settings.items()}
+    for key, name in (("open_none", "none"), ("open_rotation", "rotation")):
+        model = settings[name].control.crops[crop]
+        gears = {g: plan_duty(CROPS[crop], width, kmh, model).duty_pct
+                 for g, kmh in GEARS_KMH.items()}
+        drv[key] = s.driver(drill)
+        drv[key].gear_duty = gears
+    s.main = [Lane(("main", k), drv[k], drill) for k, _, _ in METHODS]
+
+    sens: list[Lane] = []
+    for f in FACTORS:  # the drill's discharge factor forced to 1 + f
+        truth = replace(drill, discharge_factor=1.0 + f)
+        cal = settings_for(crop, [rotate(truth, Protocol(), f"f{f}"), spd])
+        sens += [Lane(("factor", f"{f:+.0%}", "none"), drv["none"], truth),
+                 Lane(("factor", f"{f:+.0%}", "open_none"), drv["open_none"], truth),
+                 Lane(("factor", f"{f:+.0%}", "both"), s.driver(truth, cal), truth)]
+    for o in MOTOR_OFFSETS:  # the drill's motor line shifted from paper A's by o r/min
+        truth = replace(drill, motor_offset_rpm=PAPER_A_MOTOR[crop][1] + o)
+        cal = settings_for(crop, [rotate(truth, Protocol(), f"o{o}"), spd])
+        sens += [Lane(("offset", f"{o:+g} r/min", "none"), drv["none"], truth),
+                 Lane(("offset", f"{o:+g} r/min", "both"), s.driver(truth, cal), truth)]
+    for b in RADAR_BIASES:
+        truth = replace(drill, radar_bias=b)
+        sdir, _ = speedcal(truth, f"b{b}")
+        sens += [Lane(("radar", f"{b:+.0%}", "rotation"), s.driver(truth, settings["rotation"]),
+                      truth),
+                 Lane(("radar", f"{b:+.0%}", "both"),
+                      s.driver(truth, settings_for(crop, [rot, sdir])), truth)]
+    sign = 1.0 if drill.lot_drift >= 0 else -1.0
+    for dr in DRIFTS:  # the lot has drifted by dr since the rotation test (end of session)
+        truth = replace(drill, lot_drift=sign * dr)
+        sens.append(Lane(("drift", f"{dr:.0%}", "both"), drv["both"], truth, progress=1.0))
+    for sigma in SCALE_SIGMAS:
+        cal = settings_for(crop, [rotate(drill, Protocol(scale_sigma_g=sigma), f"s{sigma}",
+                                         main_runs), spd])
+        sens.append(Lane(("scale", f"{sigma:g} g", "both"), s.driver(drill, cal), drill))
+    for p in PROTOCOLS:
+        cal = settings_for(crop, [rotate(drill, p, f"p{p.seconds}-{p.repeats}"), spd])
+        label = f"{p.repeats} × {p.seconds:g} s"
+        sens.append(Lane(("protocol", label, "both"), s.driver(drill, cal), drill))
+    s.sensitivity = sens
+    return s
+
+
+def run_session(drill: DrillTruth, s: Session, seed: int) -> dict[tuple[str, ...], list[float]]:
+    errs: dict[tuple[str, ...], list[float]] = {}
+    for rep in range(REPEATS):
+        for gi, (gear, kmh) in enumerate(GEARS_KMH.items()):
+            for d in s.drivers:
+                if d.gear_duty is not None:
+                    d.fixed_duty = d.gear_duty[gear]
+            lanes = s.main + (s.sensitivity if rep == 0 else [])
+            used = {id(lane.driver) for lane in lanes}
+            drivers = [d for d in s.drivers if id(d) in used]
+            res = field_run(drivers, lanes, drill.crop, kmh, seed * 1000 + rep * 10 + gi)
+            for key, e in res.items():
+                errs.setdefault(key, []).append(e)
+                if key[0] == "main":
+                    errs.setdefault((*key, gear), []).append(e)
+    return errs
+
+
+# ---- the field drive: speed filters ---------------------------------------------------------
+
+
+def field_drive(filt: str, drill: DrillTruth, state_dirs: list[Path], seed: int) -> tuple[
+        float, float]:
+    """The demo field drive (gears, headland turns, a pause) on a calibrated truth drill:
+    (rate error % over the area really sown, g discharged while lifted or standing).
+
+    At the crop's default rate, as the old bench: wheat at 225 kg/ha is out of reach above
+    ~5 km/h (paper A), which would measure the motor's ceiling, not the filter."""
+    rng = random.Random(seed)
+    settings = settings_for(drill.crop, state_dirs, filt, rate_kg_ha=0)
     ctl = Controller(settings, AlarmBoard())
     ctl.execute(cmd.Start(), "bench")
     noise = SensorNoise()
     ctl.zero_offset_deg = noise.tilt_mount_deg
-    plant = _plant(model, seed, 0.0)
+    meter = drill.meter(seed)
     drive = demo_drive()
     t = next_poll = mass = area = waste = 0.0
+    duty = 0.0
     while t < drive.duration_s:
         p = drive.pose_at(t)
         if t >= next_poll:
             next_poll += POLL_S
-            v = p.speed_kmh * (1 + rng.gauss(0, noise.radar_cv)) if p.speed_kmh > 0 else 0.0
-            ctl.on_speed("radar", v, t)
+            ctl.on_speed("radar", drill.radar_kmh(p.speed_kmh, rng.gauss(0.0, 1.0)), t)
             tilt = p.tilt_deg + noise.tilt_mount_deg + noise.tilt_offset_deg
             ctl.on_tilt(tilt + rng.gauss(0, noise.tilt_sigma_deg), t)
-            plant.duty_pct = ctl.tick(t).motor_pct
-        grams = plant.step(DT)
+            duty = ctl.tick(t).motor_pct
+        grams = meter.step(duty, DT)
         if p.tilt_deg < 0 and p.speed_kmh > 0.05:  # openers in the soil
             mass += grams
-            area += p.speed_kmh / 3.6 * DT * width
+            area += p.speed_kmh / 3.6 * DT * WORKING_WIDTH_M
         else:
             waste += grams
         t += DT
@@ -179,48 +482,285 @@ def field_drive(filt: str, crop: str, seed: int) -> tuple[float, float]:
     return (applied / ctl.rate_kg_ha - 1) * 100, waste
 
 
-def _field_table() -> tuple[str, dict[str, float]]:
+# ---- reporting ------------------------------------------------------------------------------
+
+
+def _stats(xs: list[float]) -> tuple[float, float, float]:
+    """(signed mean, mean |e|, worst e by magnitude, signed)."""
+    worst = max(xs, key=abs)
+    return statistics.fmean(xs), statistics.fmean(abs(x) for x in xs), worst
+
+
+def _cell(xs: list[float]) -> str:
+    m, a, w = _stats(xs)
+    return f"{m:+.2f} / {a:.2f} / {w:+.2f}"
+
+
+def _verdict(value: float, target: float) -> str:
+    return "met" if value <= target else f"NOT met (off by {value - target:.2f} points)"
+
+
+def _flow_g_min(crop: str, gear: str) -> float:
+    """Eq. (4): the flow that sows the crop's test rate at the gear's nominal speed."""
+    return 5.0 * WORKING_WIDTH_M * GEARS_KMH[gear] * CROPS[crop] / 3.0
+
+
+def _scale_resolution_pct(crop: str, gear: str, sigma_kg: float, minutes: float) -> float:
+    """Two independent readings ``minutes`` apart: σ√2 over the mass that flowed."""
+    return sigma_kg * 2**0.5 / (_flow_g_min(crop, gear) * minutes / 1000.0) * 100.0
+
+
+def scale_resolution_table() -> str:
+    """Arithmetic, not simulation: what a hopper scale can resolve of each crop's flow."""
     lines = [
-        "| crop | speed filter | mean rate error % | seed discharged while lifted/standing |",
-        "|---|---|---|---|",
+        "| crop, gear | flow g/min | discharged in 5 / 10 / 20 min | flow error over 10 min at "
+        "σ 0.2 kg | σ 2 kg | σ 5 kg |",
+        "|---|---|---|---|---|---|",
     ]
-    figs: dict[str, float] = {}
     for crop in CROPS:
-        for filt, label in (("mean", "paper A moving mean (N=12)"), ("trend", "sowgate trend")):
-            runs = [field_drive(filt, crop, seed) for seed in range(1, 1 + REPEATS)]
-            err = statistics.fmean(e for e, _ in runs)
-            waste = statistics.fmean(w for _, w in runs)
-            figs[f"field_{crop}_{filt}_err_pct"] = err
-            lines.append(f"| {crop} | {label} | {err:+.2f} | {waste:.1f} g |")
-    return "\n".join(lines), figs
+        for gear in ("slow 2", "slow 4"):
+            q = _flow_g_min(crop, gear)
+            kg = [q * m / 1000.0 for m in (5, 10, 20)]
+            cells = [f"{_scale_resolution_pct(crop, gear, sigma, 10):.0f} %"
+                     for sigma in (0.2, 2.0, 5.0)]
+            lines.append(
+                f"| {crop}, {gear} | {q:.0f} | {kg[0]:.2f} / {kg[1]:.2f} / {kg[2]:.2f} kg | "
+                + " | ".join(cells) + " |"
+            )
+    return "\n".join(lines)
 
 
 def run() -> dict[str, object]:
-    parts = [
-        "### Applied-rate error, 50 m runs (paper A Fig. 19 setting)\n",
-        f"{REPEATS} repeats per cell, simulated time, real `Controller` in the loop. "
-        "Target: mean |error| ≤ 1 % (paper: < 2 % rapeseed, < 3.5 % wheat).\n",
-    ]
     summary: dict[str, object] = {}
-    for i, (name, sigma) in enumerate(SCENARIOS.items()):
-        lines, fig = _table(sigma)
-        ratio = fig["mean"] / fig["baseline"] if fig["baseline"] else float("nan")
-        parts.append(f"**{name}**\n\n" + "\n".join(lines) + "\n")
+    errs: dict[tuple[str, ...], list[float]] = {}
+    by_crop: dict[str, dict[tuple[str, ...], list[float]]] = {c: {} for c in CROPS}
+    drill_rows: list[str] = []
+    speed_live: list[float] = []
+    speed_logged: list[float] = []
+    attempts: list[int] = []
+    with tempfile.TemporaryDirectory(prefix="bench_rate-") as tmp:
+        root = Path(tmp)
+        for ci, crop in enumerate(CROPS):
+            drills = field_drills(crop, N_DRILLS, seed=13)
+            for i, drill in enumerate(drills):
+                seed = 1000 * (ci + 1) + i
+                s = build_session(drill, seed, root)
+                res = run_session(drill, s, seed)
+                assert s.speed_cal is not None
+                speed_live.append(s.speed_cal.live_err_pct)
+                speed_logged.append(s.speed_cal.samples_err_pct)
+                attempts += s.rotation_attempts
+                for k, v in res.items():
+                    errs.setdefault(k, []).extend(v)
+                    by_crop[crop].setdefault(k, []).extend(v)
+                drill_rows.append(
+                    f"| {crop} {i + 1} | {drill.discharge_factor - 1:+.1%} | "
+                    f"{drill.motor_slope:.4f} | {drill.motor_offset_rpm:+.2f} | "
+                    f"{drill.startup_duty_pct:.1f} | {drill.lag_s:.2f} | "
+                    f"{drill.radar_bias:+.1%} | {s.speed_cal.live_err_pct:+.2f} | "
+                    f"{statistics.fmean(res[('main', 'none')]):+.2f} | "
+                    f"{statistics.fmean(res[('main', 'both')]):+.2f} |"
+                )
+            # the field drive: both filters on three calibrated drills
+            for i, drill in enumerate(drills[:3]):
+                dirs = [root / f"{crop}-{1000 * (ci + 1) + i}-rot",
+                        root / f"{crop}-{1000 * (ci + 1) + i}-speed"]
+                for filt in ("mean", "trend"):
+                    e, w = field_drive(filt, drill, dirs, seed=7 + i)
+                    errs.setdefault(("drive", crop, filt), []).append(e)
+                    errs.setdefault(("drive_waste", crop, filt), []).append(w)
+
+    n_main = len(errs[("main", "none")])
+    parts = [
+        "### Applied-rate error against independent truth drills (issue 13 §1)\n",
+        f"{N_DRILLS} drills per crop from `simulator/drill_truth.py`, which imports nothing "
+        "from `gateway`: discharge of a saturating shape fitted to pseudo-weighings around "
+        "paper A's eq. (6) (its raw weighings are a plot, not a table; residual noise for "
+        "R² 0.99), then discharge ×(1 ± 8 %), motor slope ±5 %, offset ±1 r/min, start-up "
+        "duty ±2 points, lag 0.2–0.4 s, radar bias ±2 % (mounting angle), discharge noise "
+        "CV 1.2 %, radar noise CV 3 % at 3 Hz (Latin hypercube over the ranges). "
+        f"{len(GEARS_KMH)} gears × {REPEATS} runs of 50 m (after {LEAD_IN_M:g} m lead-in) "
+        f"per drill and crop: {n_main} runs per row. Tractor speed off the gear by σ 6 % per "
+        "run plus slow fluctuation; the real `Controller` in simulated time. Every method in "
+        "a run sees the same speed, radar noise and discharge noise. Error = true mass over "
+        "true area against the target.\n",
+        "Calibrations are the farmer's, through the real CLI and `apply_calibrations`: "
+        f"rotation test `sowgate calibrate rotation --model paper_a` with paper A's protocol "
+        f"({ROTATION_REPEATS} × {ROTATION_SECONDS:g} s at the crop's ω range in 5 r/min "
+        f"steps, meter switched by hand σ {REACTION_S:g} s, turns counted to ½ turn, scale "
+        f"σ {SCALE_SIGMA_G:g} g); speed calibration live on the `Controller` (`cmd/speed_cal` "
+        f"start at one mark, finish with {SPEED_CAL_DISTANCE_M:g} m at the other, presses "
+        f"σ {SPEED_CAL_REACTION_S:g} s, at slow 3, radar at 3 Hz), saved to `calibration.json` "
+        "and applied at start-up. The runs are right after the calibrations (same seed "
+        "lot).\n",
+        "Cells: signed mean / mean |error| / worst error, in %.\n",
+        "| method | calibrations done | rapeseed 6 kg/ha | wheat 225 kg/ha | all: mean abs % |",
+        "|---|---|---|---|---|",
+    ]
+    for key, label, cals in METHODS:
+        k = ("main", key)
+        all_abs = _stats(errs[k])[1]
         parts.append(
-            f"sowgate / baseline error ratio: {ratio:.2f}; target (≤ 1 %) "
-            f"{'met' if fig['mean'] <= 1.0 else 'NOT met'}.\n"
+            f"| {label} | {cals} | {_cell(by_crop['rapeseed'][k])} | "
+            f"{_cell(by_crop['wheat'][k])} | **{all_abs:.2f}** |"
         )
-        key = "exact" if i == 0 else "residual"
-        summary[f"{key}_sowgate_mean_abs_err_pct"] = fig["mean"]
-        summary[f"{key}_sowgate_max_abs_err_pct"] = fig["max"]
-        summary[f"{key}_baseline_mean_abs_err_pct"] = fig["baseline"]
-    table, figs = _field_table()
-    summary.update(figs)
+        summary[f"{key}_mean_abs_err_pct"] = all_abs
+        summary[f"{key}_mean_err_pct"] = _stats(errs[k])[0]
+        summary[f"{key}_worst_err_pct"] = _stats(errs[k])[2]
+    both = summary["both_mean_abs_err_pct"]
+    assert isinstance(both, float)
+    none = summary["none_mean_abs_err_pct"]
+    assert isinstance(none, float)
+    parts.append("")
     parts.append(
-        "**Whole field drive** (accelerations out of four headland turns, a pause, gears "
-        "3–6 km/h; rate over the area really sown): the speed filter decides how much is "
-        "under-dosed while accelerating.\n\n" + table + "\n"
+        "By gear, mean |error| % (uncalibrated → rotation test + speed): "
+        + "; ".join(
+            f"{g} {_stats(errs[('main', 'none', g)])[1]:.2f} → "
+            f"{_stats(errs[('main', 'both', g)])[1]:.2f}"
+            for g in GEARS_KMH
+        )
+        + f". Calibrated / uncalibrated mean |error|: {both / none:.2f}. Rotation tests "
+        f"refused by the CLI's monotonic check and repeated: {sum(a - 1 for a in attempts)} "
+        f"of {len(attempts)}. Speed factor error after the 50 m drive (live `cmd/speed_cal`, "
+        f"applied): signed mean {statistics.fmean(speed_live):+.2f} %, worst "
+        f"{max(speed_live, key=abs):+.2f} %; the same drives through `calibrate speed "
+        f"--samples` with the radar log between the presses: signed mean "
+        f"{statistics.fmean(speed_logged):+.2f} %, worst {max(speed_logged, key=abs):+.2f} %.\n"
     )
+    parts.append("**Targets** (speed calibrated):\n")
+    per_crop = {c: _stats(by_crop[c][("main", "both")])[1] for c in CROPS}
+    for c, crop_abs in per_crop.items():
+        summary[f"both_{c}_mean_abs_err_pct"] = crop_abs
+    parts.append(
+        f"- ≤ {TARGET_ROTATION_PCT:g} % mean |error| after a rotation test: all runs "
+        f"{both:.2f} % — {_verdict(both, TARGET_ROTATION_PCT)}; "
+        + "; ".join(f"{c} {a:.2f} % — {_verdict(a, TARGET_ROTATION_PCT)}"
+                    for c, a in per_crop.items())
+        + ". Rapeseed's catches are 25–150 g, so σ 2 g on each weighing is what is left "
+        "(first runs, rapeseed, rotation + speed: scale σ 0.5 g "
+        f"{_stats(by_crop['rapeseed'][('scale', '0.5 g', 'both')])[1]:.2f} %, σ 2 g "
+        f"{_stats(by_crop['rapeseed'][('scale', '2 g', 'both')])[1]:.2f} %; 3 × 120 s runs "
+        f"{_stats(by_crop['rapeseed'][('protocol', '3 × 120 s', 'both')])[1]:.2f} %)."
+    )
+    drift3 = _stats(errs[("drift", "3%", "both")])[1]
+    parts.append(
+        "- wheat ≤ 1.5 % after 10 minutes on the hopper scale alone at σ 2 kg: not measured; "
+        "the hopper scale is issue 13 §3 and does not exist yet (no hopper-scale rows here)."
+    )
+    parts.append(
+        f"- ≤ 1 % with rotation test and hopper scale at the end of a 3 % seed-lot drift: not "
+        f"measured (needs §3). What the scale would have to remove: rotation test + speed alone "
+        f"end the drift at {drift3:.2f} % mean |error| (sensitivity below).\n"
+    )
+
+    parts.append(
+        "**Sensitivity** (first run of each drill, crop and gear: "
+        f"{len(errs[('drift', '0%', 'both')])} runs per cell; signed mean / mean |error| / "
+        "worst, %). What breaks each figure:\n"
+    )
+
+    def sens_table(title: str, dim: str, values: list[str],
+                   cols: list[tuple[str, str]]) -> None:
+        parts.append(f"*{title}*\n")
+        parts.append("| " + dim + " | " + " | ".join(
+            f"{c}: {crop}" for _, c in cols for crop in CROPS) + " |")
+        parts.append("|---" * (len(cols) * len(CROPS) + 1) + "|")
+        for v in values:
+            cells = [_cell(by_crop[c][(dim_key[dim], v, k)]) for k, _ in cols for c in CROPS]
+            parts.append(f"| {v} | " + " | ".join(cells) + " |")
+        parts.append("")
+
+    dim_key = {"discharge factor": "factor", "radar bias": "radar",
+               "motor offset": "offset",
+               "seed-lot drift since the rotation test": "drift",
+               "rotation-test scale σ": "scale", "rotation protocol": "protocol"}
+    sens_table("Discharge factor of the drill (its eq. 6 off by this)", "discharge factor",
+               [f"{f:+.0%}" for f in FACTORS],
+               [("none", "sowgate uncalibrated"), ("open_none", "open loop uncalibrated"),
+                ("both", "sowgate, rotation + speed")])
+    sens_table("Motor line offset against paper A's eq. (5) (slope and discharge as drawn)",
+               "motor offset", [f"{o:+g} r/min" for o in MOTOR_OFFSETS],
+               [("none", "sowgate uncalibrated"), ("both", "sowgate, rotation + speed")])
+    sens_table("Radar bias (mounting angle)", "radar bias", [f"{b:+.0%}" for b in RADAR_BIASES],
+               [("rotation", "rotation test only"), ("both", "rotation + speed")])
+    sens_table("Seed-lot drift after the rotation test (measured at the end of the drift)",
+               "seed-lot drift since the rotation test", [f"{d:.0%}" for d in DRIFTS],
+               [("both", "rotation + speed")])
+    sens_table("Scale noise of the rotation test (paper A protocol otherwise)",
+               "rotation-test scale σ", [f"{s:g} g" for s in SCALE_SIGMAS],
+               [("both", "rotation + speed")])
+    sens_table("Rotation-test protocol: repeats per set point × run length (σ 2 g)",
+               "rotation protocol", [f"{p.repeats} × {p.seconds:g} s" for p in PROTOCOLS],
+               [("both", "rotation + speed")])
+    parts.append(
+        "The 3 × 60 s row is a second, independent rotation test with paper A's protocol on "
+        "the same drills: its distance from the σ 2 g row above (the first test) is the "
+        "spread between two rotation tests, the uncertainty of every calibrated figure "
+        "here.\n"
+    )
+    for f in ("+8%", "-8%"):
+        summary[f"factor{f}_none_mean_err_pct"] = _stats(errs[("factor", f, "none")])[0]
+        summary[f"factor{f}_open_none_mean_err_pct"] = _stats(errs[("factor", f, "open_none")])[0]
+    summary["drift3_both_mean_abs_err_pct"] = drift3
+
+    parts.append(
+        "**Hopper scale** (issue 13 §3, not built yet): no rows. What a scale can resolve, by "
+        "arithmetic — the relative error of the flow from two independent readings 10 minutes "
+        "apart, σ√2 / mass discharged (vibration on a moving seeder is at the kilogram "
+        "level; averaging many readings helps only as far as the vibration is uncorrelated):\n"
+    )
+    parts.append(scale_resolution_table() + "\n")
+    def span(crop: str, sigma: float) -> str:
+        lo = _scale_resolution_pct(crop, "slow 4", sigma, 10)
+        hi = _scale_resolution_pct(crop, "slow 2", sigma, 10)
+        return f"{lo:.0f}–{hi:.0f} %"
+
+    rape_kg = [_flow_g_min("rapeseed", g) * 10 / 1000 for g in ("slow 2", "slow 4")]
+    wheat_kg = [_flow_g_min("wheat", g) * 10 / 1000 for g in ("slow 2", "slow 4")]
+    parts.append(
+        f"Rapeseed moves {rape_kg[0]:.1f}–{rape_kg[1]:.1f} kg in 10 minutes: even a σ 0.2 kg "
+        f"scale gives its flow only to {span('rapeseed', 0.2)} and σ 2 kg is several times "
+        "the mass itself, so a hopper scale cannot calibrate rapeseed; it relies on rotation "
+        "tests (repeated when the seed lot changes, with the fine scale and long runs the "
+        f"tables above ask for). Wheat moves {wheat_kg[0]:.0f}–{wheat_kg[1]:.0f} kg in 10 "
+        f"minutes: σ 0.2 kg resolves it to {span('wheat', 0.2)}, σ 2 kg to "
+        f"{span('wheat', 2.0)} from two readings; the 1.5 % target at σ 2 kg needs the "
+        "averaging over many readings that §3 has to show.\n"
+    )
+
+    drows = [
+        "| crop | speed filter | mean rate error % | trend − mean, points | "
+        "seed discharged while lifted/standing |",
+        "|---|---|---|---|---|",
+    ]
+    for crop in CROPS:
+        diff = statistics.fmean(
+            t - m for t, m in zip(errs[("drive", crop, "trend")], errs[("drive", crop, "mean")],
+                                  strict=True))
+        for filt, label in (("mean", "paper A moving mean (N=12)"), ("trend", "sowgate trend")):
+            e = statistics.fmean(errs[("drive", crop, filt)])
+            w = statistics.fmean(errs[("drive_waste", crop, filt)])
+            summary[f"field_{crop}_{filt}_err_pct"] = e
+            d = f"{diff:+.2f}" if filt == "trend" else ""
+            drows.append(f"| {crop} | {label} | {e:+.2f} | {d} | {w:.1f} g |")
+    parts.append(
+        "**Whole field drive** (demo drive: accelerations out of four headland turns, a pause, "
+        "gears 3–6 km/h; rate over the area really sown; the crop's default rate, 6 and "
+        "180 kg/ha) on the first three truth drills of each crop, rotation test + speed "
+        "calibration done, same radar and discharge noise for both filters: the difference is "
+        "what the filter under-doses while accelerating; the rest is what the calibration "
+        "left.\n\n"
+        + "\n".join(drows) + "\n"
+    )
+    parts.append(
+        "**The truth drills** (discharge factor, motor line, start-up duty, lag, radar bias; "
+        "the speed factor's error after the 50 m calibration drive; mean error % over the "
+        "drill's runs uncalibrated → rotation test + speed):\n\n"
+        "| drill | discharge | slope r/min/% | offset r/min | start-up % | lag s | radar | "
+        "speed cal. error % | uncalibrated | rotation + speed |\n"
+        "|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(drill_rows) + "\n"
+    )
+    summary["lot_drift"] = LOT_DRIFT
     summary["markdown"] = "\n".join(parts)
     return summary
 
