@@ -200,8 +200,16 @@ class SpeedCalibration:
     factor: float  # multiply the source's speed by this
 
 
-def integrate_distance(samples: Sequence[tuple[float, float]]) -> float:
-    """Trapezoidal distance (m) from (time s, speed km/h) samples."""
+def integrate_distance(samples: Sequence[tuple[float, float]], *,
+                       between_marks: bool = False) -> float:
+    """Trapezoidal distance (m) from (time s, speed km/h) samples.
+
+    ``between_marks``: the samples are a log taken at a steady interval between the start and
+    the finish mark, so the first sample comes on average half an interval after the start
+    and the last half an interval before the finish. The trapezoid alone misses that travel
+    (a 3 Hz log over a 50 m run came out ~0.6 % short, so the factor ~0.6 % too high); half
+    the median interval is added at each end, at the end samples' speeds.
+    """
     if len(samples) < 2:
         raise CalibrationError("need at least 2 speed samples to integrate a distance")
     dist = 0.0
@@ -209,6 +217,10 @@ def integrate_distance(samples: Sequence[tuple[float, float]]) -> float:
         if t1 < t0:
             raise CalibrationError("speed samples must be in time order")
         dist += (t1 - t0) * (v0 + v1) / 2 / 3.6
+    if between_marks:
+        gaps = sorted(t1 - t0 for (t0, _), (t1, _) in itertools.pairwise(samples))
+        half = gaps[len(gaps) // 2] / 2
+        dist += half * (samples[0][1] + samples[-1][1]) / 3.6
     return dist
 
 

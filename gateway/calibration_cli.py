@@ -79,7 +79,9 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     s.add_argument("--distance", type=float, default=50.0, help="measured distance (m)")
     g = s.add_mutually_exclusive_group(required=True)
     g.add_argument("--integrated-m", type=float, help="distance the source reported (m)")
-    g.add_argument("--samples", type=Path, help="CSV of time_s,speed_kmh logged on the run")
+    g.add_argument("--samples", type=Path,
+                   help="CSV of time_s,speed_kmh logged at a steady interval between the "
+                   "start and finish marks (half an interval of travel is added at each end)")
 
     t = sub.add_parser("tilt", help="inclinometer zero (level) or critical angle (lowered)")
     t.add_argument("--mode", choices=("level", "lowered"), required=True)
@@ -314,7 +316,7 @@ def _speed(args: argparse.Namespace, console: Console) -> int:
                            if r and not r[0].startswith("#") and r[0] != "time_s"]
         except (OSError, ValueError, IndexError) as exc:
             raise cal.CalibrationError(f"{args.samples}: unreadable speed log ({exc})") from None
-        integrated = cal.integrate_distance(samples)
+        integrated = cal.integrate_distance(samples, between_marks=True)
     else:
         integrated = args.integrated_m
     res = cal.speed_correction(args.source, args.distance, integrated)
