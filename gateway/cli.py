@@ -47,8 +47,8 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
     can_pid = [c.name for c in channels if c.drive == "can_pid"]
     if can_pid and not settings.can.enabled:
         warnings.append(
-            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but [can] enabled = false; "
-            "they will not be driven"
+            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but can is off (no [can] "
+            "table, or [can] enabled = false); they will not be driven"
         )
     attrs = [c.prescription_attribute for c in channels if c.prescription_attribute]
     if p.enabled:

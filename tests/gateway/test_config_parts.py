@@ -266,3 +266,17 @@ def test_run_with_a_store_path_under_a_file_exits_78(tmp_path: Path) -> None:
     assert last.startswith("store.path: cannot create the directory")
     assert last.endswith(f"(got {str(store)!r})")
     assert "Traceback" not in proc.stderr
+
+
+def test_every_table_with_an_enabled_switch_follows_the_one_rule() -> None:
+    """A later table (a hopper, say) with ``enabled: bool`` must be an ``OptionalPart``, or a
+    fitter's ``[hopper]`` table would again be silently off."""
+    from gateway.config import Settings, optional_parts
+    from gateway.config._base import OptionalPart
+
+    for name, field in Settings.model_fields.items():
+        kind = field.annotation
+        switch = getattr(kind, "model_fields", {}).get("enabled")
+        if isinstance(kind, type) and switch is not None and switch.annotation is bool:
+            assert issubclass(kind, OptionalPart), name
+            assert name in optional_parts()
