@@ -10,7 +10,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from gateway.config import EXIT_CONFIG, ConfigError, Settings, load_config, state_dir
+from gateway.config import (
+    EXIT_CONFIG,
+    ConfigError,
+    Settings,
+    input_file_problems,
+    load_config,
+    output_location_problems,
+    parts_summary,
+    prepare_state_dir,
+)
 
 log = logging.getLogger("sowgate")
 
@@ -23,20 +32,23 @@ def _setup_logging(verbose: bool, quiet: bool = False) -> None:
 
 
 def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
-    """What the schema cannot see: the prescription map's content, unused tables.
+    """What the schema cannot see: files the config names, the prescription map's content,
+    unused tables.
 
-    Returns (problems, warnings). The daemon survives all of these (a bad map means default
-    rates and an alarm), but a fitter checking a config wants to hear about them now.
+    Returns (problems, warnings). A missing or unreadable file, or a store the daemon could not
+    create, stops the daemon at start (exit 78) as well; it survives the rest (a bad map means
+    default rates and an alarm), but a fitter checking a config wants to hear about them now.
     """
-    problems: list[str] = []
+    problems: list[str] = input_file_problems(settings)
+    problems += output_location_problems(settings, create=False)
     warnings: list[str] = settings.deprecation_notes()
     p = settings.prescription
     channels = settings.channel
     can_pid = [c.name for c in channels if c.drive == "can_pid"]
     if can_pid and not settings.can.enabled:
         warnings.append(
-            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but [can] enabled = false; "
-            "they will not be driven"
+            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but can is off (no [can] "
+            "table, or [can] enabled = false); they will not be driven"
         )
     attrs = [c.prescription_attribute for c in channels if c.prescription_attribute]
     if p.enabled:
@@ -44,6 +56,8 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
 
         if p.path is None:
             problems.append("prescription.path: required when prescription.enabled")
+        elif any(line.startswith("prescription.path:") for line in problems):
+            pass  # the file itself is missing or unreadable: said above
         elif not attrs:
             problems.append(
                 "prescription.enabled: no [[channel]] has a prescription_attribute to read"
@@ -76,6 +90,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
             print(line, file=sys.stderr)
         return EXIT_CONFIG
     print(f"{args.file}: ok (machine {settings.machine.id}, {settings.machine.rows} rows)")
+    print(parts_summary(settings))
     return 0
 
 
@@ -86,11 +101,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         for line in exc.problems:
             print(line, file=sys.stderr)
         return EXIT_CONFIG
+    try:
+        state = prepare_state_dir()
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
     _setup_logging(args.verbose)
     from gateway.daemon import Daemon, settle_gc
 
     async def main() -> None:
-        daemon = Daemon(settings, state_dir())
+        daemon = Daemon(settings, state)
         settle_gc()
         if args.tui:
             await _with_live_view(daemon, daemon.run())

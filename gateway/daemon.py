@@ -44,9 +44,9 @@ from drivers.tasks import cancel_all
 from gateway import commands as cmd
 from gateway.alarms import AlarmBoard
 from gateway.calibration_apply import apply_calibrations
-from gateway.config import Settings
+from gateway.config import Settings, parts_summary, start_problems
 from gateway.controller import Controller, ControlOutputs
-from gateway.errors import CommandError
+from gateway.errors import CommandError, ConfigError
 from gateway.hmi_view import HmiAdapter
 from gateway.records import AlarmEvent
 
@@ -95,10 +95,15 @@ class Daemon:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.settings = settings
+        # Files and directories first: a missing CA or a state directory that is a file is a
+        # config error naming the key (exit 78), not a traceback or an endless reconnect.
+        problems = start_problems(settings, state_dir)
+        if problems:
+            raise ConfigError(problems)
         for note in settings.deprecation_notes():  # logged here: logging is set up by now
             log.warning("config: %s", note)
+        log.info("%s", parts_summary(settings))  # which parts run; none is off without a word
         self.state_dir = state_dir
-        state_dir.mkdir(parents=True, exist_ok=True)
         self.clock = clock
         self.alarms = AlarmBoard(settings.machine.id)
         self.calibrations = apply_calibrations(settings, state_dir)

@@ -35,7 +35,8 @@ import aiomqtt
 from drivers.backoff import Backoff
 from gateway.alarms import AlarmBoard
 from gateway.commands import CommandSink
-from gateway.config import Settings
+from gateway.config import Settings, TlsSection
+from gateway.config.startup import file_problem
 from gateway.errors import CommandError
 from gateway.mqtt_commands import (
     KNOWN_COMMANDS,
@@ -201,19 +202,11 @@ class MqttLink:
     def _client(self) -> aiomqtt.Client:
         password = self.cfg.password
         if self.cfg.password_file:
-            try:
-                password = Path(self.cfg.password_file).read_text(encoding="utf-8").strip()
-            except OSError as exc:
-                raise OSError(f"mqtt.password_file {self.cfg.password_file}: {exc}") from exc
-        tls_params = None
+            password = _read_named("mqtt.password_file", self.cfg.password_file).strip()
+        tls_context = None
         tls_insecure = None
         if self.cfg.tls is not None:
-            tls_params = aiomqtt.TLSParameters(
-                ca_certs=self.cfg.tls.ca_file,
-                certfile=self.cfg.tls.cert_file,
-                keyfile=self.cfg.tls.key_file,
-                cert_reqs=ssl.CERT_REQUIRED,
-            )
+            tls_context = _tls_context(self.cfg.tls)
             tls_insecure = self.cfg.tls.insecure
         return aiomqtt.Client(
             self.cfg.host,
@@ -225,7 +218,7 @@ class MqttLink:
             keepalive=self.cfg.keepalive,
             timeout=max(10.0, float(self.cfg.keepalive)),
             max_inflight_messages=self.cfg.max_inflight_batches + 8,
-            tls_params=tls_params,
+            tls_context=tls_context,
             tls_insecure=tls_insecure,
         )
 
@@ -502,3 +495,45 @@ def _force_close(client: aiomqtt.Client) -> None:
     if callable(reset):
         with contextlib.suppress(Exception):
             reset()
+
+
+def _read_named(key: str, path: str) -> str:
+    """The text of a file the config names; an error says which key and which path, because
+    a bare ``[Errno 2] No such file or directory`` retried for ever tells a fitter nothing."""
+    problem = file_problem(path)
+    if problem is not None:
+        raise OSError(f"{key} {path}: {problem}")
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise OSError(f"{key} {path}: {exc}") from exc
+
+
+def _tls_context(tls: TlsSection) -> ssl.SSLContext:
+    """The client's TLS context, as paho's ``tls_set`` would build it (server certificate and
+    host name verified; the system CAs unless ``ca_file``), but with every file checked first
+    so that a missing or unreadable one is named by key and path in the error."""
+    files = [("mqtt.tls.ca_file", tls.ca_file), ("mqtt.tls.cert_file", tls.cert_file),
+             ("mqtt.tls.key_file", tls.key_file)]
+    for key, path in files:
+        problem = None if path is None else file_problem(path)
+        if problem is not None:
+            raise OSError(f"{key} {path}: {problem}")
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.verify_mode = ssl.CERT_REQUIRED
+    if tls.cert_file is not None:
+        try:
+            context.load_cert_chain(tls.cert_file, tls.key_file)
+        except (OSError, ValueError) as exc:
+            keys = f"mqtt.tls.cert_file {tls.cert_file}" + (
+                f" / mqtt.tls.key_file {tls.key_file}" if tls.key_file else ""
+            )
+            raise OSError(f"{keys}: {exc}") from exc
+    try:
+        if tls.ca_file is not None:
+            context.load_verify_locations(tls.ca_file)
+        else:
+            context.load_default_certs()
+    except (OSError, ValueError) as exc:
+        raise OSError(f"mqtt.tls.ca_file {tls.ca_file}: {exc}") from exc
+    return context

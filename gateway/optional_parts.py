@@ -1,6 +1,8 @@
 """Wiring of the subsystems a machine may or may not have: systemd notification, the GNSS
 receiver and seed recording, the record store and MQTT, CAN metering channels. Each is attached
-only when its table enables it, so a paper-A-only drill runs with the RS485 bus and the screen.
+only when it is on (its table is in the config and does not say ``enabled = false``, see
+``gateway.config._base.OptionalPart``), so a paper-A-only drill runs with the RS485 bus and the
+screen.
 
 Every part talks to the control loop through callbacks that only store a value or enqueue
 work; none of them is awaited by the control loop.
@@ -260,7 +262,8 @@ def _attach_channels(daemon: Daemon) -> None:
         log.error("can_pid channels %s configured but [can] is not enabled", names)
         daemon.alarms.raise_(
             "channel.can_disabled",
-            f"channel(s) {names} not driven: [can] enabled = false",
+            f"channel(s) {names} not driven: can is off (no [can] table, or [can] "
+            "enabled = false)",
             "critical",
         )
         can_pid = []

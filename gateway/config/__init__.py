@@ -14,7 +14,7 @@ from typing import Any
 from pydantic import Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from gateway.config._base import FieldProblem
+from gateway.config._base import FieldProblem, OptionalPart, switch_on_present_parts
 from gateway.config.farm import CommandsSection, MqttSection, TlsSection
 from gateway.config.machine import (
     ActuatorsSection,
@@ -40,11 +40,17 @@ from gateway.config.recording import (
     StoreSection,
     row_lateral_from_width,
 )
+from gateway.config.startup import (
+    input_file_problems,
+    output_location_problems,
+    parts_summary,
+    prepare_state_dir,
+    resolve_state_dir,
+    start_problems,
+)
 from gateway.errors import ConfigError
 
 EXIT_CONFIG = 78  # EX_CONFIG from sysexits.h; systemd's RestartPreventExitStatus uses it
-# tables whose mere presence in the file enables the device (unless enabled = false)
-DEVICE_TABLES = ("gnss", "seed_sensors")
 
 __all__ = [
     "EXIT_CONFIG",
@@ -71,8 +77,14 @@ __all__ = [
     "StoreSection",
     "TlsSection",
     "format_validation_error",
+    "input_file_problems",
     "load_config",
+    "optional_parts",
+    "output_location_problems",
     "parse_config",
+    "parts_summary",
+    "prepare_state_dir",
+    "start_problems",
     "state_dir",
 ]
 
@@ -120,21 +132,18 @@ class Settings(BaseSettings):
 
     @model_validator(mode="before")
     @classmethod
-    def _declared_devices_are_enabled(cls, data: Any) -> Any:
-        """A ``[gnss]`` or ``[seed_sensors]`` table says the machine has that device.
+    def _present_parts_are_on(cls, data: Any) -> Any:
+        """A table for an optional part says the machine has that part (``OptionalPart``).
 
-        The documented contract configures them by port and baud rate alone; a fitter who
-        writes those tables expects seeds to be recorded, not a daemon that silently ignores
-        them because an ``enabled`` key was left out. ``enabled = false`` still switches one
-        off; a file without the table keeps it off.
+        A fitter who writes ``[mqtt]`` with host and port, or ``[gnss]`` with its port, expects
+        the part to run, not a daemon that silently ignores it because an ``enabled`` key was
+        left out. ``enabled = false`` still switches one off; a file without the table keeps
+        the part at its default. Environment overrides are merged in before this runs, so
+        ``SOWGATE_MQTT__HOST`` creates the table as the file would.
         """
         if not isinstance(data, dict):
             return data
-        for name in DEVICE_TABLES:
-            table = data.get(name)
-            if isinstance(table, dict) and "enabled" not in table:
-                data = {**data, name: {**table, "enabled": True}}
-        return data
+        return switch_on_present_parts(data, optional_parts())
 
     def deprecation_notes(self) -> list[str]:
         """Keys the file sets that do nothing any more, each with the key that does.
@@ -239,6 +248,16 @@ class Settings(BaseSettings):
         return self
 
 
+def optional_parts() -> list[str]:
+    """The tables of ``Settings`` that are optional parts, in the order they are declared."""
+    parts = []
+    for name, field in Settings.model_fields.items():
+        kind = field.annotation
+        if isinstance(kind, type) and issubclass(kind, OptionalPart):
+            parts.append(name)
+    return parts
+
+
 def _loc(loc: tuple[int | str, ...]) -> str:
     out = ""
     for item in loc:
@@ -292,11 +311,7 @@ def load_config(path: str | os.PathLike[str]) -> Settings:
 
 
 def state_dir() -> Path:
-    """Persistent state: SOWGATE_STATE_DIR, else systemd STATE_DIRECTORY, else ./sowgate-state."""
-    explicit = os.environ.get("SOWGATE_STATE_DIR")
-    if explicit:
-        return Path(explicit)
-    systemd_dir = os.environ.get("STATE_DIRECTORY")
-    if systemd_dir:
-        return Path(systemd_dir.split(":")[0])
-    return Path("sowgate-state")
+    """Persistent state: SOWGATE_STATE_DIR, else systemd STATE_DIRECTORY, else ./sowgate-state.
+
+    Only the path; ``prepare_state_dir`` creates it and checks it at start."""
+    return resolve_state_dir()[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict
@@ -12,6 +13,30 @@ class Section(BaseModel):
     """A config table. ``extra="forbid"`` turns a typo in the TOML into a named error."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+class OptionalPart(Section):
+    """A table for a part the machine may or may not have (GNSS, MQTT, CAN, ...).
+
+    One rule for all of them, so that no part is ever off without a word: a table present in
+    the file (or created by an environment override such as ``SOWGATE_MQTT__HOST``) switches
+    its part on unless it says ``enabled = false``; a table absent leaves the part at its
+    default, which is off except for paper A's RS485 bus and screen. ``Settings`` applies the
+    rule (``switch_on_present_parts``) because only it can tell an absent table from an empty
+    one; a section built directly in code keeps the default of its ``enabled`` field.
+    """
+
+    enabled: bool = False
+
+
+def switch_on_present_parts(data: dict[str, Any], parts: Iterable[str]) -> dict[str, Any]:
+    """``data`` with ``enabled = true`` added to every present part table that has no
+    ``enabled`` key of its own. Tables given as already-built sections are left as they are."""
+    for name in parts:
+        table = data.get(name)
+        if isinstance(table, dict) and "enabled" not in table:
+            data = {**data, name: {**table, "enabled": True}}
+    return data
 
 
 def source_chain(value: Any) -> Any:

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from gateway.config._base import Section
+from gateway.config._base import OptionalPart, Section
 
 
 class TlsSection(Section):
@@ -22,7 +22,7 @@ class TlsSection(Section):
         return self
 
 
-class MqttSection(Section):
+class MqttSection(OptionalPart):
     enabled: bool = False
     host: str = "127.0.0.1"
     port: int = Field(1883, ge=1, le=65535)

@@ -14,7 +14,7 @@ from pydantic import (
 )
 from pydantic_settings import NoDecode
 
-from gateway.config._base import FieldProblem, Section, check_unique, source_chain
+from gateway.config._base import FieldProblem, OptionalPart, Section, check_unique, source_chain
 
 
 class MachineSection(Section):
@@ -23,7 +23,7 @@ class MachineSection(Section):
     rows: int = Field(6, ge=1, le=128)
 
 
-class Rs485Section(Section):
+class Rs485Section(OptionalPart):
     # false: no RS485 bus at all (a paper-B drill: speed from GNSS/ISOBUS, work state from the
     # hitch, CAN metering); radar, inclinometer and the PWM module are then not used
     enabled: bool = True
@@ -92,7 +92,7 @@ class HmiObjects(Section):
     message: str = "t_msg"
 
 
-class HmiSection(Section):
+class HmiSection(OptionalPart):
     enabled: bool = True
     port: str = "/dev/ttyS1"
     baudrate: int = Field(9600, ge=1200, le=921600)

@@ -7,10 +7,10 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import NoDecode
 
-from gateway.config._base import FieldProblem, Section, check_unique, source_chain
+from gateway.config._base import FieldProblem, OptionalPart, Section, check_unique, source_chain
 
 
-class CanSection(Section):
+class CanSection(OptionalPart):
     enabled: bool = False
     interface: str = "socketcan"  # python-can interface: socketcan | virtual | ...
     channel: str = "can0"
@@ -59,7 +59,7 @@ def _inclinometer_only() -> list[WorkStateSourceName]:
     return ["inclinometer"]
 
 
-class IsobusSection(Section):
+class IsobusSection(OptionalPart):
     enabled: bool = False
     interface: str = "socketcan"
     channel: str = "can1"
@@ -76,7 +76,7 @@ class IsobusSection(Section):
     _unique = field_validator("work_state_source", "speed_priority")(check_unique)
 
 
-class PrescriptionSection(Section):
+class PrescriptionSection(OptionalPart):
     enabled: bool = False
     path: str | None = None
     lookahead_s: float = Field(1.0, ge=0, le=30)

@@ -6,13 +6,13 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from gateway.config._base import FieldProblem, Section
+from gateway.config._base import FieldProblem, OptionalPart, Section
 
 EpochSentence = Literal["RMC", "GGA", "HEADING", "VTG"]
 DEFAULT_EPOCH_SENTENCES: tuple[EpochSentence, ...] = ("RMC", "GGA", "HEADING")
 
 
-class GnssSection(Section):
+class GnssSection(OptionalPart):
     enabled: bool = False
     port: str = "/dev/ttyUSB1"
     baudrate: int = Field(115200, ge=1200, le=921600)
@@ -32,7 +32,7 @@ class GnssSection(Section):
     heading_offset_deg: float = Field(0.0, ge=-180, le=180)
 
 
-class SeedSensorsSection(Section):
+class SeedSensorsSection(OptionalPart):
     enabled: bool = False
     source: Literal["serial", "gpio"] = "serial"
     port: str = "/dev/ttyUSB2"

@@ -247,6 +247,8 @@ def test_can_channels_without_the_can_bus_enabled_alarm_instead_of_doing_nothing
 ) -> None:
     from gateway.daemon import Daemon
 
+    rx = tmp_path / "rx.geojson"  # the map must exist (start check); never read without a drive
+    rx.write_text('{"type": "FeatureCollection", "features": []}')
     settings = parse_config({
         "hmi": {"enabled": False},
         "channel": [{"name": "deep", "target_rate_kg_ha": 300.0}],

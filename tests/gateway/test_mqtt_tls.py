@@ -148,3 +148,26 @@ async def test_wrong_credentials_never_deliver_and_say_why(
                          f"{reason!r} in last_error")
         assert not run.link.connected and run.link.stats.connects == 0
         assert run.store.backlog() == 50  # kept for when the credentials are fixed
+
+
+@pytest.mark.parametrize("key", ["tls.ca_file", "tls.cert_file", "tls.key_file", "password_file"])
+async def test_a_file_gone_at_run_time_is_named_in_the_error_and_retried(
+    tls_broker: Mosquitto, pki: Pki, tmp_path: Path, key: str
+) -> None:
+    """check-config and the start check the files; one deleted later (a certificate rotation
+    gone wrong) must not read as a bare ``[Errno 2] No such file or directory``."""
+    gone = tmp_path / "rotated-away.pem"
+    settings = tls_settings(tls_broker.port, pki, ca=pki.ca, password_file=pki.password_file)
+    section = settings.mqtt.tls if key.startswith("tls.") else settings.mqtt
+    assert section is not None
+    setattr(section, key.removeprefix("tls."), str(gone))
+    async with running_link(settings, tmp_path / "r.db") as run:
+        await eventually(lambda: run.link.stats.last_error != "", 10, "a connect error")
+        error = run.link.stats.last_error
+        assert f"mqtt.{key} {gone}" in error, error
+        gone.write_bytes((pki.ca if key == "tls.ca_file" else pki.client_cert).read_bytes())
+        if key == "tls.key_file":
+            gone.write_bytes(pki.client_key.read_bytes())
+        elif key == "password_file":
+            gone.write_text(PASSWORD + "\n")
+        await eventually(lambda: run.link.connected, 15, "connected once the file is back")

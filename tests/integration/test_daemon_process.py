@@ -138,7 +138,8 @@ async def test_demo_publishes_to_the_broker_named_in_the_environment() -> None:
 
     with Mosquitto() as broker:
         async with subscriber(broker.port, "sowgate/seeder-01") as sub:
-            env = {**os.environ, "SOWGATE_MQTT__ENABLED": "true",
+            # as in compose.yaml: naming the broker switches MQTT on, no ENABLED needed
+            env = {**os.environ,
                    "SOWGATE_MQTT__HOST": "127.0.0.1", "SOWGATE_MQTT__PORT": str(broker.port)}
             proc = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "gateway.cli", "demo", "--no-tui", "--duration", "8",

@@ -1,0 +1,214 @@
+"""What the daemon says and checks at start, and ``sowgate check-config`` with it.
+
+Nothing may be off or missing without a word: one line lists which parts are on
+(``parts_summary``), and every file or directory the config names is checked before anything
+runs (``input_file_problems``, ``output_location_problems``, ``prepare_state_dir``), so a
+missing CA certificate or a state directory that is really a file is a config error naming
+the key and the path (exit 78, which systemd does not restart in a loop), not a traceback or
+an ``[Errno 2]`` retried for ever.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from gateway.errors import ConfigError
+
+if TYPE_CHECKING:
+    from gateway.config import Settings
+
+DEFAULT_STATE_DIR = "sowgate-state"
+
+
+def _part_details(settings: Settings) -> dict[str, str]:
+    """How each part is reached, shown after "on" so a wrong port or broker stands out."""
+    s = settings
+    seeds = s.seed_sensors
+    mqtt = f"{s.mqtt.host}:{s.mqtt.port}" + (" TLS" if s.mqtt.tls is not None else "")
+    return {
+        "rs485": s.rs485.port,
+        "hmi": s.hmi.port,
+        "gnss": s.gnss.port,
+        "seed_sensors": seeds.port if seeds.source == "serial" else f"gpio {seeds.gpio_chip}",
+        "mqtt": mqtt,
+        "can": f"{s.can.interface} {s.can.channel}",
+        "isobus": f"{s.isobus.interface} {s.isobus.channel}",
+        "prescription": s.prescription.path or "no path",
+    }
+
+
+def parts_summary(settings: Settings) -> str:
+    """One line: every optional part on or off, then every metering channel.
+
+    The daemon logs it at start and ``check-config`` prints it after "ok", e.g.
+    ``parts: rs485 on (/dev/ttyUSB0), hmi on (/dev/ttyS1), gnss off, ..., mqtt on
+    (broker.example:8883 TLS), can off, ...``. A channel whose drive is off says so.
+    """
+    from gateway.config import optional_parts
+
+    details = _part_details(settings)
+    words = []
+    for name in optional_parts():
+        if getattr(settings, name).enabled:
+            detail = details.get(name)
+            words.append(f"{name} on ({detail})" if detail else f"{name} on")
+        else:
+            words.append(f"{name} off")
+    for ch in settings.channel:
+        if ch.drive == "pwm_modbus":
+            words.append(f"channel {ch.name} on (pwm_modbus)")
+        elif settings.can.enabled:
+            words.append(f"channel {ch.name} on (can_pid node {ch.node_id})")
+        else:
+            words.append(f"channel {ch.name} off (can_pid, but can is off)")
+    return "parts: " + ", ".join(words)
+
+
+# ---- files the config names --------------------------------------------------------------------
+
+
+def file_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why the file at ``path`` cannot be read, or None if it can.
+
+    Opened for real: as root (the tests, many field boxes) ``os.access`` says yes to anything.
+    """
+    p = Path(path)
+    if p.is_dir():
+        return "a directory, not a file"
+    try:
+        with p.open("rb"):
+            pass
+    except FileNotFoundError:
+        return "file not found"
+    except OSError as exc:
+        return f"cannot read the file: {exc.strerror or exc}"
+    return None
+
+
+def input_file_problems(settings: Settings) -> list[str]:
+    """``key: problem (got path)`` for every file an enabled part reads and cannot read.
+
+    A part that is off needs none of its files. Device nodes (serial ports, the GPIO chip,
+    CAN interfaces) are not files the config provides: they may appear later (a USB adapter
+    plugged in) and their drivers reconnect and alarm.
+    """
+    files: list[tuple[str, str | None]] = []
+    mqtt = settings.mqtt
+    if mqtt.enabled:
+        files.append(("mqtt.password_file", mqtt.password_file))
+        if mqtt.tls is not None:
+            files += [
+                ("mqtt.tls.ca_file", mqtt.tls.ca_file),
+                ("mqtt.tls.cert_file", mqtt.tls.cert_file),
+                ("mqtt.tls.key_file", mqtt.tls.key_file),
+            ]
+    if settings.prescription.enabled:
+        files.append(("prescription.path", settings.prescription.path))
+    problems = []
+    for key, path in files:
+        if path is None:
+            continue
+        problem = file_problem(path)
+        if problem is not None:
+            problems.append(f"{key}: {problem} (got {path!r})")
+    return problems
+
+
+# ---- directories the daemon writes to ------------------------------------------------------------
+
+
+def _nearest_existing(path: Path) -> Path:
+    for candidate in (path, *path.parents):
+        if candidate.exists():
+            return candidate
+    return Path(path.anchor or ".")
+
+
+def directory_problem(path: Path, *, create: bool) -> str | None:
+    """Why the daemon cannot keep files in directory ``path``, or None.
+
+    ``create``: make it and write a scratch file in it, as the daemon does at start.
+    Otherwise (``check-config``, which must change nothing) look only: the nearest existing
+    ancestor must be a writable directory.
+    """
+    if path.exists() and not path.is_dir():
+        return "a file, not a directory"
+    existing = _nearest_existing(path)
+    if not existing.is_dir():
+        return f"cannot create the directory: {existing} is a file"
+    if not create:
+        if not os.access(existing, os.W_OK | os.X_OK):
+            return f"not writable: {existing}"
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot create the directory: {exc.strerror or exc}"
+    try:
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        return f"not writable: {exc.strerror or exc}"
+    return None
+
+
+def output_location_problems(settings: Settings, *, create: bool) -> list[str]:
+    """``key: problem (got path)`` for files the daemon writes outside the state directory:
+    the record store (``store.path``) and the as-applied log (``prescription.as_applied_path``).
+    """
+    files: list[tuple[str, str | None]] = []
+    if settings.mqtt.enabled or settings.seed_sensors.enabled:
+        files.append(("store.path", settings.store.path))
+    if settings.channel:
+        files.append(("prescription.as_applied_path", settings.prescription.as_applied_path))
+    problems = []
+    for key, path in files:
+        if path is None:
+            continue
+        p = Path(path)
+        if p.is_dir():
+            problem: str | None = "a directory, not a file"
+        elif p.parent.exists() and not p.parent.is_dir():
+            problem = f"cannot create the directory: {p.parent} is a file"
+        else:
+            problem = directory_problem(p.parent, create=create)
+        if problem is not None:
+            problems.append(f"{key}: {problem} (got {path!r})")
+    return problems
+
+
+def resolve_state_dir() -> tuple[Path, str]:
+    """The state directory and where it came from, for messages: ``$SOWGATE_STATE_DIR``, else
+    systemd's ``$STATE_DIRECTORY`` (its first entry), else ``./sowgate-state``."""
+    explicit = os.environ.get("SOWGATE_STATE_DIR")
+    if explicit:
+        return Path(explicit), "$SOWGATE_STATE_DIR"
+    systemd_dir = os.environ.get("STATE_DIRECTORY")
+    if systemd_dir:
+        return Path(systemd_dir.split(":")[0]), "$STATE_DIRECTORY"
+    return Path(DEFAULT_STATE_DIR), "state directory (default; set $SOWGATE_STATE_DIR)"
+
+
+def prepare_state_dir() -> Path:
+    """Create the state directory and prove it writable, or raise ConfigError naming the
+    variable it came from and the path (``$SOWGATE_STATE_DIR: a file, not a directory ...``).
+    """
+    path, source = resolve_state_dir()
+    problem = directory_problem(path, create=True)
+    if problem is not None:
+        raise ConfigError([f"{source}: {problem} (got {str(path)!r})"])
+    return path
+
+
+def start_problems(settings: Settings, state_dir: Path) -> list[str]:
+    """Everything the daemon checks before it builds its parts (``Daemon.__init__``)."""
+    problems = []
+    state = directory_problem(state_dir, create=True)
+    if state is not None:
+        problems.append(f"state directory: {state} (got {str(state_dir)!r})")
+    return problems + input_file_problems(settings) + output_location_problems(
+        settings, create=True
+    )
