@@ -33,6 +33,9 @@ PAPER_B_CHANNELS = (
 PAPER_B_OUTLETS = 10  # 10 rows
 
 
+MIN_MEASURED_M = 1.0  # sown before the demo shows an applied rate: less is no measurement
+
+
 def _error_pct(applied: float | None, target: float) -> float | None:
     return None if applied is None or target <= 0 else (applied / target - 1.0) * 100.0
 
@@ -43,9 +46,14 @@ def _pct(value: float) -> str:
 
 def truth_report(truth: Truth, target_kg_ha: float) -> dict[str, Any]:
     """The simulator's ground truth as the demo shows it: the whole-run applied rate and, apart,
-    the rate after each pass's start-up transient (see ``simulator.machine.Truth``)."""
-    applied = truth.applied_kg_ha() if truth.area_m2 > 0 else None
-    settled = truth.settled_kg_ha() if truth.settled_area_m2 > 0 else None
+    the rate after each pass's start-up transient (see ``simulator.machine.Truth``).
+
+    A rate is None until ``MIN_MEASURED_M`` has been sown: over the first centimetres off
+    standstill nothing has left the meter yet, and the view showed "rate error -100.00 %"
+    for what was no measurement at all.
+    """
+    applied = truth.applied_kg_ha() if truth.sown_m >= MIN_MEASURED_M else None
+    settled = truth.settled_kg_ha() if truth.settled_m >= MIN_MEASURED_M else None
     return {
         "sown_m": truth.sown_m,
         "applied_kg_ha": applied,
