@@ -14,12 +14,33 @@ from gateway.config import EXIT_CONFIG, ConfigError, Settings, load_config, stat
 
 log = logging.getLogger("sowgate")
 
+DESCRIPTION = """\
+sowgate: the seeder daemon, config checking, a demo on a simulated machine,
+and field tools (export, calibration, GNSS decoding)."""
+EPILOG = """\
+Try it:       sowgate demo                  (Ctrl-C to stop)
+On a tractor: sowgate check-config FILE, then sowgate run --config FILE
+              (installing it as a service: systemd/README.md)"""
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("sowgate")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
 
 def _setup_logging(verbose: bool, quiet: bool = False) -> None:
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     logging.basicConfig(
         level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
+    # pymodbus logs every server start ("Server listening."), its repeat marker
+    # ("Repeating....") and frame dumps at INFO/DEBUG: noise next to sowgate's own device
+    # messages (which name the device that failed). Only -v lets it through.
+    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.WARNING)
 
 
 def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
@@ -151,8 +172,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sowgate", description=__doc__)
+    p = argparse.ArgumentParser(
+        prog="sowgate",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("--version", action="version", version=f"sowgate {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run the daemon")
@@ -187,12 +214,29 @@ def build_parser() -> argparse.ArgumentParser:
         default="seeds",
         help="seed records with spacing quality (default) or the metering as-applied log",
     )
-    e.add_argument("--format", choices=["geojson", "csv"], default="geojson")
-    e.add_argument("--output", required=True)
+    e.add_argument(
+        "--format",
+        choices=["geojson", "csv"],
+        default=None,
+        help="default: from the --output extension (.csv -> csv; .geojson or .json -> "
+        "geojson; geojson for -)",
+    )
+    e.add_argument(
+        "--output",
+        required=True,
+        help="file to write, or - for standard output; a seeds CSV also writes the per-row "
+        "spacing quality to FILE.quality.csv",
+    )
     e.add_argument("--since", default=None, help="ISO 8601 UTC start time")
     e.add_argument("--until", default=None, help="ISO 8601 UTC end time")
     e.add_argument("--rows", default=None, help="comma-separated row numbers")
     e.add_argument("--config", type=Path, default=None, help="config file (for the store path)")
+    e.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        help="read the store here (e.g. sowgate-demo), not in $SOWGATE_STATE_DIR",
+    )
     e.set_defaults(func=cmd_export)
 
     try:
