@@ -148,7 +148,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     return asyncio.run(
         run_demo(
-            duration_s=args.duration, tui=not args.no_tui, crop=args.crop, channels=args.channels
+            duration_s=args.duration,
+            tui=not args.no_tui,
+            crop=args.crop,
+            channels=args.channels,
+            state=args.state_dir,
         )
     )
 
@@ -193,7 +197,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="run the daemon against the built-in simulated machine")
     d.add_argument("--duration", type=float, default=None, help="seconds (default: until ^C)")
-    d.add_argument("--no-tui", action="store_true", help="log instead of the live view")
+    d.add_argument(
+        "--no-tui",
+        action="store_true",
+        help="log a status line every few seconds instead of the live view",
+    )
+    d.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        help="where the demo keeps its record store and config (default: ./sowgate-demo); "
+        "never the real state directory",
+    )
     d.add_argument("--crop", choices=["rapeseed", "wheat"], default="rapeseed")
     d.add_argument(
         "--channels",
