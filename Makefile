@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto demo test lint typecheck bench schemas clean
+.PHONY: mosquitto demo test lint typecheck bench bench-publish schemas dist clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -28,8 +28,14 @@ test: $(STAMP) mosquitto
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
 
+# a wheel to install on the cab box (systemd/README.md): sowgate is not on PyPI
+dist: $(STAMP)
+	rm -rf build dist/sowgate-*.whl   # build/: setuptools would reuse stale files from it
+	$(BIN)/pip wheel --no-deps --quiet -w dist .
+	@ls dist/sowgate-*.whl
+
 schemas: $(STAMP)
 	$(BIN)/python -m gateway.payloads --write docs/schemas
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build dist
