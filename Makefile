@@ -25,8 +25,13 @@ test: $(STAMP) mosquitto
 	$(BIN)/mypy
 	$(BIN)/pytest -q
 
+# figures to benchmarks/latest.md (untracked, changes every run)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
+
+# the same, to the published page docs/benchmarks.md (review the diff, then commit it)
+bench-publish: $(STAMP)
+	$(BIN)/python -m benchmarks --output docs/benchmarks.md
 
 # a wheel to install on the cab box (systemd/README.md): sowgate is not on PyPI
 dist: $(STAMP)
