@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto demo test lint typecheck bench schemas clean lock
+.PHONY: mosquitto demo test lint typecheck bench schemas dist clean lock
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -37,11 +37,19 @@ test: $(STAMP) mosquitto
 	$(BIN)/mypy
 	$(BIN)/pytest -q
 
+# every benchmark, to docs/benchmarks.md: a generated page, rewritten by each run (review the
+# diff, then commit it). `python -m benchmarks bench_x` alone writes benchmarks/latest.md.
 bench: $(STAMP)
-	$(BIN)/python -m benchmarks
+	$(BIN)/python -m benchmarks --output docs/benchmarks.md
+
+# a wheel to install on the cab box (systemd/README.md): sowgate is not on PyPI
+dist: $(STAMP)
+	rm -rf build dist/sowgate-*.whl   # build/: setuptools would reuse stale files from it
+	$(BIN)/pip wheel --no-deps --quiet -w dist .
+	@ls dist/sowgate-*.whl
 
 schemas: $(STAMP)
 	$(BIN)/python -m gateway.payloads --write docs/schemas
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build dist

@@ -1,11 +1,19 @@
-"""``make bench``: run every benchmark and write their figures to docs/benchmarks.md.
+"""``make bench``: run every benchmark and write their figures to ``docs/benchmarks.md``.
 
 Each benchmark module exposes ``run() -> dict`` with a ``markdown`` entry; every figure is a
 ratio against a baseline measured in the same run, so numbers stay comparable across machines.
+
+docs/benchmarks.md is a generated page, meant to change with every full run (``make bench``
+passes ``--output docs/benchmarks.md``); review its diff and commit it. A run of a few
+benchmarks alone writes to ``benchmarks/latest.md`` (ignored by git) by default, so it never
+leaves the published page with only some of its sections.
+
+    python -m benchmarks [--output FILE] [bench_rate bench_store ...]
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import platform
 import sys
@@ -26,11 +34,20 @@ BENCHMARKS = [
     ("bench_multichannel", "multi-channel metering (paper B)"),
 ]
 
-OUT = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+DEFAULT_OUT = Path(__file__).resolve().parent / "latest.md"
 
 
 def main(argv: list[str]) -> int:
-    only = set(argv)
+    parser = argparse.ArgumentParser(prog="python -m benchmarks")
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUT,
+                        help="markdown file to write (default: benchmarks/latest.md, untracked)")
+    parser.add_argument("only", nargs="*", help="benchmark modules to run (default: all)")
+    args = parser.parse_args(argv)
+    out_path: Path = args.output
+    only = set(args.only)
+    unknown = only - {m for m, _ in BENCHMARKS}
+    if unknown:
+        parser.error(f"unknown benchmark(s): {', '.join(sorted(unknown))}")
     console = Console(stderr=True)
     sections: list[str] = []
     failed = 0
@@ -56,13 +73,16 @@ def main(argv: list[str]) -> int:
             progress.advance(bar)
     header = (
         "# sowgate benchmarks\n\n"
-        f"Written by `make bench` on {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, "
+        f"Written by `python -m benchmarks` on {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, "
         f"Python {platform.python_version()}, {platform.machine()}, "
         "2-core sandbox. Each figure is compared with a baseline measured in the same run.\n\n"
+        "Generated: every `make bench` rewrites this page (the README quotes it); do not edit "
+        "it by hand. `python -m benchmarks NAME ...` alone writes to `benchmarks/latest.md` "
+        "(ignored by git).\n\n"
     )
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(header + "\n".join(sections))
-    console.print(f"wrote {OUT}")
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(header + "\n".join(sections))
+    console.print(f"wrote {out_path}")
     return 1 if failed else 0
 
 

@@ -40,6 +40,7 @@ DEFAULT_B_SECONDS = 30.0
 DEFAULT_A_SECONDS = 60.0  # paper A weighs 60 s runs
 SPEED_SOURCES = ("radar", "gnss", "isobus")
 RUN_DOWN_MAX_S = 3.0  # after a CAN-driven run, follow the shaft until it stops (at most)
+PROGRESS_EVERY_S = 10.0  # without a terminal: a "10 s of 30 s" line this often
 
 
 def _floats(text: str) -> list[float]:
@@ -135,6 +136,10 @@ def _timed_runs(labels: Sequence[str], seconds: float, console: Console,
     runs: list[CanRun] = []
     if not wait:
         return runs
+    if not console.is_terminal:
+        # rich's bar is drawn only on a terminal: piped or logged, it printed nothing until
+        # every run was over (6 x 30 s). One line per event instead.
+        return _timed_runs_plain(labels, seconds, console, drive)
     with Progress(TextColumn("{task.description}"), BarColumn(), TimeRemainingColumn(),
                   console=console, transient=False) as progress:
         for i, label in enumerate(labels):
@@ -148,6 +153,30 @@ def _timed_runs(labels: Sequence[str], seconds: float, console: Console,
             if run is not None:
                 run.join()  # the shaft has run down
                 runs.append(run)
+    return runs
+
+
+def _timed_runs_plain(labels: Sequence[str], seconds: float, console: Console,
+                      drive: Callable[[int, float], CanRun] | None) -> list[CanRun]:
+    """The timed runs for a console that is not a terminal: a line when each run starts,
+    every ``PROGRESS_EVERY_S`` while it runs, and when it is done."""
+    runs: list[CanRun] = []
+    n = len(labels)
+    for i, label in enumerate(labels):
+        console.print(f"run {i + 1}/{n}: {escape(label)}: started", highlight=False)
+        start = time.monotonic()
+        run = drive(i, seconds) if drive is not None else None
+        next_report = PROGRESS_EVERY_S
+        while (elapsed := time.monotonic() - start) < seconds:
+            if elapsed >= next_report:
+                console.print(f"run {i + 1}/{n}: {next_report:g} s of {seconds:g} s",
+                              highlight=False)
+                next_report += PROGRESS_EVERY_S
+            time.sleep(min(0.2, seconds - elapsed, max(0.0, next_report - elapsed)))
+        if run is not None:
+            run.join()  # the shaft has run down
+            runs.append(run)
+        console.print(f"run {i + 1}/{n}: done", highlight=False)
     return runs
 
 

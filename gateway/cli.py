@@ -23,12 +23,33 @@ from gateway.config import (
 
 log = logging.getLogger("sowgate")
 
+DESCRIPTION = """\
+sowgate: the seeder daemon, config checking, a demo on a simulated machine,
+and field tools (export, calibration, GNSS decoding)."""
+EPILOG = """\
+Try it:       sowgate demo                  (Ctrl-C to stop)
+On a tractor: sowgate check-config FILE, then sowgate run --config FILE
+              (installing it as a service: systemd/README.md)"""
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("sowgate")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
 
 def _setup_logging(verbose: bool, quiet: bool = False) -> None:
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     logging.basicConfig(
         level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
+    # pymodbus logs every server start ("Server listening."), its repeat marker
+    # ("Repeating....") and frame dumps at INFO/DEBUG: noise next to sowgate's own device
+    # messages (which name the device that failed). Only -v lets it through.
+    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.WARNING)
 
 
 def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
@@ -148,7 +169,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     return asyncio.run(
         run_demo(
-            duration_s=args.duration, tui=not args.no_tui, crop=args.crop, channels=args.channels
+            duration_s=args.duration,
+            tui=not args.no_tui,
+            crop=args.crop,
+            channels=args.channels,
+            state=args.state_dir,
         )
     )
 
@@ -172,8 +197,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sowgate", description=__doc__)
+    p = argparse.ArgumentParser(
+        prog="sowgate",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("--version", action="version", version=f"sowgate {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run the daemon")
@@ -187,7 +218,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="run the daemon against the built-in simulated machine")
     d.add_argument("--duration", type=float, default=None, help="seconds (default: until ^C)")
-    d.add_argument("--no-tui", action="store_true", help="log instead of the live view")
+    d.add_argument(
+        "--no-tui",
+        action="store_true",
+        help="log a status line every few seconds instead of the live view",
+    )
+    d.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        help="where the demo keeps its record store and config (default: ./sowgate-demo); "
+        "never the real state directory",
+    )
     d.add_argument("--crop", choices=["rapeseed", "wheat"], default="rapeseed")
     d.add_argument(
         "--channels",
@@ -208,12 +250,29 @@ def build_parser() -> argparse.ArgumentParser:
         default="seeds",
         help="seed records with spacing quality (default) or the metering as-applied log",
     )
-    e.add_argument("--format", choices=["geojson", "csv"], default="geojson")
-    e.add_argument("--output", required=True)
+    e.add_argument(
+        "--format",
+        choices=["geojson", "csv"],
+        default=None,
+        help="default: from the --output extension (.csv -> csv; .geojson or .json -> "
+        "geojson; geojson for -)",
+    )
+    e.add_argument(
+        "--output",
+        required=True,
+        help="file to write, or - for standard output; a seeds CSV also writes the per-row "
+        "spacing quality to FILE.quality.csv",
+    )
     e.add_argument("--since", default=None, help="ISO 8601 UTC start time")
     e.add_argument("--until", default=None, help="ISO 8601 UTC end time")
     e.add_argument("--rows", default=None, help="comma-separated row numbers")
     e.add_argument("--config", type=Path, default=None, help="config file (for the store path)")
+    e.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        help="read the store here (e.g. sowgate-demo), not in $SOWGATE_STATE_DIR",
+    )
     e.set_defaults(func=cmd_export)
 
     try:

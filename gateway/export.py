@@ -6,7 +6,12 @@ member (a foreign member, which GIS tools ignore and scripts can read). It is wr
 the features so a reader can get it without parsing a million points.
 
 CSV: one row per seed with a header; the quality summary goes to a sidecar
-``<output>.quality.csv`` because CSV has no place for a second table.
+``<output>.quality.csv`` because CSV has no place for a second table (the command says it
+wrote it, and ``--help`` says so).
+
+Without ``--format`` the output file's extension picks the format (``.csv``, ``.geojson``,
+``.json``); standard output (``-``) gets GeoJSON. Any other extension is refused rather than
+guessed: a GeoJSON document inside ``applied.csv`` is what the old default produced.
 
 Records are streamed, never held in memory all at once, and the output file is written to a
 temporary name and renamed at the end, so a failed export never leaves half a map behind.
@@ -60,6 +65,12 @@ QUALITY_FIELDS = [
 DEFAULT_STORE_NAME = "records.sqlite3"
 EXIT_USAGE = 2
 EXIT_FAILED = 1
+FORMAT_BY_EXTENSION: dict[str, ExportFormat] = {
+    ".csv": "csv",
+    ".geojson": "geojson",
+    ".json": "geojson",
+}
+QUALITY_SUFFIX = ".quality.csv"
 
 
 class ExportError(GatewayError):
@@ -173,6 +184,27 @@ def parse_rows(text: str | None, rows: int) -> list[int] | None:
     return wanted
 
 
+def export_format(requested: str | None, output: str) -> ExportFormat:
+    """``--format`` if given, else the one ``output``'s extension names (GeoJSON for ``-``)."""
+    if requested is not None:
+        if requested not in ("geojson", "csv"):
+            raise ExportError(f"--format: unknown export format {requested!r} (geojson or csv)")
+        return "csv" if requested == "csv" else "geojson"
+    if output == "-":
+        return "geojson"
+    name = Path(output).name
+    suffix = Path(output).suffix.lower()
+    if suffix in FORMAT_BY_EXTENSION:
+        return FORMAT_BY_EXTENSION[suffix]
+    choices = "name the file .csv, .geojson or .json, or pass --format csv|geojson"
+    if suffix == ".shp":
+        raise ExportError(
+            f"shapefile export is not supported ({name!r}): {choices} "
+            "(ogr2ogr converts GeoJSON to a shapefile)"
+        )
+    raise ExportError(f"cannot tell the format of {name!r}: {choices}")
+
+
 def store_path(settings: Settings, state: Path | None = None) -> Path:
     if settings.store.path:
         return Path(settings.store.path)
@@ -197,7 +229,7 @@ def _atomic_output(path: str) -> Iterator[TextIO]:
 
 
 def main_export(args: argparse.Namespace) -> int:
-    """``sowgate export --format geojson|csv --output FILE [--since] [--until] [--rows]``.
+    """``sowgate export [--format geojson|csv] --output FILE [--since] [--until] [--rows]``.
 
     Opens the store read-only (safe next to the running daemon: WAL readers do not block the
     writer). Returns a process exit code; problems are printed as one line each.
@@ -207,15 +239,17 @@ def main_export(args: argparse.Namespace) -> int:
     try:
         config = getattr(args, "config", None)
         settings = load_config(config) if config is not None else parse_config({})
+        state = getattr(args, "state_dir", None)
+        state = Path(state) if state is not None else None
+        fmt = export_format(getattr(args, "format", None), args.output)
         since = parse_time(getattr(args, "since", None), "since")
         until = parse_time(getattr(args, "until", None), "until")
         if since is not None and until is not None and until <= since:
             raise ExportError("--until must be later than --since")
         if getattr(args, "what", "seeds") == "as-applied":
-            return _export_as_applied(settings, args, since, until)
+            return _export_as_applied(settings, args, since, until, fmt, state)
         rows = parse_rows(getattr(args, "rows", None), settings.machine.rows)
-        fmt: ExportFormat = args.format
-        path = store_path(settings)
+        path = store_path(settings, state)
         x_ref = settings.positioning.target_spacing_m
         with RecordStore.open_readonly(path, settings.machine.id) as store:
             quality = quality_by_row(store.query_seeds(since, until, rows), x_ref)
@@ -227,7 +261,7 @@ def main_export(args: argparse.Namespace) -> int:
                     quality if fmt == "geojson" else None,
                 )
             if fmt == "csv" and args.output != "-":
-                with _atomic_output(f"{args.output}.quality.csv") as qout:
+                with _atomic_output(f"{args.output}{QUALITY_SUFFIX}") as qout:
                     export_quality_csv(quality, qout)
     except ConfigError as exc:
         for line in exc.problems:
@@ -240,7 +274,12 @@ def main_export(args: argparse.Namespace) -> int:
         print(f"sowgate export: {exc}", file=sys.stderr)
         return EXIT_FAILED
     if args.output != "-":
-        print(f"wrote {n} seed records to {args.output}", file=sys.stderr)
+        print(f"wrote {n} seed records to {args.output} ({fmt})", file=sys.stderr)
+        if fmt == "csv":
+            print(
+                f"wrote the per-row spacing quality to {args.output}{QUALITY_SUFFIX}",
+                file=sys.stderr,
+            )
     return 0
 
 
@@ -249,6 +288,8 @@ def _export_as_applied(
     args: argparse.Namespace,
     since: datetime | None = None,
     until: datetime | None = None,
+    fmt: ExportFormat = "geojson",
+    state: Path | None = None,
 ) -> int:
     """The metering channels' as-applied log (paper B: every rate with its position)."""
     from gateway.prescription import (
@@ -259,7 +300,7 @@ def _export_as_applied(
     )
 
     configured = settings.prescription.as_applied_path
-    path = Path(configured) if configured else state_dir() / "as_applied.csv"
+    path = Path(configured) if configured else (state or state_dir()) / "as_applied.csv"
     try:
         rows = read_as_applied_csv(path)
     except FileNotFoundError:
@@ -278,11 +319,11 @@ def _export_as_applied(
                 kept.append(r)
         rows = kept
     with _atomic_output(args.output) as out:
-        if args.format == "csv":
+        if fmt == "csv":
             out.write(rows_to_csv(rows))
         else:
             json.dump(rows_to_geojson(rows), out)
             out.write("\n")
     if args.output != "-":
-        print(f"wrote {len(rows)} as-applied rows to {args.output}", file=sys.stderr)
+        print(f"wrote {len(rows)} as-applied rows to {args.output} ({fmt})", file=sys.stderr)
     return 0

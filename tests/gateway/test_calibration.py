@@ -378,3 +378,37 @@ async def test_can_driven_rotation_test_uses_the_measured_shaft_turns(tmp_path: 
     used = [r["rpm"] for r in saved["result"]["used"]]
     assert used == pytest.approx(true_rpm, rel=0.03)  # the encoder's turns, not 20 / 40
     assert saved["result"]["grams_per_rev"] == pytest.approx(11.2, rel=0.03)
+
+
+def test_timed_runs_without_a_terminal_print_progress_as_they_go(tmp_path: Path) -> None:
+    """Piped or under ssh without a tty, rich's bar printed nothing until every run was over
+    (6 x 30 s of silence): now each run says when it starts and when it is done."""
+    import time
+
+    class Stamped(io.StringIO):
+        """Remembers when each line was written."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.lines: list[tuple[float, str]] = []
+
+        def write(self, s: str) -> int:
+            self.lines += [(time.monotonic(), line) for line in s.splitlines() if line.strip()]
+            return super().write(s)
+
+    out = Stamped()
+    console = Console(file=out, width=120)
+    assert not console.is_terminal
+    argv = ["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "seed",
+            "--speeds", "20,40", "--seconds", "1.0"]
+    start = time.monotonic()
+    answers = [11.2 * 20 / 60, 11.2 * 40 / 60]
+    code = run_calibration(parse(argv), console=console, ask=lambda _q: answers.pop(0))
+    assert code == 0, out.getvalue()
+    said = [(t - start, line) for t, line in out.lines]
+    first = [t for t, line in said if "run 1/2" in line and "20 r/min for 1 s" in line]
+    assert first and first[0] < 0.5, said  # at once, not after both runs
+    done_1 = [t for t, line in said if line.startswith("run 1/2") and "done" in line]
+    assert done_1 and 0.9 < done_1[0] < 1.8, said  # when run 1 ends, before run 2 does
+    assert any(line.startswith("run 2/2") and "done" in line for _, line in said), said
+    assert "g/rev = 11.20" in out.getvalue()

@@ -121,7 +121,18 @@ def test_every_command_has_working_help(
     with pytest.raises(SystemExit) as info:
         main([*argv, "--help"])
     assert info.value.code == 0
-    assert "usage: sowgate" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "usage: sowgate" in out
+    assert "`" not in out  # reST markup from docstrings is not for a terminal
+
+
+def test_version_prints_the_installed_version(capsys: pytest.CaptureFixture[str]) -> None:
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"sowgate {version('sowgate')}"
 
 
 def test_calibrate_runs_from_the_real_command_line(

@@ -1,12 +1,22 @@
-"""What ``sowgate demo`` tells the user about the applied rate, from the simulator's truth."""
+"""What ``sowgate demo`` tells the user: what runs, the applied rate from the simulator's truth,
+and what to do next."""
 
 from __future__ import annotations
 
+import logging
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
-from gateway.demo import summary, truth_report
+from gateway.cli import main as cli_main
+from gateway.demo import status_line, summary, truth_report
 from simulator.machine import STARTUP_TRANSIENT_S, Truth
 
+ROOT = Path(__file__).resolve().parents[2]
 WIDTH_M = 2.0
 STEP_S = 0.1
 SPEED_MS = 1.0  # 3.6 km/h
@@ -62,3 +72,92 @@ def test_a_run_that_never_left_the_start_up_is_flagged_not_representative() -> N
     line = summary(report, 6.0)
     assert "2.0 m sown" in line and "error -83.33 %" in line
     assert "not representative" in line and "--duration 60" in line
+
+
+# ---------------------------------------------------------------- the demo as a newcomer runs it
+
+
+def _run_demo(cwd: Path, *args: str, env: dict[str, str] | None = None) -> tuple[str, str]:
+    """``sowgate demo --no-tui ARGS`` in its own process, in ``cwd``: (stdout, stderr)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "demo", "--no-tui", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=90,
+        env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
+    )
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout, proc.stderr
+
+
+def test_the_demo_says_what_runs_keeps_its_store_and_says_what_to_do_next(
+    tmp_path: Path,
+) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SOWGATE_")}
+    proc = subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "demo", "--no-tui", "--duration", "7"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=90,
+        env={**env, "PYTHONPATH": str(ROOT)},
+    )
+    assert proc.returncode == 0, proc.stderr
+    out, err = proc.stdout, proc.stderr
+    state = tmp_path / "sowgate-demo"
+    # at start: the simulated devices and their ptys, the config, the store, MQTT, how to stop
+    for device in ("RS485", "touchscreen", "GNSS", "seed-tube sensors"):
+        assert re.search(rf"{device}.* on /\S+", out), out
+    assert "config: sowgate-demo/demo.toml" in out, out
+    assert (state / "demo.toml").is_file()
+    assert "record store: " in out and "records.sqlite3" in out, out
+    assert "MQTT: off" in out and "SOWGATE_MQTT__ENABLED=true" in out, out
+    assert "Ctrl-C" in out, out
+    # at the end: what was done, and the export to try on the store that was kept
+    assert "demo finished: " in out and "motor and fan set to 0" in out, out
+    assert "sowgate export --state-dir sowgate-demo --output demo-seeds.csv" in out, out
+    assert (state / "records.sqlite3").is_file()
+    # --no-tui: a status line every few seconds, and none of pymodbus's chatter
+    assert re.search(r"gateway\.demo: (pre_seed|seeding|paused|turning), ", err), err
+    assert "Server listening" not in err and "Repeating...." not in err, err
+
+    # the next step it printed works on what it kept
+    code = cli_main(["export", "--state-dir", str(state), "--output",
+                     str(tmp_path / "demo-seeds.csv")])
+    assert code == 0
+    assert (tmp_path / "demo-seeds.csv").read_text().startswith("id,")
+
+
+def test_the_demo_uses_the_state_dir_it_is_given_and_names_it_in_the_export_command(
+    tmp_path: Path,
+) -> None:
+    chosen = tmp_path / "my-demo"
+    out, _err = _run_demo(tmp_path, "--duration", "3", "--state-dir", str(chosen))
+    assert (chosen / "records.sqlite3").is_file()
+    assert not (tmp_path / "sowgate-demo").exists()
+    assert f"sowgate export --state-dir {chosen} --output demo-seeds.csv" in out, out
+
+
+def test_the_status_line_says_state_speed_outputs_and_what_was_sown() -> None:
+    snapshot = {
+        "work_state": "seeding", "speed_kmh": 5.234, "speed_source": "radar",
+        "motor_duty_pct": 38.6, "fan_duty_pct": 80.0, "area_ha": 0.0123,
+        "alarms": [{"code": "gnss.not_rtk_fixed", "severity": "warning", "message": "no RTK"}],
+        "seeds": {"records_stored": 456},
+    }
+    line = status_line(snapshot)
+    assert line == (
+        "seeding, 5.23 km/h [radar], motor 38.6 % fan 80.0 %, 0.0123 ha, "
+        "456 seeds recorded, alarms: gnss.not_rtk_fixed"
+    )
+    quiet = status_line({**snapshot, "speed_kmh": None, "alarms": [], "seeds": None})
+    assert "no speed" in quiet and "alarms: none" in quiet and "seeds" not in quiet
+
+
+def test_pymodbus_logging_stays_at_warning_unless_verbose() -> None:
+    from gateway.cli import _setup_logging
+
+    pymodbus = logging.getLogger("pymodbus")
+    before = pymodbus.level
+    try:
+        _setup_logging(verbose=False)
+        assert pymodbus.getEffectiveLevel() == logging.WARNING
+        _setup_logging(verbose=True)
+        assert pymodbus.getEffectiveLevel() == logging.DEBUG
+    finally:
+        pymodbus.setLevel(before)

@@ -275,7 +275,7 @@ def test_missing_as_applied_log_is_a_clear_error(
     from gateway.cli import main
 
     monkeypatch.setenv("SOWGATE_STATE_DIR", str(tmp_path))
-    assert main(["export", "--what", "as-applied", "--output", str(tmp_path / "x")]) == 1
+    assert main(["export", "--what", "as-applied", "--output", str(tmp_path / "x.csv")]) == 1
     assert "no as-applied log at" in capsys.readouterr().err
 
 
@@ -298,3 +298,99 @@ def test_as_applied_export_honours_since_and_until(
     assert targets == ["201.0", "202.0"]
     assert "wrote 2 as-applied rows" in capsys.readouterr().err
     assert main([*argv[:-4], "--since", "yesterday"]) == 2  # a bad time is a usage error
+
+
+# ---------------------------------------------------------------- format from the file name
+
+
+@pytest.mark.parametrize(
+    ("name", "kind"),
+    [("seeds.csv", "csv"), ("SEEDS.CSV", "csv"), ("map.geojson", "geojson"),
+     ("map.json", "geojson")],
+)
+def test_the_format_comes_from_the_output_extension(
+    tmp_path: Path, store_file: Path, name: str, kind: str
+) -> None:
+    out = tmp_path / name
+    argv = ["export", "--output", str(out), "--config", str(config_for(tmp_path, store_file))]
+    assert cli_main(argv) == 0
+    text = out.read_text()
+    if kind == "csv":
+        assert text.splitlines()[0] == ",".join(CSV_FIELDS)
+    else:
+        assert json.loads(text)["type"] == "FeatureCollection"
+
+
+def test_as_applied_to_a_csv_file_is_csv_as_the_readme_shows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`sowgate export --what as-applied --output applied.csv` used to write GeoJSON."""
+    from gateway.prescription import AsAppliedLog, AsAppliedRow
+
+    monkeypatch.setenv("SOWGATE_STATE_DIR", str(tmp_path))
+    AsAppliedLog(tmp_path / "as_applied.csv").record(
+        AsAppliedRow("2026-04-20T08:00:00+00:00", 125.3, 43.8, "seed", "wheat", 225.0, 224.1)
+    )
+    out = tmp_path / "applied.csv"
+    assert cli_main(["export", "--what", "as-applied", "--output", str(out)]) == 0
+    assert out.read_text().splitlines()[0].startswith("time,lon,lat,channel")
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [("seeds.txt", "cannot tell the format of 'seeds.txt'"),
+     ("seeds", "cannot tell the format of 'seeds'"),
+     ("seeds.shp", "shapefile export is not supported")],
+)
+def test_an_unknown_extension_is_a_usage_error_naming_the_choices(
+    tmp_path: Path, store_file: Path, capsys: pytest.CaptureFixture[str], name: str, message: str
+) -> None:
+    out = tmp_path / name
+    argv = ["export", "--output", str(out), "--config", str(config_for(tmp_path, store_file))]
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "--format" in err and ".geojson" in err, err
+    assert not out.exists()
+
+
+def test_an_explicit_format_wins_over_the_extension(tmp_path: Path, store_file: Path) -> None:
+    out = tmp_path / "seeds.dat"
+    cfg = config_for(tmp_path, store_file)
+    assert cli_main(["export", "--format", "csv", "--output", str(out), "--config", str(cfg)]) == 0
+    assert out.read_text().startswith("id,")
+
+
+def test_standard_output_without_a_format_is_geojson(
+    tmp_path: Path, store_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = config_for(tmp_path, store_file)
+    assert cli_main(["export", "--output", "-", "--config", str(cfg)]) == 0
+    assert json.loads(capsys.readouterr().out)["type"] == "FeatureCollection"
+
+
+def test_the_csv_quality_sidecar_is_announced(
+    tmp_path: Path, store_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "seeds.csv"
+    cfg = config_for(tmp_path, store_file)
+    assert cli_main(["export", "--output", str(out), "--config", str(cfg)]) == 0
+    err = capsys.readouterr().err
+    assert f"{out}.quality.csv" in err and "spacing quality" in err, err
+
+
+def test_export_reads_the_store_in_the_state_dir_given(
+    tmp_path: Path, store_file: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What `sowgate demo` tells the user to run next: `--state-dir sowgate-demo`."""
+    monkeypatch.setenv("SOWGATE_STATE_DIR", str(tmp_path / "elsewhere"))
+    out = tmp_path / "seeds.csv"
+    assert cli_main(["export", "--state-dir", str(store_file.parent), "--output", str(out)]) == 0
+    assert len(out.read_text().splitlines()) == len(drops()) + 1
+
+
+def test_export_help_says_how_the_format_is_chosen(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        cli_main(["export", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "default: from the --output extension" in out
+    assert ".quality.csv" in out

@@ -51,10 +51,10 @@ async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
         assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
 
 
-async def _demo(*args: str) -> str:
-    """``sowgate demo --no-tui ARGS`` in its own process; its standard output."""
+async def _demo(state: Path, *args: str) -> str:
+    """``sowgate demo --no-tui ARGS`` in its own process, its store in ``state``; its output."""
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "gateway.cli", "demo", "--no-tui", *args,
+        sys.executable, "-m", "gateway.cli", "demo", "--no-tui", "--state-dir", str(state), *args,
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
     )
@@ -63,19 +63,20 @@ async def _demo(*args: str) -> str:
     return out.decode()
 
 
-async def test_demo_runs_and_reports_the_applied_rate() -> None:
-    out = await _demo("--duration", "4")
+async def test_demo_runs_and_reports_the_applied_rate(tmp_path: Path) -> None:
+    out = await _demo(tmp_path, "--duration", "4")
     # the simulated tractor stands for its first 4 s: at most a start-up has been sown, and
     # the demo must say so instead of presenting that as the controller's rate error
-    line = out.strip().splitlines()[-1]
-    assert line.startswith("demo finished: "), line
+    line = next(line for line in out.splitlines() if line.startswith("demo finished: "))
     assert "nothing sown yet" in line or "not representative" in line, line
 
 
-async def test_demo_with_paper_b_channels_drives_the_simulated_can_controllers() -> None:
+async def test_demo_with_paper_b_channels_drives_the_simulated_can_controllers(
+    tmp_path: Path,
+) -> None:
     # 6 s is mostly the start from standstill (~55 % of target applied, marginal under load);
     # by 10 s the shafts have clearly followed the targets (~85 %)
-    out = await _demo("--channels", "--duration", "10")
+    out = await _demo(tmp_path, "--channels", "--duration", "10")
     lines = {
         line.split(":")[0].removeprefix("channel "): line
         for line in out.splitlines()
@@ -132,7 +133,7 @@ async def test_systemd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> Non
         sock.close()
 
 
-async def test_demo_publishes_to_the_broker_named_in_the_environment() -> None:
+async def test_demo_publishes_to_the_broker_named_in_the_environment(tmp_path: Path) -> None:
     """What docker/compose.yaml relies on: `sowgate demo` + SOWGATE_MQTT__* → seeds on MQTT."""
     from tests.mosquitto import Mosquitto, subscriber
 
@@ -143,10 +144,15 @@ async def test_demo_publishes_to_the_broker_named_in_the_environment() -> None:
                    "SOWGATE_MQTT__HOST": "127.0.0.1", "SOWGATE_MQTT__PORT": str(broker.port)}
             proc = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "gateway.cli", "demo", "--no-tui", "--duration", "8",
-                env=env, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+                "--state-dir", str(tmp_path), env=env,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
             )
-            _, err = await asyncio.wait_for(proc.communicate(), 60.0)
+            out, err = await asyncio.wait_for(proc.communicate(), 60.0)
             assert proc.returncode == 0, err.decode()
             await _wait(lambda: sub.on("status")[-1:] == [b"offline"], 5.0)
     assert sub.on("status")[0] == b"online"
     assert sub.on("state") and sub.seed_ids()
+    # and it told the user where it publishes
+    said = out.decode()
+    assert f"MQTT: broker 127.0.0.1:{broker.port} (reachable)" in said, said
+    assert "sowgate/seeder-01/status" in said, said
