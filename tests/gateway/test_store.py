@@ -513,22 +513,29 @@ class _CommitFailsAndRollsBack:
         return getattr(self._db, name)
 
 
-def test_rows_of_a_failed_commit_are_never_published(store: RecordStore) -> None:
-    """The outbox's memory holds committed rows only: after a rolled-back commit the ids are
-    handed out again, and the outbox shows the new rows under them, never the lost ones."""
+def test_rows_of_a_rolled_back_commit_are_kept_and_published_only_once_committed(
+    store: RecordStore,
+) -> None:
+    """The outbox's memory holds committed rows only: after a rolled-back commit the rows are
+    held (not published, not lost) and written by the retry under the ids they were given,
+    ahead of the rows that came after them."""
     real = store._db
     failing = _CommitFailsAndRollsBack(real)
     store._db = failing  # type: ignore[assignment]
-    store.append_seeds(drops(3, row=1))
+    first = store.append_seeds(drops(3, row=1))
     with pytest.raises(StoreError, match="disk is full"):
         store.flush()
     assert store.pending_seeds(10) == [] and store.backlog() == 0
+    assert store.records_held == 3 and store.failing
+    again = store.append_seeds(drops(3, row=7))  # held too, behind them
+    assert list(first) == [1, 2, 3] and list(again) == [4, 5, 6]
     failing.fail = False
-    again = store.append_seeds(drops(3, row=7))
-    store.flush()
-    assert list(again) == [1, 2, 3]
-    assert [r.row for r in store.pending_seeds(10)] == [7, 7, 7]
-    assert store.backlog() == 3
+    store.retry()
+    assert [(r.id, r.row) for r in store.pending_seeds(10)] == [
+        (1, 1), (2, 1), (3, 1), (4, 7), (5, 7), (6, 7)
+    ]
+    assert store.backlog() == 6 and store.records_held == 0 and not store.failing
+    assert store.commit_error is None
     store._db = real
 
 
