@@ -34,6 +34,14 @@ appended batch, about two a second, records its ids and its time span in ``seed_
 time-range queries and pruning read the ids from there. A store with the older per-seed index
 is converted when opened for writing (one span over its rows).
 
+Full disk. A write or a commit that fails (SQLITE_FULL: a failed COMMIT may roll the whole
+transaction back) loses nothing: the store keeps every row of the open transaction until its
+COMMIT succeeds, and after a failure holds them, and every row that follows, in memory under
+the ids already handed out (``records_held``), up to ``max_held_records``; past it new rows
+are counted in ``records_lost`` and get no id. It retries with capped backoff and writes the
+held rows with their ids once there is room, so the stored ids stay contiguous. Alarm events
+are held likewise; ``add_alarm`` then returns id 0 and the MQTT link publishes the event live.
+
 Space. Nothing undelivered is ever deleted; ``prune`` only removes delivered rows older than the
 retention. When the undelivered backlog passes ``backlog_alarm_records`` the ``on_backlog``
 callback says so (once per crossing), so an operator learns the link is down long before the
@@ -87,12 +95,12 @@ TAIL_MAX_ROWS = 10_000
 MAX_OUTBOX_LIMIT = 10_000  # one outbox read never materialises more than this many records
 # Seed records kept in memory while the store cannot write them (disk full, card gone
 # read-only): the rows of the failed commit and every row after them, in order, under the ids
-# they were given, until a retry writes them. A held record costs about 250 bytes of memory
-# (measured: benchmarks/bench_held_records.py), so the cap is about 90 MB, and at 2 000
-# seeds/s it rides out a full disk for 360 000 / 2 000 = 180 s. Past it, new records are
-# counted in ``records_lost`` (published in the state payload and the records.store_failed
-# alarm), never dropped silently; they take no ids, so the stored ids stay contiguous.
-MAX_HELD_RECORDS = 360_000
+# they were given, until a retry writes them. A held record costs about 310 bytes of memory
+# (308 measured by benchmarks/bench_held_records.py), so the cap is about 74 MB, and at
+# 2 000 seeds/s it rides out a full disk for 240 000 / 2 000 = 120 s. Past it, new records
+# are counted in ``records_lost`` (state payload, records.lost alarm), never dropped
+# silently; they take no ids, so the stored ids stay contiguous.
+MAX_HELD_RECORDS = 240_000
 MAX_HELD_ALARMS = 1_000  # alarm events held likewise (alarms are rare); past it: alarms_lost
 # A write that failed is retried with capped exponential backoff: a full disk is not asked
 # twice a second (each attempt writes up to DRAIN_CHUNK_ROWS rows before it can fail), and a
