@@ -622,22 +622,9 @@ class RecordStore:
         try:
             self._commit()  # a transaction a failed COMMIT left open, or acknowledged ranges
             if self._held or self._held_alarms:
-                self._begin()
-                if self._held:
-                    n = min(len(self._held), DRAIN_CHUNK_ROWS)
-                    chunk = self._held[:n]
-                    first = self._held_first
-                    self._insert(chunk, first_id=first)
-                    self._tx_first, self._tx_rows = first, chunk
-                    self._remember(first, chunk)
-                    del self._held[:n]
-                    self._held_first += n
-                while self._held_alarms:
-                    self._insert_alarm(self._held_alarms[0])
-                    self._tx_alarms.append(self._held_alarms.pop(0))
+                self._write_held_chunk()
                 self._commit()
-        except (StoreError, sqlite3.Error) as exc:
-            self._write_failed(exc)
+        except StoreError as exc:  # already recorded by _commit or _write_held_chunk
             raise StoreError(f"record store still cannot write: {exc}") from exc
         if self._held or self._held_alarms:
             return False
@@ -649,6 +636,26 @@ class RecordStore:
         self.commit_error = None
         self._backoff.reset()
         return True
+
+    def _write_held_chunk(self) -> None:
+        """INSERT up to ``DRAIN_CHUNK_ROWS`` held rows (with their ids) and the held alarms."""
+        try:
+            self._begin()
+            if self._held:
+                n = min(len(self._held), DRAIN_CHUNK_ROWS)
+                chunk = self._held[:n]
+                first = self._held_first
+                self._insert(chunk, first_id=first)
+                self._tx_first, self._tx_rows = first, chunk
+                self._remember(first, chunk)
+                del self._held[:n]
+                self._held_first += n
+            while self._held_alarms:
+                self._insert_alarm(self._held_alarms[0])
+                self._tx_alarms.append(self._held_alarms.pop(0))
+        except (StoreError, sqlite3.Error) as exc:
+            self._write_failed(exc)
+            raise StoreError(str(exc)) from exc
 
     def _insert_alarm(self, event: AlarmEvent) -> int:
         try:
@@ -690,12 +697,13 @@ class RecordStore:
     def flush(self) -> None:
         """Commit: from now on the new records survive a crash and the outbox can see them.
 
-        While the store is failing this is a retry of the held records when the backoff
-        allows one (and nothing otherwise); StoreError when the attempt fails.
+        While the store is failing this is one retry step (``DRAIN_CHUNK_ROWS`` held rows at
+        most, so a caller's burst stays short; ``run`` writes the rest) when the backoff
+        allows one, and nothing otherwise; StoreError when the attempt fails.
         """
         if self._failing:
             if time.monotonic() >= self._retry_at:
-                self.retry()
+                self._drain_step()
             return
         self._commit()
 
@@ -733,10 +741,17 @@ class RecordStore:
         self._acked_dirty.clear()
 
     def _forget_uncommitted_tail(self) -> None:
-        """The tail may only hold committed rows: a failed commit may never become one."""
+        """The tail may only hold committed rows: a failed commit may never become one.
+
+        The forgotten rows may still be committed later (a COMMIT that failed but left the
+        transaction open, or held rows written back) without passing through ``_remember``
+        again, so the tail starts afresh after every id handed out: the outbox reads the
+        ids below it from SQLite, never a slice of the tail that does not hold them.
+        """
         keep = self._visible_seed_id - self._tail_first + 1
         if keep < len(self._tail):
-            del self._tail[max(0, keep):]
+            self._tail.clear()
+            self._tail_first = self._last_seed_id + 1
 
     def sync(self) -> None:
         """fsync the WAL (via a passive checkpoint): bounds what a power cut can take back."""
