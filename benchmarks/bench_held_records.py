@@ -33,12 +33,13 @@ def _held_bytes_per_record(db: Path) -> tuple[int, float]:
     settings = parse_config(_planter())
     store = RecordStore(db, "bench")
     # the state a failed commit on a full disk leaves: every new row is held in memory
-    store._write_failed(StoreError("simulated full disk"))  # noqa: SLF001
+    store._write_failed(StoreError("simulated full disk"))
     gc.collect()
     tracemalloc.start()
     before = tracemalloc.get_traced_memory()[0]
-    field = SyntheticField(t0_mono=time.monotonic() + 3600.0)  # GNSS never times out
-    recorder = SeedRecorder(settings, store, clock=lambda: field.t0_mono)
+    t0 = time.monotonic() + 3600.0  # the recorder's clock stays there: GNSS never times out
+    field = SyntheticField(t0_mono=t0)
+    recorder = SeedRecorder(settings, store, clock=lambda: t0)
     t = 0.0
     while t < SECONDS:
         t += 0.5  # one recorder flush
@@ -53,8 +54,8 @@ def _held_bytes_per_record(db: Path) -> tuple[int, float]:
     after = tracemalloc.get_traced_memory()[0]
     tracemalloc.stop()
     held = store.records_held
-    store._held.clear()  # noqa: SLF001 - not to be written: the figure is all we wanted
-    store._failing = False  # noqa: SLF001
+    store._held.clear()  # not to be written: the figure is all we wanted
+    store._failing = False
     store.close()
     return held, (after - before) / max(1, held)
 

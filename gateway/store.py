@@ -1044,7 +1044,8 @@ class RecordStore:
                 try:
                     if self._failing:
                         await asyncio.sleep(max(0.0, self._retry_at - time.monotonic()))
-                        while not self._drain_step():
+                        # a step per loop turn, so control runs between the chunks
+                        for _ in iter(self._drain_step, True):
                             await asyncio.sleep(0)
                         continue
                     if time.monotonic() - last_prune >= PRUNE_INTERVAL_S:
