@@ -18,7 +18,10 @@ import aiomqtt
 import pytest
 
 from gateway.alarms import AlarmBoard
+from gateway.config import parse_config
+from gateway.daemon import Daemon
 from gateway.mqtt_link import MqttLink
+from gateway.optional_parts import state_payload
 from gateway.recording_health import RecordingHealth
 from gateway.records import AlarmEvent, SeedDrop, drop_row
 from gateway.store import MAX_HELD_RECORDS, RecordStore, StoreError
@@ -233,3 +236,37 @@ async def test_the_store_alarm_reaches_mqtt_while_the_store_cannot_keep_it(
             t.cancel()
         await asyncio.gather(*tasks, listener, return_exceptions=True)
         store.close()
+
+
+def test_the_daemon_state_carries_the_held_and_lost_counts_and_both_alarms(
+    disk: Path | None,
+) -> None:
+    """What a dashboard sees in ``state`` while the card is full, without the store's help."""
+    if disk is None:
+        return
+    settings = parse_config({"gnss": {"enabled": True}, "seed_sensors": {"enabled": True},
+                             "mqtt": {"enabled": True}, "hmi": {"enabled": False}})
+    daemon = Daemon(settings, disk)
+    try:
+        store = daemon.components["store"]
+        health = daemon.components["recording_health"]
+        health.hold_s = 0.0
+        store.max_held_records = 3 * BATCH
+        fill(disk)
+        for k in range(5):
+            store.append_rows(rows(BATCH, k * BATCH))
+            with contextlib.suppress(StoreError):
+                store.flush()
+        health.check()
+        state = state_payload(daemon)
+        assert (state.records_held, state.records_lost) == (3 * BATCH, 2 * BATCH)
+        assert {a.code for a in state.alarms} >= {"records.store_failed", "records.lost"}
+        grow(disk)
+        store.retry()
+        health.check()
+        state = state_payload(daemon)
+        assert (state.records_held, state.records_lost) == (0, 2 * BATCH)
+        assert not {a.code for a in state.alarms} & {"records.store_failed", "records.lost"}
+    finally:
+        for close in daemon.closers:
+            close()
