@@ -604,8 +604,8 @@ class RecordStore:
     def retry(self) -> None:
         """Write everything held now, whatever the backoff says; StoreError if it still fails.
 
-        ``flush`` and ``run`` call this when the backoff allows; ``close`` and tests call it
-        directly.
+        ``flush`` and ``run`` retry a step at a time when the backoff allows; this is for a
+        stop (``close``, the end of ``run``) and for tests.
         """
         while not self._drain_step():
             pass
