@@ -30,6 +30,7 @@ BENCHMARKS = [
     ("bench_latency", "control latency"),
     ("bench_positioning", "seed position error (paper C)"),
     ("bench_store", "record store throughput"),
+    ("bench_held_records", "records held while the disk is full"),
     ("bench_mqtt", "MQTT outbox throughput, control latency under load, RSS/CPU"),
     ("bench_multichannel", "multi-channel metering (paper B)"),
 ]

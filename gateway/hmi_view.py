@@ -21,6 +21,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+# The screen has one alarm line: the most severe active alarm takes it (the oldest of those),
+# so "record store cannot write" is not hidden behind an older warning about the GNSS fix.
+_SEVERITY_ORDER = {"critical": 0, "warning": 1, "info": 2}
+
 DEFAULT_STATE_LABELS = {
     "stopped": "STOPPED",
     "pre_seed": "PRE-SEED",
@@ -91,14 +95,15 @@ class HmiAdapter:
         crop = snap["crop"]
         speed = snap["speed_kmh"]
         tilt = snap["tilt_deg"]
-        alarms = snap["alarms"]
+        alarms = snap["alarms"]  # oldest first
+        top = min(alarms, key=lambda a: _SEVERITY_ORDER.get(a["severity"], 3), default=None)
         return {
             o.speed: "--" if speed is None else f"{speed:.1f} km/h",
             o.tilt: "--" if tilt is None else f"{tilt:+.1f} deg",
             o.state: labels.get(snap["work_state"], snap["work_state"]),
             o.crop: self.section.crop_labels.get(crop, crop),
             o.rate: f"{snap['target_rate_kg_ha']:g} kg/ha",
-            o.alarm: alarms[0]["message"] if alarms else "",
+            o.alarm: top["message"] if top is not None else "",
             o.message: self.last_message,
         }
 

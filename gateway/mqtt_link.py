@@ -21,6 +21,7 @@ Design rules, in order of importance:
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import ssl
@@ -53,6 +54,9 @@ DISCONNECT_TIMEOUT_S = 3.0
 # State messages are at least this far apart (max 10 msg/s) however often it changes.
 STATE_MIN_GAP_S = 0.1
 ALARMS_PER_READ = 100
+# Alarm events the store could not keep (disk full) wait here to be published live; a bound
+# so an alarm flapping on a full disk cannot grow it without end (the oldest go first).
+MAX_LIVE_ALARMS = 256
 OFFLINE_PUBLISH_TIMEOUT_S = 2.0  # clean shutdown must not hang on a dead link
 ERROR_TEXT_MAX_CHARS = 500
 ACK_TEXT_MAX_CHARS = 500  # an OK ack's result message
@@ -133,6 +137,10 @@ class MqttLink:
         self._seeds_wake = asyncio.Event()
         self._alarms_wake = asyncio.Event()
         self._state_wake = asyncio.Event()
+        # alarm events published straight from the AlarmBoard, not from the store's outbox
+        self._live_alarms: collections.deque[AlarmEvent] = collections.deque(
+            maxlen=MAX_LIVE_ALARMS
+        )
         alarms.subscribe(self._on_alarm)
         store.add_commit_listener(self._on_commit)
         if store.on_backlog is None:
@@ -141,10 +149,19 @@ class MqttLink:
     # -- callbacks: called from the control loop, so they only enqueue ---------------------
 
     def _on_alarm(self, event: AlarmEvent) -> None:
+        """Store the event; if the store cannot commit it now, publish it live as well.
+
+        The alarm that says the disk is full is exactly the one the store cannot keep: it
+        goes out at once with id 0 ("not stored yet"), and again with its id once the store
+        has written it (consumers dedupe by id; a live event is a notice, not a record).
+        """
         try:
-            self.store.add_alarm(event)
+            stored = self.store.add_alarm(event)
         except StoreError:
             log.exception("cannot store alarm %s", event.code)
+            stored = event.model_copy(update={"id": 0, "machine_id": self.machine_id})
+        if stored.id == 0:
+            self._live_alarms.append(stored)
         self._alarms_wake.set()
         self._state_wake.set()  # the state lists the active alarms
 
@@ -326,6 +343,15 @@ class MqttLink:
         cursor = 0
         while True:
             self._alarms_wake.clear()
+            while self._live_alarms:  # first: they are about now, and the store lacks them
+                await client.publish(
+                    self.topics.alarms,
+                    self._live_alarms[0].model_dump_json().encode(),
+                    qos=1,
+                    timeout=self.publish_timeout_s,
+                )
+                self._live_alarms.popleft()
+                self.stats.alarms_published += 1
             events = self.store.pending_alarms(ALARMS_PER_READ, after_id=cursor)
             for event in events:  # one at a time: alarms are rare and order matters to readers
                 await client.publish(

@@ -49,6 +49,8 @@ def state_payload(daemon: Daemon) -> StatePayload:
     from gateway.payloads import ActiveAlarmInfo, StatePayload
 
     snap = daemon.snapshot()
+    store = snap.get("store") or {}
+    recorder = snap.get("seeds") or {}
     return StatePayload(
         machine_id=snap["machine_id"],
         utc=snap["utc"],
@@ -67,6 +69,8 @@ def state_payload(daemon: Daemon) -> StatePayload:
         alarms=[ActiveAlarmInfo(**a) for a in snap["alarms"]],
         area_ha=snap["area_ha"],
         seed_mass_kg=snap["seed_mass_kg"],
+        records_held=store.get("records_held", 0),
+        records_lost=store.get("records_lost", 0) + recorder.get("records_lost", 0),
     )
 
 

@@ -94,6 +94,14 @@ class StatePayload(_Payload):
     alarms: list[ActiveAlarmInfo] = Field(default_factory=list)
     area_ha: float = Field(0.0, ge=0, description="area worked since the counters were reset")
     seed_mass_kg: float = Field(0.0, ge=0, description="seed applied since the counters were reset")
+    records_held: int = Field(
+        0, ge=0, description="seed records the record store cannot write yet (disk full), "
+        "held in memory and written when space returns; 0 when the store is healthy",
+    )
+    records_lost: int = Field(
+        0, ge=0, description="seed records lost since the daemon started because the store "
+        "could not write them and its memory for held records was full",
+    )
 
     def same_as(self, other: StatePayload | None) -> bool:
         """Equal apart from the timestamp: decides whether a change must be published now."""

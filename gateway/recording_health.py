@@ -14,6 +14,11 @@ flap; it clears as soon as the condition is gone.
 | ``gnss.heading_invalid`` | info | recording, and no ambiguity-fixed dual-antenna heading |
 | ``seed_sensors.unavailable`` | warning | the seed-tube sensor port/chip is not being read |
 | ``records.store_failed`` | critical | seed records cannot be written or committed |
+| ``records.lost`` | critical | the store is failing and its memory for held records is full |
+
+The two record alarms need nothing from the store to reach the operator: they are raised on
+the ``AlarmBoard``, which the screen reads directly and the MQTT link publishes live when the
+store cannot keep them (``gateway.mqtt_link``).
 """
 
 from __future__ import annotations
@@ -74,6 +79,8 @@ class RecorderLike(Protocol):
 
     @property
     def store_error(self) -> str | None: ...
+    @property
+    def records_lost(self) -> int: ...
 
 
 class StoreLike(Protocol):
@@ -81,6 +88,12 @@ class StoreLike(Protocol):
 
     @property
     def commit_error(self) -> str | None: ...
+    @property
+    def records_held(self) -> int: ...
+    @property
+    def records_lost(self) -> int: ...
+    @property
+    def max_held_records(self) -> int: ...
 
 
 class RecordingHealth:
@@ -105,6 +118,7 @@ class RecordingHealth:
         self._clock = clock
         self.hold_s = hold_s
         self._bad_since: dict[str, float] = {}
+        self._lost_before = 0  # records lost before the current store failure
 
     def _set(
         self, code: str, bad: bool, message: str, severity: AlarmSeverity, now: float
@@ -163,9 +177,25 @@ class RecordingHealth:
         store_error = rec.store_error if rec is not None else None
         commit_error = store.commit_error if store is not None else None
         error = store_error or commit_error
-        # a stable message: one alarm event per failure, not one per tick of a growing count
+        held = store.records_held if store is not None else 0
+        cap = store.max_held_records if store is not None else 0
+        # an event when the failure starts and ends; the message (what the screen and
+        # state.alarms show) updates with the counts without one
         message = (
-            f"record store failing ({error}): seed records are held in memory, the oldest "
-            "are lost once the buffer is full"
+            f"record store cannot write ({error}): {held} seed records held in memory "
+            f"(room for {cap}), written when the disk has space again"
         )
         self._set("records.store_failed", error is not None, message, "critical", now)
+        lost = (store.records_lost if store is not None else 0) + (
+            rec.records_lost if rec is not None else 0
+        )
+        if error is None:
+            self._lost_before = lost
+        self._set(
+            "records.lost",
+            error is not None and lost > self._lost_before,
+            f"{lost - self._lost_before} seed records lost: the memory for records the store "
+            "cannot write is full",
+            "critical",
+            now,
+        )

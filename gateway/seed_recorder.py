@@ -98,7 +98,9 @@ class SeedRecorder:
         self.bad_edges = 0
         self.store_errors = 0
         self.store_error: str | None = None  # set while the store refuses records
-        self.records_lost = 0  # dropped because the store failed longer than the buffer lasts
+        # dropped because a sink that refuses rows (not RecordStore: it holds them itself)
+        # refused them longer than MAX_BUFFERED_DROPS lasts
+        self.records_lost = 0
         self.last_error: str | None = None
 
     # ------------------------------------------------------------ driver callbacks
@@ -185,8 +187,9 @@ class SeedRecorder:
     def _commit(self) -> None:
         """Commit now, in this burst, rather than wake again at the store's next tick.
 
-        A failed commit is the store's to retry and to report (its run loop keeps the rows in
-        the open transaction and raises the store alarm); the rows already have their ids.
+        A failed commit is the store's to retry and to report: it holds the rows in memory
+        under the ids they already have and retries with backoff (``gateway.store``), and
+        ``RecordingHealth`` raises records.store_failed from its ``commit_error``.
         """
         commit = getattr(self.store, "flush", None)
         if commit is None:

@@ -34,6 +34,14 @@ appended batch, about two a second, records its ids and its time span in ``seed_
 time-range queries and pruning read the ids from there. A store with the older per-seed index
 is converted when opened for writing (one span over its rows).
 
+Full disk. A write or a commit that fails (SQLITE_FULL: a failed COMMIT may roll the whole
+transaction back) loses nothing: the store keeps every row of the open transaction until its
+COMMIT succeeds, and after a failure holds them, and every row that follows, in memory under
+the ids already handed out (``records_held``), up to ``max_held_records``; past it new rows
+are counted in ``records_lost`` and get no id. It retries with capped backoff and writes the
+held rows with their ids once there is room, so the stored ids stay contiguous. Alarm events
+are held likewise; ``add_alarm`` then returns id 0 and the MQTT link publishes the event live.
+
 Space. Nothing undelivered is ever deleted; ``prune`` only removes delivered rows older than the
 retention. When the undelivered backlog passes ``backlog_alarm_records`` the ``on_backlog``
 callback says so (once per crossing), so an operator learns the link is down long before the
@@ -57,6 +65,7 @@ from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
+from drivers.backoff import Backoff
 from drivers.ticks import sleep_to_next_tick
 from gateway.errors import GatewayError
 from gateway.id_ranges import IdRanges
@@ -84,6 +93,22 @@ QUERY_CHUNK_ROWS = 5000  # rows fetched per step by query_seeds, so exports stre
 # link further behind than that reads SQLite, as after an outage.
 TAIL_MAX_ROWS = 10_000
 MAX_OUTBOX_LIMIT = 10_000  # one outbox read never materialises more than this many records
+# Seed records kept in memory while the store cannot write them (disk full, card gone
+# read-only): the rows of the failed commit and every row after them, in order, under the ids
+# they were given, until a retry writes them. A held record costs about 310 bytes of memory
+# (308 measured by benchmarks/bench_held_records.py), so the cap is about 74 MB, and at
+# 2 000 seeds/s it rides out a full disk for 240 000 / 2 000 = 120 s. Past it, new records
+# are counted in ``records_lost`` (state payload, records.lost alarm), never dropped
+# silently; they take no ids, so the stored ids stay contiguous.
+MAX_HELD_RECORDS = 240_000
+MAX_HELD_ALARMS = 1_000  # alarm events held likewise (alarms are rare); past it: alarms_lost
+# A write that failed is retried with capped exponential backoff: a full disk is not asked
+# twice a second (each attempt writes up to DRAIN_CHUNK_ROWS rows before it can fail), and a
+# disk that has room again is used within RETRY_MAX_S.
+RETRY_INITIAL_S = 0.5
+RETRY_MAX_S = 5.0
+# Held rows written per transaction once space is back: ~0.1 s of the event loop a step.
+DRAIN_CHUNK_ROWS = 20_000
 
 
 SCHEMA = """
@@ -157,6 +182,16 @@ def _insert_sql(rows: int) -> str:
     )
 
 
+@functools.cache
+def _insert_with_ids_sql(rows: int) -> str:
+    """For held rows written back: they keep the ids they were given when they came."""
+    return (
+        "INSERT INTO seeds (id, utc_us, row, lat, lon, fix, speed_kmh, heading_deg, "
+        "heading_source, extrapolated, method, spacing_m) VALUES "
+        + ",".join(["(?,?,?,?,?,?,?,?,?,?,?,?)"] * rows)
+    )
+
+
 def _fast_record(fields: dict[str, Any]) -> SeedRecord:
     """Build a SeedRecord from already-validated fields without re-validating.
 
@@ -193,6 +228,7 @@ class RecordStore:
         backlog_alarm_records: int = 200_000,
         on_backlog: BacklogCallback | None = None,
         readonly: bool = False,
+        max_held_records: int = MAX_HELD_RECORDS,
     ) -> None:
         self.path = Path(path)
         self.machine_id = machine_id
@@ -230,8 +266,25 @@ class RecordStore:
         # The outbox's in-memory tail: _tail[k] is the row of id _tail_first + k.
         self._tail: list[SeedRow] = []
         self._tail_first = self._last_seed_id + 1
-        self._uncommitted_seeds = 0
-        self._uncommitted_alarms = 0
+        # What the open transaction wrote: kept until its COMMIT succeeds, because a failed
+        # COMMIT on a full disk can roll the whole transaction back; the rows then go back
+        # to the front of the held rows, under the same ids.
+        self._tx_rows: list[SeedRow] = []  # ids _tx_first, _tx_first + 1, ...
+        self._tx_first = 0
+        self._tx_alarms: list[AlarmEvent] = []
+        # Written nowhere yet because the store is failing: ids _held_first, ... (seeds);
+        # alarms get theirs when written.
+        self._held: list[SeedRow] = []
+        self._held_first = 0
+        self._held_alarms: list[AlarmEvent] = []
+        self.max_held_records = max_held_records
+        self.records_lost = 0  # seed records past max_held_records while failing
+        self.alarms_lost = 0
+        self._failing = False  # a write failed: new rows are held until a retry succeeds
+        self._backoff = Backoff(initial_s=RETRY_INITIAL_S, cap_s=RETRY_MAX_S)
+        self._retry_at = 0.0
+        self.retries = 0  # attempts to write the held records (for tests and the log)
+        self._last_run_error = ""
         self._last_sync = time.monotonic()
         self._unsynced = False  # commits since the last fsync of the WAL
         self._work = asyncio.Event()  # set when a transaction opens: run() has work
@@ -239,7 +292,7 @@ class RecordStore:
         # checkpoint never stalls the event loop (and with it the control loop).
         self._ckpt_lock = threading.Lock()
         self._ckpt_db: sqlite3.Connection | None = None
-        # the last periodic commit's failure, None once one succeeds (read by the alarms)
+        # why writing fails, None once everything held is written (read by the alarms)
         self.commit_error: str | None = None
 
     @classmethod
@@ -381,9 +434,10 @@ class RecordStore:
         """Store drops and give them ids; they reach the outbox at the next ``flush``."""
         ids = self.append_seeds(drops)
         mid = self.machine_id
+        kept = drops[:len(ids)]  # past the held-records cap the newest got no id (lost)
         return [
             _fast_record({**d.__dict__, "id": i, "machine_id": mid})
-            for i, d in zip(ids, drops, strict=True)
+            for i, d in zip(ids, kept, strict=True)
         ]
 
     def append_seeds(self, drops: Sequence[SeedDrop]) -> range:
@@ -401,12 +455,39 @@ class RecordStore:
 
         The positioner hands the daemon's recorder rows, not ``SeedDrop`` objects; the values
         are the ones a ``SeedDrop`` would hold (the positioner checks them against its schema).
+
+        Never refuses rows because the disk is full: while writing fails they are held in
+        memory under the ids returned here and written by a later retry; past
+        ``max_held_records`` the newest are counted in ``records_lost`` and get no id (the
+        returned range is then shorter than ``rows``).
         """
         if not rows:
             return range(0)
+        if self.readonly:
+            raise StoreError("record store opened read-only")
+        if self._failing:
+            return self._hold(rows)
         self._begin()
-        # A savepoint so a failed insert (disk full) leaves no half batch behind ids we
-        # never returned.
+        try:
+            last = self._insert(rows)
+        except StoreError as exc:
+            self._write_failed(exc)
+            return self._hold(rows)
+        first = last - len(rows) + 1
+        if not self._tx_rows:
+            self._tx_first = first
+        self._tx_rows.extend(rows)
+        self._last_seed_id = last
+        self._remember(first, rows)
+        return range(first, last + 1)
+
+    def _insert(self, rows: Sequence[SeedRow], first_id: int | None = None) -> int:
+        """INSERT ``rows`` (and their span) in the open transaction; returns the last id.
+
+        With ``first_id`` the rows get ids ``first_id, first_id + 1, ...`` (held rows written
+        back), otherwise the next ones AUTOINCREMENT hands out. A savepoint, so a failed
+        insert (disk full) leaves no half batch behind.
+        """
         self._db.execute("SAVEPOINT add_seeds")
         try:
             # Multi-row INSERTs of a few fixed sizes (so the prepared statements are reused):
@@ -415,9 +496,17 @@ class RecordStore:
             i, n = 0, len(rows)
             for size in _INSERT_CHUNKS:
                 while n - i >= size:
-                    execute(_insert_sql(size), list(_chain(*rows[i:i + size])))
+                    if first_id is None:
+                        execute(_insert_sql(size), list(_chain(*rows[i:i + size])))
+                    else:
+                        execute(_insert_with_ids_sql(size), list(_chain.from_iterable(
+                            (first_id + k, *rows[k]) for k in range(i, i + size)
+                        )))
                     i += size
-            last = self._scalar("SELECT last_insert_rowid()")
+            if first_id is None:
+                last = self._scalar("SELECT last_insert_rowid()")
+            else:
+                last = first_id + n - 1
             times = list(map(_UTC_US, rows))
             execute(
                 "INSERT INTO seed_spans (first_id, last_id, min_utc_us, max_utc_us) "
@@ -425,15 +514,13 @@ class RecordStore:
             )
             self._db.execute("RELEASE add_seeds")
         except sqlite3.Error as exc:
-            self._db.execute("ROLLBACK TO add_seeds")
-            self._db.execute("RELEASE add_seeds")
+            if self._db.in_transaction:  # else SQLite rolled back the whole transaction
+                with contextlib.suppress(sqlite3.Error):
+                    self._db.execute("ROLLBACK TO add_seeds")
+                    self._db.execute("RELEASE add_seeds")
             raise StoreError(f"cannot write seed records: {exc}") from exc
         # One writer, one transaction: AUTOINCREMENT hands out a contiguous run ending at last.
-        first = last - len(rows) + 1
-        self._last_seed_id = last
-        self._uncommitted_seeds += len(rows)
-        self._remember(first, rows)
-        return range(first, last + 1)
+        return last
 
     def _remember(self, first: int, rows: Sequence[SeedRow]) -> None:
         """Keep the rows in the outbox's tail (bounded by ``TAIL_MAX_ROWS``)."""
@@ -447,9 +534,130 @@ class RecordStore:
             del tail[:excess]
             self._tail_first += excess
 
-    def add_alarm(self, event: AlarmEvent) -> AlarmEvent:
-        """Store an alarm event and commit at once: alarms are rare and must not wait."""
-        self._begin()
+    # -- holding what cannot be written ----------------------------------------------------
+
+    @property
+    def failing(self) -> bool:
+        """A write failed and records are held in memory until a retry succeeds."""
+        return self._failing
+
+    @property
+    def records_held(self) -> int:
+        """Seed records accepted but not written, waiting for the disk (0 when healthy)."""
+        return len(self._held) + (len(self._tx_rows) if self._failing else 0)
+
+    @property
+    def alarms_held(self) -> int:
+        return len(self._held_alarms) + (len(self._tx_alarms) if self._failing else 0)
+
+    def _hold(self, rows: Sequence[SeedRow]) -> range:
+        """Keep rows in memory under the next ids, up to ``max_held_records``; count the rest."""
+        room = max(0, self.max_held_records - self.records_held)
+        keep = rows[:room]
+        lost = len(rows) - len(keep)
+        if lost:
+            if not self.records_lost:
+                log.error(
+                    "record store: %d seed records held in memory (the cap); newer ones are "
+                    "lost and counted until the disk takes writes again", self.records_held,
+                )
+            self.records_lost += lost
+        if not keep:
+            return range(0)
+        first = self._last_seed_id + 1
+        if not self._held:
+            self._held_first = first
+        self._held.extend(keep)
+        self._last_seed_id += len(keep)
+        return range(first, first + len(keep))
+
+    def _hold_alarm(self, event: AlarmEvent) -> AlarmEvent:
+        if self.alarms_held >= MAX_HELD_ALARMS:
+            self.alarms_lost += 1
+        else:
+            self._held_alarms.append(event)
+        return event.model_copy(update={"id": 0, "machine_id": self.machine_id})
+
+    def _write_failed(self, exc: Exception) -> None:
+        """A write or a commit failed: keep everything it held and retry later, backing off."""
+        if self._in_tx and not self._db.in_transaction:
+            # SQLite rolled the whole transaction back: what it wrote goes back to memory,
+            # in front of what is held, under the same seed ids.
+            self._in_tx = False
+            if self._tx_rows:
+                self._held[:0] = self._tx_rows
+                self._held_first = self._tx_first
+            self._held_alarms[:0] = self._tx_alarms
+            self._tx_rows, self._tx_alarms = [], []
+            self._last_alarm_id = self._visible_alarm_id
+            self._acked_dirty.update(_TABLES)
+        self._forget_uncommitted_tail()
+        if not self._failing:
+            log.error(
+                "record store: writing failed (%s); seed records are held in memory (up to "
+                "%d) and written when the disk takes writes again", exc, self.max_held_records,
+            )
+        self._failing = True
+        self.commit_error = str(exc)
+        self._retry_at = time.monotonic() + self._backoff.next_delay()
+
+    def retry(self) -> None:
+        """Write everything held now, whatever the backoff says; StoreError if it still fails.
+
+        ``flush`` and ``run`` retry a step at a time when the backoff allows; this is for a
+        stop (``close``, the end of ``run``) and for tests.
+        """
+        while not self._drain_step():
+            pass
+
+    def _drain_step(self) -> bool:
+        """Commit what is open, then write up to ``DRAIN_CHUNK_ROWS`` held rows and commit.
+
+        Returns True once nothing is held any more (the store is healthy again).
+        """
+        if not self._failing:
+            self._commit()
+            return True
+        self.retries += 1
+        try:
+            self._commit()  # a transaction a failed COMMIT left open, or acknowledged ranges
+            if self._held or self._held_alarms:
+                self._write_held_chunk()
+                self._commit()
+        except StoreError as exc:  # already recorded by _commit or _write_held_chunk
+            raise StoreError(f"record store still cannot write: {exc}") from exc
+        if self._held or self._held_alarms:
+            return False
+        log.info(
+            "record store writes again after %d retries; every held record is stored%s",
+            self.retries, f" ({self.records_lost} were lost)" if self.records_lost else "",
+        )
+        self._failing = False
+        self.commit_error = None
+        self._backoff.reset()
+        return True
+
+    def _write_held_chunk(self) -> None:
+        """INSERT up to ``DRAIN_CHUNK_ROWS`` held rows (with their ids) and the held alarms."""
+        try:
+            self._begin()
+            if self._held:
+                n = min(len(self._held), DRAIN_CHUNK_ROWS)
+                chunk = self._held[:n]
+                first = self._held_first
+                self._insert(chunk, first_id=first)
+                self._tx_first, self._tx_rows = first, chunk
+                self._remember(first, chunk)
+                del self._held[:n]
+                self._held_first += n
+            while self._held_alarms:
+                self._insert_alarm(self._held_alarms[0])
+                self._tx_alarms.append(self._held_alarms.pop(0))
+        except (StoreError, sqlite3.Error) as exc:
+            self._write_failed(exc)
+            raise StoreError(str(exc)) from exc
+
+    def _insert_alarm(self, event: AlarmEvent) -> int:
         try:
             cur = self._db.execute(
                 "INSERT INTO alarms (utc_us, code, active, severity, message) VALUES (?,?,?,?,?)",
@@ -460,38 +668,65 @@ class RecordStore:
             )
         except sqlite3.Error as exc:
             raise StoreError(f"cannot write alarm: {exc}") from exc
-        alarm_id = int(cur.lastrowid or 0)
-        self._last_alarm_id = alarm_id
-        self._uncommitted_alarms += 1
-        self.flush()
+        self._last_alarm_id = int(cur.lastrowid or 0)
+        return self._last_alarm_id
+
+    def add_alarm(self, event: AlarmEvent) -> AlarmEvent:
+        """Store an alarm event and commit at once: alarms are rare and must not wait.
+
+        Returns the event with its id, or with id 0 if it could not be committed now (the
+        store is failing): it is then held and written, with an id, by a later retry.
+        """
+        if self.readonly:
+            raise StoreError("record store opened read-only")
+        if self._failing:
+            return self._hold_alarm(event)
+        self._begin()
+        try:
+            alarm_id = self._insert_alarm(event)
+        except StoreError as exc:
+            self._write_failed(exc)
+            return self._hold_alarm(event)
+        self._tx_alarms.append(event)
+        try:
+            self._commit()
+        except StoreError:
+            return event.model_copy(update={"id": 0, "machine_id": self.machine_id})
         return event.model_copy(update={"id": alarm_id, "machine_id": self.machine_id})
 
     def flush(self) -> None:
-        """Commit: from now on the new records survive a crash and the outbox can see them."""
+        """Commit: from now on the new records survive a crash and the outbox can see them.
+
+        While the store is failing this is one retry step (``DRAIN_CHUNK_ROWS`` held rows at
+        most, so a caller's burst stays short; ``run`` writes the rest) when the backoff
+        allows one, and nothing otherwise; StoreError when the attempt fails.
+        """
+        if self._failing:
+            if time.monotonic() >= self._retry_at:
+                self._drain_step()
+            return
+        self._commit()
+
+    def _commit(self) -> None:
         if not self._in_tx:
             return
         try:
             self._write_delivered()
             self._db.execute("COMMIT")
         except sqlite3.Error as exc:
-            if not self._db.in_transaction:  # SQLite rolled it all back: forget those rows
-                self._in_tx = False
-                self._last_seed_id = self._visible_seed_id
-                self._last_alarm_id = self._visible_alarm_id
-                self._uncommitted_seeds = self._uncommitted_alarms = 0
-                self._acked_dirty.update(_TABLES)
-            self._forget_uncommitted_tail()
+            self._write_failed(exc)
             raise StoreError(f"cannot commit records: {exc}") from exc
         self._in_tx = False
         self._unsynced = True  # in the WAL, not yet fsynced
-        new = self._uncommitted_seeds + self._uncommitted_alarms
-        self._visible_seed_id = self._last_seed_id
+        seeds, alarms = len(self._tx_rows), len(self._tx_alarms)
+        if seeds:
+            self._visible_seed_id = self._tx_first + seeds - 1
         self._visible_alarm_id = self._last_alarm_id
-        self._pending_seeds += self._uncommitted_seeds
-        self._pending_alarms += self._uncommitted_alarms
-        self._uncommitted_seeds = self._uncommitted_alarms = 0
+        self._pending_seeds += seeds
+        self._pending_alarms += alarms
+        self._tx_rows, self._tx_alarms = [], []
         self._check_backlog()
-        if new:
+        if seeds or alarms:
             for listener in self._commit_listeners:
                 listener()
 
@@ -506,10 +741,17 @@ class RecordStore:
         self._acked_dirty.clear()
 
     def _forget_uncommitted_tail(self) -> None:
-        """The tail may only hold committed rows: a failed commit may never become one."""
+        """The tail may only hold committed rows: a failed commit may never become one.
+
+        The forgotten rows may still be committed later (a COMMIT that failed but left the
+        transaction open, or held rows written back) without passing through ``_remember``
+        again, so the tail starts afresh after every id handed out: the outbox reads the
+        ids below it from SQLite, never a slice of the tail that does not hold them.
+        """
         keep = self._visible_seed_id - self._tail_first + 1
         if keep < len(self._tail):
-            del self._tail[max(0, keep):]
+            self._tail.clear()
+            self._tail_first = self._last_seed_id + 1
 
     def sync(self) -> None:
         """fsync the WAL (via a passive checkpoint): bounds what a power cut can take back."""
@@ -745,15 +987,31 @@ class RecordStore:
             deleted += step
         return deleted
 
+    def snapshot(self) -> dict[str, Any]:
+        """Plain data for the daemon's status and state payload: what is held, what was lost."""
+        return {
+            "failing": self._failing,
+            "error": self.commit_error,
+            "records_held": self.records_held,
+            "records_lost": self.records_lost,
+            "alarms_held": self.alarms_held,
+            "alarms_lost": self.alarms_lost,
+            "retries": self.retries,
+            "backlog": self.backlog(),
+        }
+
     def integrity_check(self) -> str:
         return str(self._db.execute("PRAGMA integrity_check").fetchone()[0])
 
     def close(self) -> None:
         if not self.readonly:
             try:
-                self.flush()
+                self.retry()  # a last attempt for anything held, whatever the backoff says
             except StoreError:
-                log.exception("record store: final commit failed")
+                log.exception(
+                    "record store: final commit failed; %d seed records and %d alarms held "
+                    "in memory are lost with this stop", self.records_held, self.alarms_held,
+                )
         with self._ckpt_lock:
             if self._ckpt_db is not None:
                 self._ckpt_db.close()
@@ -772,6 +1030,9 @@ class RecordStore:
         Pruning at start too: a box switched off every evening would otherwise never run an
         hour and never prune. The backlog is checked at start as well, so a restart with a
         large unsent backlog and the broker down still raises the backlog alarm.
+
+        While writing fails (``failing``) it retries with capped backoff until the held
+        records are all written, ``DRAIN_CHUNK_ROWS`` a step so the event loop keeps running.
         """
         last_prune = time.monotonic() - PRUNE_INTERVAL_S
         self._check_backlog()
@@ -781,6 +1042,12 @@ class RecordStore:
         try:
             while True:
                 try:
+                    if self._failing:
+                        await asyncio.sleep(max(0.0, self._retry_at - time.monotonic()))
+                        # a step per loop turn, so control runs between the chunks
+                        for _ in iter(self._drain_step, True):
+                            await asyncio.sleep(0)
+                        continue
                     if time.monotonic() - last_prune >= PRUNE_INTERVAL_S:
                         last_prune = time.monotonic()
                         await self._prune_in_steps(utcnow())
@@ -797,22 +1064,23 @@ class RecordStore:
                     # with it, so this tick usually finds nothing left but the fsync
                     await sleep_to_next_tick(self.commit_interval_s)
                     self.flush()
-                    self.commit_error = None
                     now = time.monotonic()
                     if self._unsynced and now - self._last_sync >= SYNC_INTERVAL_S:
                         self._last_sync = now
                         self._unsynced = False
                         await asyncio.to_thread(self._checkpoint)
                 except (StoreError, sqlite3.Error) as exc:
-                    # Keep the daemon running (control must go on); the records stay in the
-                    # open transaction and are retried at the next tick.
-                    if self.commit_error is None:
-                        log.exception("record store: commit failed, retrying")
-                    self.commit_error = str(exc)
-                    await sleep_to_next_tick(self.commit_interval_s)
+                    # Keep the daemon running (control must go on). A failed write has put
+                    # the store in ``failing`` (its records held, retried above with
+                    # backoff); anything else (a checkpoint) is retried at the next tick.
+                    if not self._failing:
+                        if str(exc) != self._last_run_error:
+                            log.warning("record store: %s; retrying", exc)
+                        self._last_run_error = str(exc)
+                        await sleep_to_next_tick(self.commit_interval_s)
         finally:
             self._db.execute("PRAGMA wal_autocheckpoint=1000")
             try:  # a stop commits here, as soon as the recorder has stored its last seeds
-                self.flush()
+                self.retry()
             except StoreError:
                 log.exception("record store: commit on stop failed")

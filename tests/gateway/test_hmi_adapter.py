@@ -34,3 +34,18 @@ async def test_hmi_write_timeout_from_the_config_is_what_the_link_waits(tmp_path
         finally:
             await cancel_and_wait(task)
     assert 1.8 <= waited < 4.0
+
+
+def test_the_alarm_line_shows_the_most_severe_alarm_not_the_oldest(tmp_path: Path) -> None:
+    """A full disk (critical) must not hide behind an older warning on the one alarm line."""
+    with PtyPair() as pair:
+        daemon = Daemon(parse_config({"hmi": {"port": pair.device_path}}), tmp_path / "state")
+        assert daemon.hmi is not None
+        line = daemon.settings.hmi.objects.alarm
+        daemon.alarms.raise_("gnss.not_rtk_fixed", "GNSS fix is rtk_float", "warning")
+        assert daemon.hmi.screen_texts()[line] == "GNSS fix is rtk_float"
+        daemon.alarms.raise_("records.store_failed", "record store cannot write", "critical")
+        daemon.alarms.raise_("gnss.heading_invalid", "no dual-antenna heading", "info")
+        assert daemon.hmi.screen_texts()[line] == "record store cannot write"
+        daemon.alarms.clear("records.store_failed")
+        assert daemon.hmi.screen_texts()[line] == "GNSS fix is rtk_float"

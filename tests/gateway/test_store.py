@@ -513,22 +513,71 @@ class _CommitFailsAndRollsBack:
         return getattr(self._db, name)
 
 
-def test_rows_of_a_failed_commit_are_never_published(store: RecordStore) -> None:
-    """The outbox's memory holds committed rows only: after a rolled-back commit the ids are
-    handed out again, and the outbox shows the new rows under them, never the lost ones."""
+def test_rows_of_a_rolled_back_commit_are_kept_and_published_only_once_committed(
+    store: RecordStore,
+) -> None:
+    """The outbox's memory holds committed rows only: after a rolled-back commit the rows are
+    held (not published, not lost) and written by the retry under the ids they were given,
+    ahead of the rows that came after them."""
     real = store._db
     failing = _CommitFailsAndRollsBack(real)
     store._db = failing  # type: ignore[assignment]
-    store.append_seeds(drops(3, row=1))
+    first = store.append_seeds(drops(3, row=1))
     with pytest.raises(StoreError, match="disk is full"):
         store.flush()
     assert store.pending_seeds(10) == [] and store.backlog() == 0
+    assert store.records_held == 3 and store.failing
+    again = store.append_seeds(drops(3, row=7))  # held too, behind them
+    assert list(first) == [1, 2, 3] and list(again) == [4, 5, 6]
     failing.fail = False
-    again = store.append_seeds(drops(3, row=7))
+    store.retry()
+    assert [(r.id, r.row) for r in store.pending_seeds(10)] == [
+        (1, 1), (2, 1), (3, 1), (4, 7), (5, 7), (6, 7)
+    ]
+    assert store.backlog() == 6 and store.records_held == 0 and not store.failing
+    assert store.commit_error is None
+    store._db = real
+
+
+class _CommitFailsAndKeepsTheTransaction(_CommitFailsAndRollsBack):
+    """A COMMIT that fails but leaves the transaction open (SQLite may do either)."""
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        if sql == "COMMIT" and self.fail:
+            raise sqlite3.OperationalError("database or disk is full")
+        return self._db.execute(sql, *args)
+
+
+def test_rows_of_a_commit_that_failed_but_stayed_open_reach_the_outbox_intact(
+    store: RecordStore,
+) -> None:
+    """Rows the outbox had in memory, dropped when their commit failed, are read back from
+    SQLite once the commit succeeds: every id comes with its own row."""
+    store.append_seeds(drops(4, row=2))
     store.flush()
-    assert list(again) == [1, 2, 3]
-    assert [r.row for r in store.pending_seeds(10)] == [7, 7, 7]
-    assert store.backlog() == 3
+    real = store._db
+    failing = _CommitFailsAndKeepsTheTransaction(real)
+    store._db = failing  # type: ignore[assignment]
+    store.append_seeds(drops(3, row=5))  # ids 5-7, in the transaction that cannot commit
+    with pytest.raises(StoreError, match="disk is full"):
+        store.flush()
+    assert store.records_held == 3
+    failing.fail = False
+    store.retry()
+    assert [(r.id, r.row) for r in store.pending_seeds(100)][4:] == [(5, 5), (6, 5), (7, 5)]
+    failing.fail = True
+    store.append_seeds(drops(2, row=9))  # ids 8-9: fail to commit again, then held
+    with pytest.raises(StoreError, match="disk is full"):
+        store.flush()
+    failing.fail = False
+    store.retry()
+    got = [(r.id, r.row) for r in store.pending_seeds(100)]
+    assert got == [(1, 2), (2, 2), (3, 2), (4, 2), (5, 5), (6, 5), (7, 5), (8, 9), (9, 9)]
+    batch = store.pending_seed_batch(100)
+    assert batch is not None and batch.ids == list(range(1, 10))
+    assert [r.row for r in SeedBatch.model_validate_json(batch.payload).records] == [
+        2, 2, 2, 2, 5, 5, 5, 9, 9
+    ]
     store._db = real
 
 

@@ -10,7 +10,7 @@ from tests.integration.test_recording_end_to_end import eventually, recording_ma
 
 RECORDING_ALARMS = {
     "gnss.unavailable", "gnss.not_rtk_fixed", "gnss.heading_invalid",
-    "seed_sensors.unavailable", "records.store_failed",
+    "seed_sensors.unavailable", "records.store_failed", "records.lost",
 }
 
 
