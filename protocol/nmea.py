@@ -145,13 +145,11 @@ def split_nmea(line: str) -> tuple[str, str, list[str]]:
     if len(line) > MAX_NMEA_LINE_CHARS:
         # The limit guards the sentences we decode; a long one we do not use (a proprietary
         # $PQTM..., a $GNGSV from a busy sky) is simply not ours, like its shorter siblings.
-        address = line[1:].split(",", 1)[0]
-        match = _ADDRESS.match(address)
+        name = line[1:].split(",", 1)[0]
+        match = _ADDRESS.match(name)
         ours = match is not None and match.group("msg") in SUPPORTED_SENTENCES
-        if address.isalnum() and address.isascii() and not ours:
-            raise UnknownSentenceError(
-                f"unknown sentence {address} ({len(line)} characters)", address
-            )
+        if name.isalnum() and name.isascii() and not ours:
+            raise UnknownSentenceError(f"unknown sentence {name} ({len(line)} characters)", name)
         raise FrameError(f"line too long: {len(line)} > {MAX_NMEA_LINE_CHARS} characters")
     trailer = _TRAILER.search(line)
     if trailer is None:
