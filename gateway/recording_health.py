@@ -13,6 +13,9 @@ flap; it clears as soon as the condition is gone.
 | ``gnss.not_rtk_fixed`` | warning | recording, and the fix is RTK float, DGPS or single |
 | ``gnss.heading_invalid`` | info | recording, and no ambiguity-fixed dual-antenna heading |
 | ``seed_sensors.unavailable`` | warning | the seed-tube sensor port/chip is not being read |
+| ``seed_sensors.implausible_rate`` | warning | a row's edges came faster than \
+``seed_sensors.max_seeds_per_s_per_row`` (they are counted, not stored), and for \
+``IMPLAUSIBLE_CLEAR_AFTER_S`` after |
 | ``records.store_failed`` | critical | seed records cannot be written or committed |
 """
 
@@ -26,6 +29,9 @@ from gateway.alarms import AlarmBoard
 from gateway.records import AlarmSeverity
 
 HOLD_S = 1.0
+# seed_sensors.implausible_rate stays up this long after the last implausible edge, so a
+# burst shorter than a flush interval is still seen on the screen and on MQTT
+IMPLAUSIBLE_CLEAR_AFTER_S = 5.0
 
 
 class _GnssStats(Protocol):
@@ -74,6 +80,8 @@ class RecorderLike(Protocol):
 
     @property
     def store_error(self) -> str | None: ...
+
+    def implausible_rows(self, within_s: float) -> list[int]: ...
 
 
 class StoreLike(Protocol):
@@ -160,6 +168,16 @@ class RecordingHealth:
                 now,
             )
         rec, store = self.recorder, self.store
+        if rec is not None:
+            rows = rec.implausible_rows(IMPLAUSIBLE_CLEAR_AFTER_S)
+            self._set(
+                "seed_sensors.implausible_rate",
+                bool(rows),
+                f"seed edges on row(s) {', '.join(map(str, rows))} faster than a seed meter "
+                "can drop seeds (sensor or module fault): counted, not stored as seeds",
+                "warning",
+                now,
+            )
         store_error = rec.store_error if rec is not None else None
         commit_error = store.commit_error if store is not None else None
         error = store_error or commit_error
