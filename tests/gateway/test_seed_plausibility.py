@@ -2,14 +2,30 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import os
 import random
+import time
+from collections.abc import AsyncIterator
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.gnss_reader import GnssEpoch
+from drivers.seed_sensors import SeedEdgeEvent, SerialSeedSensors
+from drivers.tasks import cancel_and_wait
+from gateway.alarms import AlarmBoard
+from gateway.config import parse_config
 from gateway.config.recording import DEFAULT_MAX_SEEDS_PER_S_PER_ROW
+from gateway.recording_health import RecordingHealth
 from gateway.seed_plausibility import WINDOW_S, SeedRatePlausibility
+from gateway.seed_recorder import SeedRecorder
+from gateway.store import RecordStore
+from simulator.pty_link import PtyPair
 
 
 def _feed(
@@ -102,3 +118,101 @@ def test_no_interval_ever_keeps_more_than_the_limit_allows(
 def test_a_non_positive_limit_is_refused() -> None:
     with pytest.raises(ValueError, match="max_per_s"):
         SeedRatePlausibility(0.0)
+
+
+# ---- over a real pty: the edge-capture module's UART, the driver, the recorder, the store ----
+
+PTY_ROWS = 48
+
+
+@contextlib.asynccontextmanager
+async def _recording(tmp_path: Path) -> AsyncIterator[tuple[PtyPair, SeedRecorder, AlarmBoard]]:
+    """Serial seed sensors on a pty feeding a recorder and its store, 10 Hz GNSS epochs of a
+    drive at 16 km/h, and RecordingHealth checking every 50 ms, until the block ends."""
+    settings = parse_config({"machine": {"rows": PTY_ROWS, "working_width_m": 36.0}})
+    store = RecordStore(tmp_path / "records.sqlite3", "seeder-01")
+    alarms = AlarmBoard()
+    recorder = SeedRecorder(settings, store)
+    health = RecordingHealth(alarms, recorder=recorder)
+    start = time.monotonic()
+
+    async def receiver() -> None:
+        while True:
+            now = time.monotonic()
+            recorder.on_epoch(GnssEpoch(
+                utc=datetime(2026, 4, 20, 8, tzinfo=UTC) + timedelta(seconds=now - start),
+                t_mono=now, lat=52.0, lon=13.0 + (now - start) * 6.5e-5, alt_m=40.0,
+                fix="rtk_fixed", speed_kmh=16.0, course_deg=90.0, heading_deg=90.0,
+                heading_valid=True, num_sv=24,
+            ))
+            health.check()
+            await asyncio.sleep(0.05)
+
+    with PtyPair(tmp_path / "ttySEED") as pair:
+        sensors = SerialSeedSensors(
+            pair.device_path, 115200, PTY_ROWS, lambda event: recorder.on_edge(event)
+        )
+        tasks = [asyncio.create_task(t) for t in (sensors.run(), recorder.run(), receiver())]
+        try:
+            deadline = time.monotonic() + 5.0
+            while not sensors.available:
+                assert time.monotonic() < deadline, "seed sensor port never opened"
+                await asyncio.sleep(0.01)
+            yield pair, recorder, alarms
+        finally:
+            for task in tasks:  # the sensors hand over, then the recorder stores everything
+                await cancel_and_wait(task)
+            store.close()
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        try:
+            view = view[os.write(fd, view) :]
+        except BlockingIOError:
+            time.sleep(0.001)
+
+
+async def test_a_burst_of_200000_lines_over_a_pty_stores_only_what_a_row_can_drop(
+    tmp_path: Path,
+) -> None:
+    arrivals: list[float] = []
+    async with _recording(tmp_path) as (pty, recorder, alarms):
+        on_edge = recorder.on_edge
+
+        def stamped(event: SeedEdgeEvent) -> None:
+            arrivals.append(event.t_mono)
+            on_edge(event)
+
+        recorder.on_edge = stamped  # type: ignore[method-assign]
+        await asyncio.to_thread(_write_all, pty.master_fd, b"D,1\r\n" * 200_000)
+        deadline = time.monotonic() + 60.0
+        while len(arrivals) < 200_000 or "seed_sensors.implausible_rate" not in {
+            a.code for a in alarms.active
+        }:
+            assert time.monotonic() < deadline, f"{len(arrivals)} edges, alarms {alarms.active}"
+            await asyncio.sleep(0.05)
+        alarm = next(a for a in alarms.active if a.code == "seed_sensors.implausible_rate")
+        assert "row(s) 1 " in alarm.message
+    span = max(arrivals) - min(arrivals)
+    dropped = recorder.plausibility.implausible_total
+    assert recorder.records_stored <= DEFAULT_MAX_SEEDS_PER_S_PER_ROW * (span + WINDOW_S)
+    assert recorder.records_stored + dropped == 200_000  # every edge stored or counted
+    assert recorder.plausibility.implausible == {1: dropped}
+    assert recorder.snapshot()["rows"][1]["implausible_edges"] == dropped
+
+
+async def test_2100_seeds_per_second_on_48_rows_over_a_pty_are_all_stored(
+    tmp_path: Path,
+) -> None:
+    seconds, per_tick = 3.0, 21  # 21 lines every 10 ms: 2 100 seeds/s, 43.75 a row
+    lines = [f"D,{1 + k % PTY_ROWS}\r\n".encode() for k in range(int(2100 * seconds))]
+    async with _recording(tmp_path) as (pty, recorder, alarms):
+        for i in range(0, len(lines), per_tick):
+            os.write(pty.master_fd, b"".join(lines[i : i + per_tick]))
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.6)  # the last lines reach the recorder's queue
+        assert alarms.active == []
+    assert recorder.plausibility.implausible_total == 0
+    assert recorder.records_stored == len(lines)
