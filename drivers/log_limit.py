@@ -93,8 +93,9 @@ class RateLimitedLog:
     def flush(self) -> None:
         """Write what was held back for keys whose interval has passed, with the count.
 
-        Without this a storm's tail would only be reported when the same key next occurs,
-        which may be never; the daemon's periodic rejection summary calls it."""
+        Without it a storm's tail is only reported when the same key next occurs, which may
+        be never; the totals are in the daemon's periodic summary (gateway.rejected_input)
+        either way, so calling this is for owners that want the tail in their own words."""
         now = self._clock()
         for state in self._keys.values():
             if state.held_back and now - state.logged_at >= self.interval_s:
