@@ -216,3 +216,22 @@ async def test_2100_seeds_per_second_on_48_rows_over_a_pty_are_all_stored(
         assert alarms.active == []
     assert recorder.plausibility.implausible_total == 0
     assert recorder.records_stored == len(lines)
+
+
+def test_gpio_edges_with_kernel_stamps_meet_the_same_limit(tmp_path: Path) -> None:
+    from drivers.seed_sensors import GpioSeedSensors
+    from tests.drivers.test_seed_sensors import FakeChip, falling
+
+    store = RecordStore(tmp_path / "records.sqlite3", "seeder-01")
+    try:
+        recorder = SeedRecorder(parse_config({"machine": {"rows": 2}}), store)
+        gpio = GpioSeedSensors("chip", [5, 6], 0.0, recorder.on_edge, request_factory=FakeChip())
+        noise = [falling(5, 100.0 + k * 1e-5) for k in range(5000)]  # 5 000 edges in 50 ms
+        seeds = [falling(6, 100.0 + k / 40.0) for k in range(10)]
+        gpio.handle_events(sorted(noise + seeds, key=lambda e: e.timestamp_ns))
+        recorder._position_queued()
+        kept_row1 = 5000 - recorder.plausibility.implausible[1]
+        assert DEFAULT_MAX_SEEDS_PER_S_PER_ROW <= kept_row1 <= DEFAULT_MAX_SEEDS_PER_S_PER_ROW + 11
+        assert recorder.plausibility.implausible.get(2, 0) == 0
+    finally:
+        store.close()
