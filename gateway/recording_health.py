@@ -5,7 +5,9 @@ The GNSS reader, the seed-sensor source and the recorder keep going through ever
 reconnect, extrapolate, retry the store) and count what happened; without these alarms the
 only trace would be the journal, read after the field is sown. Each condition must hold for
 ``hold_s`` before it is raised, so the ports opening at start-up or a single late epoch do not
-flap; it clears as soon as the condition is gone.
+flap; it clears as soon as the condition is gone (``seed_sensors.implausible_rate``:
+``IMPLAUSIBLE_CLEAR_AFTER_S`` after the last edge beyond ``seed_sensors.
+max_seeds_per_s_per_row``, so a short burst is still seen).
 
 | code | severity | raised while |
 |---|---|---|
@@ -13,9 +15,7 @@ flap; it clears as soon as the condition is gone.
 | ``gnss.not_rtk_fixed`` | warning | recording, and the fix is RTK float, DGPS or single |
 | ``gnss.heading_invalid`` | info | recording, and no ambiguity-fixed dual-antenna heading |
 | ``seed_sensors.unavailable`` | warning | the seed-tube sensor port/chip is not being read |
-| ``seed_sensors.implausible_rate`` | warning | a row's edges came faster than \
-``seed_sensors.max_seeds_per_s_per_row`` (they are counted, not stored), and for \
-``IMPLAUSIBLE_CLEAR_AFTER_S`` after |
+| ``seed_sensors.implausible_rate`` | warning | edges beyond a row's plausible rate (not stored) |
 | ``records.store_failed`` | critical | seed records cannot be written or committed |
 """
 
