@@ -127,6 +127,7 @@ class RecordingHealth:
 
     def check(self) -> None:
         now = self._clock()
+        self._check_seed_rate(now)
         recording = self.recorder is not None
         gnss = self.gnss
         if gnss is not None:
@@ -168,16 +169,6 @@ class RecordingHealth:
                 now,
             )
         rec, store = self.recorder, self.store
-        if rec is not None:
-            rows = rec.implausible_rows(IMPLAUSIBLE_CLEAR_AFTER_S)
-            self._set(
-                "seed_sensors.implausible_rate",
-                bool(rows),
-                f"seed edges on row(s) {', '.join(map(str, rows))} faster than a seed meter "
-                "can drop seeds (sensor or module fault): counted, not stored as seeds",
-                "warning",
-                now,
-            )
         store_error = rec.store_error if rec is not None else None
         commit_error = store.commit_error if store is not None else None
         error = store_error or commit_error
@@ -187,3 +178,18 @@ class RecordingHealth:
             "are lost once the buffer is full"
         )
         self._set("records.store_failed", error is not None, message, "critical", now)
+
+    def _check_seed_rate(self, now: float) -> None:
+        """``seed_sensors.implausible_rate`` while rows get edges beyond their plausible rate
+        (``gateway.seed_plausibility``), naming them."""
+        if self.recorder is None:
+            return
+        rows = self.recorder.implausible_rows(IMPLAUSIBLE_CLEAR_AFTER_S)
+        self._set(
+            "seed_sensors.implausible_rate",
+            bool(rows),
+            f"seed edges on row(s) {', '.join(map(str, rows))} faster than a seed meter can "
+            "drop seeds (sensor or module fault): counted, not stored as seeds",
+            "warning",
+            now,
+        )
