@@ -30,8 +30,9 @@ from serial_asyncio_fast import open_serial_connection
 
 from drivers.backoff import Backoff
 from drivers.errors import DeviceUnavailable
+from drivers.log_limit import RateLimitedLog
 from drivers.tasks import cancel_and_wait
-from protocol.gnss import GnssEvent, GnssLineDecoder, Rejected
+from protocol.gnss import REASON_UNKNOWN, GnssEvent, GnssLineDecoder, Rejected
 from protocol.nmea import Gga, Hdt, Rmc, Ths, Vtg
 from protocol.unicore import GPS_UTC_LEAP_S, Heading
 
@@ -44,6 +45,7 @@ DAY_MS: Final = 86_400_000
 DEFAULT_REQUIRED: Final = frozenset({"RMC", "GGA", "HEADING"})
 EPOCH_MAX_WAIT_S: Final = 0.3  # an open epoch older than this is emitted when the line is quiet
 SILENCE_RECONNECT_S: Final = 5.0  # no byte for this long: reopen the port (adapter wedged)
+LOG_EVERY_S: Final = 10.0  # at most one warning per rejection reason per this interval
 
 # GGA quality indicator -> fix. 3 (PPS) counts as single; 6 (dead reckoning), 7 (manual) and
 # 8 (simulator) are not measurements of where we are; 9 is SBAS on some firmwares.
@@ -270,12 +272,15 @@ def _build_epoch(p: _Partial, utc: datetime, heading_offset_deg: float = 0.0) ->
 @dataclass(frozen=True)
 class GnssStats:
     sentences_ok: int
-    rejected: dict[str, int]  # per reason, see protocol.gnss REASON_*
+    rejected: dict[str, int]  # lines per reason, see protocol.gnss REASON_*
     epochs: int
     late: int
     reconnects: int
     connected: bool
     last_error: str | None
+    # bytes dropped from lines longer than protocol.gnss.MAX_LINE_BYTES (binary output on the
+    # port); each such line is also one "overlong" in ``rejected``
+    discarded_bytes: int = 0
 
 
 class GnssReader:
@@ -314,6 +319,7 @@ class GnssReader:
         self._last_error: str | None = None
         self.latest: GnssEpoch | None = None
         self.last_rejected: Rejected | None = None
+        self._log = RateLimitedLog(log, LOG_EVERY_S, clock=clock)
 
     # -- state for the rest of the daemon ----------------------------------------------------
 
@@ -343,6 +349,7 @@ class GnssReader:
             reconnects=max(0, self._connects - 1),
             connected=self._connected,
             last_error=self._last_error,
+            discarded_bytes=self._decoder.discarded_bytes,
         )
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -427,7 +434,13 @@ class GnssReader:
         for item in items:
             if isinstance(item, Rejected):
                 self.last_rejected = item
-                log.debug("GNSS line rejected (%s): %s", item.reason, item.detail)
+                if item.reason == REASON_UNKNOWN:  # sentences we do not use: normal traffic
+                    log.debug("GNSS line skipped (%s): %s", item.reason, item.detail)
+                else:  # counted per reason in ``stats``, summarised by the daemon
+                    self._log.warning(
+                        item.reason, "GNSS line on %s rejected (%s): %s: %r",
+                        self.port, item.reason, item.detail, item.line,
+                    )
                 continue
             self._deliver(self._assembler.add(item, t_mono))
 

@@ -13,12 +13,13 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import serial
 import serial_asyncio_fast
 
 from drivers.backoff import Backoff
+from drivers.log_limit import RateLimitedLog
 from protocol.hmi import (
     HmiDecoder,
     HmiEvent,
@@ -46,6 +47,8 @@ LOG_EVERY_S = 10.0  # at most one warning per kind per this interval under a sto
 class HmiLinkStats:
     frames_ok: int = 0  # valid commands delivered
     rejected: int = 0  # garbage runs and invalid frames
+    # the same, per kind (protocol.hmi KIND_*: garbage, bad_trailer, unknown_function, ...)
+    rejected_by_reason: dict[str, int] = field(default_factory=dict)
     screen_errors: int = 0  # Nextion error replies to our instructions
     connects: int = 0  # successful port opens
     reconnects: int = 0  # attempts to reopen after a failure or a loss
@@ -54,31 +57,6 @@ class HmiLinkStats:
     writes: int = 0  # instructions written
     dropped_writes: int = 0  # instructions dropped (disconnected, backlog, timeout)
     callback_errors: int = 0  # on_event raised; logged and ignored
-
-
-class _RateLimitedLog:
-    """Log the first occurrence, then at most one line per interval with a suppressed count."""
-
-    def __init__(self, interval_s: float = LOG_EVERY_S) -> None:
-        self._interval_s = interval_s
-        self._last: dict[str, float] = {}
-        self._suppressed: dict[str, int] = {}
-
-    def warning(self, key: str, msg: str, *args: object) -> None:
-        now = time.monotonic()
-        last = self._last.get(key)
-        if last is not None and now - last < self._interval_s:
-            self._suppressed[key] = self._suppressed.get(key, 0) + 1
-            log.debug(msg, *args, stacklevel=2)
-            return
-        self._last[key] = now
-        skipped = self._suppressed.pop(key, 0)
-        suffix = f" ({skipped} similar suppressed)" if skipped else ""
-        log.warning(msg + suffix, *args, stacklevel=2)
-
-    def reset(self, key: str) -> None:
-        self._last.pop(key, None)
-        self._suppressed.pop(key, None)
 
 
 class HmiLink:
@@ -100,6 +78,7 @@ class HmiLink:
         reconnect_max_s: float = 5.0,
         idle_flush_s: float = IDLE_FLUSH_S,
         backoff: Backoff | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         "".encode(encoding)  # an unknown codec should fail here, at start-up, not per update
         self.port = port
@@ -111,7 +90,7 @@ class HmiLink:
         self._backoff = backoff or Backoff(initial_s=0.1, cap_s=reconnect_max_s)
         self._writer: asyncio.StreamWriter | None = None
         self._ever_connected = False
-        self._log = _RateLimitedLog()
+        self._log = RateLimitedLog(log, LOG_EVERY_S, clock=clock)
         self.stats = HmiLinkStats()
         self.last_screen_error: ScreenError | None = None
 
@@ -192,8 +171,10 @@ class HmiLink:
                 continue
             if isinstance(event, Rejected):
                 self.stats.rejected += 1
+                by_reason = self.stats.rejected_by_reason
+                by_reason[event.kind] = by_reason.get(event.kind, 0) + 1
                 self._log.warning(
-                    "rejected",
+                    f"rejected:{event.kind}",
                     "HMI on %s sent bad input: %s (%s)",
                     self.port,
                     event.reason,

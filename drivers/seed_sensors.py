@@ -31,7 +31,7 @@ import logging
 import select
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Protocol
 
 from serial import SerialException
@@ -39,6 +39,7 @@ from serial_asyncio_fast import open_serial_connection
 
 from drivers.backoff import Backoff
 from drivers.errors import DeviceUnavailable
+from drivers.log_limit import RateLimitedLog
 from drivers.ticks import next_tick
 from protocol.seed_line import Rejected, SeedLineDecoder
 
@@ -71,6 +72,9 @@ GPIO_MAX_WAIT_S = 0.15
 # sequence numbers and are counted (SeedSensorStats.lost) and logged.
 GPIO_EVENT_BUFFER = 1024
 DRAIN_TIMEOUT_S = 0.3
+LOG_EVERY_S = 10.0  # at most one warning per rejection kind per this interval
+# the rejection kind of a GPIO event on a line no row was configured for
+KIND_UNKNOWN_LINE = "unknown_line"
 
 
 class SeedEdgeEvent(NamedTuple):
@@ -87,6 +91,8 @@ class SeedEdgeEvent(NamedTuple):
 class SeedSensorStats:
     edges: int = 0
     rejected: int = 0  # lines that did not decode (serial) / events for unknown lines (gpio)
+    # the same per kind: protocol.seed_line KIND_* (serial), KIND_UNKNOWN_LINE (gpio)
+    rejected_by_reason: dict[str, int] = field(default_factory=dict)
     debounced: int = 0  # edges dropped as bounce
     lost: int = 0  # edges the kernel dropped because its queue was full (gpio)
     connects: int = 0
@@ -150,6 +156,7 @@ class SerialSeedSensors:
         self._backoff = backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0)
         self._connected = False
         self._stats = SeedSensorStats()
+        self._log = RateLimitedLog(log, LOG_EVERY_S, clock=clock)
 
     @property
     def available(self) -> bool:
@@ -216,12 +223,20 @@ class SerialSeedSensors:
         self._backoff.reset()
         for item in decoder.feed(data):
             if isinstance(item, Rejected):
-                self._stats.rejected += 1
-                self._stats.last_rejected = f"{item.reason}: {item.line!r}"
-                log.debug("seed sensor line rejected (%s): %r", item.reason, item.line)
+                self._reject(item)
                 continue
             self._stats.edges += 1
             _deliver(self._on_edge, SeedEdgeEvent(item.row, t_arrival))
+
+    def _reject(self, item: Rejected) -> None:
+        stats = self._stats
+        stats.rejected += 1
+        stats.rejected_by_reason[item.kind] = stats.rejected_by_reason.get(item.kind, 0) + 1
+        stats.last_rejected = f"{item.reason}: {item.line!r}"
+        self._log.warning(
+            item.kind, "seed sensor line on %s rejected (%s): %r", self.port, item.reason,
+            item.line,
+        )
 
     def _failed(self, message: str) -> None:
         if message != self._stats.last_error:
@@ -320,6 +335,7 @@ class GpioSeedSensors:
         # the open request and the future that ends its reading, while one is open
         self._reading: tuple[LineRequestLike, asyncio.Future[str]] | None = None
         self._stats = SeedSensorStats()
+        self._log = RateLimitedLog(log, LOG_EVERY_S)
 
     @property
     def available(self) -> bool:
@@ -450,8 +466,7 @@ class GpioSeedSensors:
                     continue
                 row = row_of.get(event.line_offset)
                 if row is None:
-                    stats.rejected += 1
-                    stats.last_rejected = f"event on unrequested line {event.line_offset}"
+                    self._stray(event.line_offset)
                     continue
                 t_ns = event.timestamp_ns
                 last = last_ns.get(row)
@@ -466,6 +481,17 @@ class GpioSeedSensors:
                     log.exception("seed edge callback failed")
         finally:
             self._last_seqno = last_seqno
+
+    def _stray(self, offset: int) -> None:
+        stats = self._stats
+        stats.rejected += 1
+        by_reason = stats.rejected_by_reason
+        by_reason[KIND_UNKNOWN_LINE] = by_reason.get(KIND_UNKNOWN_LINE, 0) + 1
+        stats.last_rejected = f"event on unrequested line {offset}"
+        self._log.warning(
+            KIND_UNKNOWN_LINE, "GPIO seed sensors: event on line %d of %s, which is no row's",
+            offset, self.chip,
+        )
 
     def _lost(self, lost: int) -> None:
         self._stats.lost += lost

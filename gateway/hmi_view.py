@@ -11,7 +11,8 @@ import asyncio
 import logging
 from typing import TYPE_CHECKING
 
-from drivers.hmi_link import HmiLink
+from drivers.hmi_link import LOG_EVERY_S, HmiLink
+from drivers.log_limit import RateLimitedLog
 from gateway import commands as cmd
 from gateway.config import HmiSection
 from protocol import hmi
@@ -49,6 +50,7 @@ class HmiAdapter:
         )
         self.last_message: str = ""
         self._dirty = asyncio.Event()
+        self._log = RateLimitedLog(log, LOG_EVERY_S)
 
     def crop_for_code(self, code: int) -> str | None:
         for name, model in self.daemon.settings.control.crops.items():
@@ -81,7 +83,11 @@ class HmiAdapter:
     def on_event(self, event: hmi.HmiEvent) -> None:
         command = self.to_command(event)
         if isinstance(command, str):
-            log.warning("HMI input refused: %s", command)
+            # a bad frame is the link's to log (rate-limited, per kind) and count; a refused
+            # good frame (unknown crop code) is logged here, rate-limited too
+            if not isinstance(event, hmi.Rejected):
+                key = f"refused:{type(event).__name__}"
+                self._log.warning(key, "HMI input refused: %s", command)
             self.last_message = command
         else:
             ok, text = self.daemon.try_execute(command, "hmi")

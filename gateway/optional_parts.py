@@ -46,7 +46,7 @@ def store_path(daemon: Daemon) -> Path:
 
 
 def state_payload(daemon: Daemon) -> StatePayload:
-    from gateway.payloads import ActiveAlarmInfo, StatePayload
+    from gateway.payloads import ActiveAlarmInfo, RejectedInput, StatePayload
 
     snap = daemon.snapshot()
     store = snap.get("store") or {}
@@ -71,6 +71,7 @@ def state_payload(daemon: Daemon) -> StatePayload:
         seed_mass_kg=snap["seed_mass_kg"],
         records_held=store.get("records_held", 0),
         records_lost=store.get("records_lost", 0) + recorder.get("records_lost", 0),
+        rejected=RejectedInput(**snap.get("rejected", {})),
     )
 
 
@@ -104,6 +105,24 @@ def attach(daemon: Daemon) -> None:
     _attach_channels(daemon)
     if s.isobus.enabled:
         _attach_isobus(daemon)
+    _attach_rejected_inputs(daemon)
+
+
+def _attach_rejected_inputs(daemon: Daemon) -> None:
+    """``state.rejected`` and the periodic INFO summary of rejected input (only with a device
+    that can reject input: screen, receiver or seed sensors)."""
+    from gateway.rejected_input import RejectedInputs
+
+    parts = daemon.components
+    hmi = daemon.hmi.link if daemon.hmi is not None else None
+    if hmi is None and "gnss" not in parts and "seed_sensors" not in parts:
+        return
+    rejected = RejectedInputs(
+        gnss=parts.get("gnss"), hmi=hmi, seed_sensors=parts.get("seed_sensors"),
+        recorder=parts.get("seeds"),
+    )
+    parts["rejected"] = rejected
+    daemon.add_task("rejected-input-summary", rejected.run)
 
 
 def _attach_systemd(daemon: Daemon) -> None:

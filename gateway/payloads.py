@@ -33,6 +33,7 @@ __all__ = [
     "CommandAck",
     "EmptyCommand",
     "RateCommand",
+    "RejectedInput",
     "SeedBatch",
     "SpeedCalCommand",
     "StatePayload",
@@ -59,6 +60,33 @@ class ActiveAlarmInfo(_Payload):
     severity: AlarmSeverity
     message: str
     since: datetime
+
+
+class RejectedInput(_Payload):
+    """Input received and not used since the daemon started, per device and reason.
+
+    Keys appear once a reason has occurred; a device that is not configured stays empty."""
+
+    gnss: dict[str, int] = Field(
+        default_factory=dict,
+        description="GNSS lines per reason: checksum, truncated, missing_field, bad_field, "
+        "unknown_sentence (well-framed, not used), malformed, garbage, overlong (a line of "
+        "more than 1 024 bytes, e.g. binary output; its head was dropped)",
+    )
+    gnss_discarded_bytes: int = Field(
+        0, ge=0, description="bytes dropped from overlong GNSS lines (binary output on the port)"
+    )
+    hmi: dict[str, int] = Field(
+        default_factory=dict,
+        description="touchscreen input per reason: garbage, bad_trailer, incomplete_frame, "
+        "unknown_function, bad_field",
+    )
+    seed_sensors: dict[str, int] = Field(
+        default_factory=dict,
+        description="seed sensor input per reason: overlong, malformed, bad_row (serial lines), "
+        "unknown_line (GPIO), implausible_rate (edges faster than "
+        "seed_sensors.max_seeds_per_s_per_row: not stored as seeds)",
+    )
 
 
 class StatePayload(_Payload):
@@ -102,12 +130,20 @@ class StatePayload(_Payload):
         0, ge=0, description="seed records lost since the daemon started because the store "
         "could not write them and its memory for held records was full",
     )
+    rejected: RejectedInput = Field(
+        default_factory=RejectedInput,
+        description="input received and not used, per device and reason (totals since start; "
+        "published at state_hz, a new count alone does not trigger a message)",
+    )
 
     def same_as(self, other: StatePayload | None) -> bool:
-        """Equal apart from the timestamp: decides whether a change must be published now."""
+        """Equal apart from the timestamp and the rejection counters: decides whether a change
+        must be published now. A storm of garbage would otherwise publish the state at the
+        10 messages/s cap for as long as it lasts; the counters ride along at ``state_hz``."""
         if other is None:
             return False
-        return self.model_dump(exclude={"utc"}) == other.model_dump(exclude={"utc"})
+        ignored = {"utc", "rejected"}
+        return self.model_dump(exclude=ignored) == other.model_dump(exclude=ignored)
 
 
 class SeedBatch(_Payload):

@@ -5,7 +5,9 @@ The GNSS reader, the seed-sensor source and the recorder keep going through ever
 reconnect, extrapolate, retry the store) and count what happened; without these alarms the
 only trace would be the journal, read after the field is sown. Each condition must hold for
 ``hold_s`` before it is raised, so the ports opening at start-up or a single late epoch do not
-flap; it clears as soon as the condition is gone.
+flap; it clears as soon as the condition is gone (``seed_sensors.implausible_rate``:
+``IMPLAUSIBLE_CLEAR_AFTER_S`` after the last edge beyond ``seed_sensors.
+max_seeds_per_s_per_row``, so a short burst is still seen).
 
 | code | severity | raised while |
 |---|---|---|
@@ -13,6 +15,7 @@ flap; it clears as soon as the condition is gone.
 | ``gnss.not_rtk_fixed`` | warning | recording, and the fix is RTK float, DGPS or single |
 | ``gnss.heading_invalid`` | info | recording, and no ambiguity-fixed dual-antenna heading |
 | ``seed_sensors.unavailable`` | warning | the seed-tube sensor port/chip is not being read |
+| ``seed_sensors.implausible_rate`` | warning | edges beyond a row's plausible rate (not stored) |
 | ``records.store_failed`` | critical | seed records cannot be written or committed |
 | ``records.lost`` | critical | the store is failing and its memory for held records is full |
 
@@ -31,6 +34,9 @@ from gateway.alarms import AlarmBoard
 from gateway.records import AlarmSeverity
 
 HOLD_S = 1.0
+# seed_sensors.implausible_rate stays up this long after the last implausible edge, so a
+# burst shorter than a flush interval is still seen on the screen and on MQTT
+IMPLAUSIBLE_CLEAR_AFTER_S = 5.0
 
 
 class _GnssStats(Protocol):
@@ -81,6 +87,8 @@ class RecorderLike(Protocol):
     def store_error(self) -> str | None: ...
     @property
     def records_lost(self) -> int: ...
+
+    def implausible_rows(self, within_s: float) -> list[int]: ...
 
 
 class StoreLike(Protocol):
@@ -133,6 +141,7 @@ class RecordingHealth:
 
     def check(self) -> None:
         now = self._clock()
+        self._check_seed_rate(now)
         recording = self.recorder is not None
         gnss = self.gnss
         if gnss is not None:
@@ -197,5 +206,20 @@ class RecordingHealth:
             f"{lost - self._lost_before} seed records lost: the memory for records the store "
             "cannot write is full",
             "critical",
+            now,
+        )
+
+    def _check_seed_rate(self, now: float) -> None:
+        """``seed_sensors.implausible_rate`` while rows get edges beyond their plausible rate
+        (``gateway.seed_plausibility``), naming them."""
+        if self.recorder is None:
+            return
+        rows = self.recorder.implausible_rows(IMPLAUSIBLE_CLEAR_AFTER_S)
+        self._set(
+            "seed_sensors.implausible_rate",
+            bool(rows),
+            f"seed edges on row(s) {', '.join(map(str, rows))} faster than a seed meter can "
+            "drop seeds (sensor or module fault): counted, not stored as seeds",
+            "warning",
             now,
         )

@@ -34,11 +34,13 @@ from collections.abc import Callable, Sequence
 from operator import itemgetter
 from typing import Any, Protocol
 
+from drivers.log_limit import RateLimitedLog
 from drivers.seed_sensors import SeedEdgeEvent
 from drivers.ticks import sleep_to_next_tick
 from gateway.config import Settings
 from gateway.positioning import AntennaEpoch, Landing, SeedPositioner
 from gateway.records import SeedDrop, SeedRecord, SeedRow
+from gateway.seed_plausibility import SeedRatePlausibility
 from gateway.spacing_quality import RowQualityAccumulator
 
 log = logging.getLogger(__name__)
@@ -86,6 +88,7 @@ class SeedRecorder:
         self.store = store
         self.on_records = on_records
         self._clock = clock
+        self._log = RateLimitedLog(log, clock=clock)
         self.positioner = SeedPositioner(settings.positioning)
         rows = settings.machine.rows
         x_ref = settings.positioning.target_spacing_m
@@ -102,6 +105,8 @@ class SeedRecorder:
         # refused them longer than MAX_BUFFERED_DROPS lasts
         self.records_lost = 0
         self.last_error: str | None = None
+        # edges faster than a row can drop seeds are counted there, not stored
+        self.plausibility = SeedRatePlausibility(settings.seed_sensors.max_seeds_per_s_per_row)
 
     # ------------------------------------------------------------ driver callbacks
 
@@ -139,14 +144,30 @@ class SeedRecorder:
             self._take(positioner.settle())
 
     def _edges(self, edges: list[SeedEdgeEvent]) -> None:
+        dropped = self.plausibility.implausible_total
+        rows, times = self.plausibility.filter([e.row for e in edges], [e.t_mono for e in edges])
+        if self.plausibility.implausible_total != dropped:
+            self._log.warning(
+                "implausible", "seed edges beyond %g/s on row(s) %s not stored (%d in all)",
+                self.plausibility.max_per_s, self._implausible_rows(),
+                self.plausibility.implausible_total,
+            )
         try:
-            landed = self.positioner.add_edges([e.row for e in edges], [e.t_mono for e in edges])
+            landed = self.positioner.add_edges(rows, times)
         except ValueError:  # a row the config does not know: one by one, to count it alone
-            for event in edges:
-                self._edge(event)
+            for row, t_mono in zip(rows, times, strict=True):
+                self._edge(SeedEdgeEvent(row, t_mono))
             return
         if landed:  # usually empty: the seeds wait for the epoch after their landing
             self._take(landed)
+
+    def _implausible_rows(self) -> str:
+        rows = sorted(self.plausibility.implausible)
+        return ", ".join(map(str, rows[:8])) + (", ..." if len(rows) > 8 else "")
+
+    def implausible_rows(self, within_s: float) -> list[int]:
+        """Rows that had edges dropped as implausible in the last ``within_s`` seconds."""
+        return self.plausibility.rows_implausible_since(self._clock() - within_s)
 
     def _edge(self, event: SeedEdgeEvent) -> None:
         try:
@@ -291,11 +312,13 @@ class SeedRecorder:
             "bad_edges": self.bad_edges,
             "store_errors": self.store_errors,
             "records_lost": self.records_lost,
+            "implausible_edges": self.plausibility.implausible_total,
             "last_error": self.last_error,
             "rows": {
                 row: {
                     "seeds": self.seeds_per_row[row],
                     "last_spacing_m": self.last_spacing_m[row],
+                    "implausible_edges": self.plausibility.implausible.get(row, 0),
                     "quality": self.quality[row].result().as_dict(),
                 }
                 for row in sorted(self.seeds_per_row)

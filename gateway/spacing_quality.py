@@ -133,7 +133,12 @@ class RowQualityAccumulator:
 
     def result(self) -> SpacingQuality:
         if self.x_ref is None:
-            return spacing_quality(self._window) if self._window else EMPTY
+            if not self._window:
+                return EMPTY
+            median = statistics.median(self._window)
+            if median <= 0:  # most seeds at one spot (a sensor flood): no spacing to rate
+                return SpacingQuality(len(self._window), None, None, None, None, None, None)
+            return spacing_quality(self._window, median)
         if self.n == 0:
             return SpacingQuality(0, self.x_ref, None, None, None, None, None)
         m = 100.0 * self.multiples / self.n

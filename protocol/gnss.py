@@ -90,15 +90,24 @@ class GnssLineDecoder:
     Resynchronisation: sentences never contain ``$`` or ``#`` inside, so a line is decoded from
     its *last* start character; anything before it (noise, the cut-off head of a sentence) is
     reported once as garbage, except complete sentences in it: when a line terminator was lost
-    on the wire, the sentence before it still decodes. A line growing past ``MAX_LINE_BYTES``
-    is dropped up to the next newline, so a receiver at the wrong baud rate cannot make us
-    buffer without bound.
+    on the wire, the sentence before it still decodes.
+
+    A line growing past ``MAX_LINE_BYTES`` is what a receiver that mixes binary logs and NMEA
+    on one port produces (u-blox UBX, Unicore binary logs: kilobytes without a newline, then
+    ``$GNRMC...``). Its head is dropped, not the whole line: the decoder keeps the longest tail
+    that begins with a start character and fits in ``MAX_LINE_BYTES`` (with none, it drops
+    everything up to the next start character or newline). So the buffer stays capped, the
+    sentence after the binary still decodes, the line is counted once as ``overlong`` and the
+    dropped bytes are counted exactly in ``discarded_bytes``. What is kept depends only on the
+    bytes, never on how the reads split them.
     """
 
     def __init__(self) -> None:
         self._buf = bytearray()
-        self._discarding = False  # inside an overlong line: drop until the next newline
+        self._skipping = False  # head of an overlong line: drop up to the next '$', '#' or LF
+        self._overlong = False  # the current line has already been reported as overlong
         self.counts: Counter[str] = Counter()  # "ok" and one key per rejection reason
+        self.discarded_bytes = 0  # dropped from overlong lines without being decoded
 
     @property
     def buffered_bytes(self) -> int:
@@ -118,30 +127,48 @@ class GnssLineDecoder:
             if nl < 0:
                 self._append(data[start:], out)
                 return out
-            if self._discarding:
-                self._discarding = False
-            elif len(self._buf) + (nl - start) > MAX_LINE_BYTES:
-                self._reject_overlong(out)
-            else:
-                self._buf += data[start:nl]
+            self._append(data[start:nl], out)
+            if not self._skipping:
                 self._line(bytes(self._buf), out)
-            self._buf.clear()
+            self._end_line()
             start = nl + 1
 
-    def _append(self, chunk: bytes, out: list[GnssEvent | Rejected]) -> None:
-        if self._discarding:
-            return
-        if len(self._buf) + len(chunk) > MAX_LINE_BYTES:
-            self._reject_overlong(out)
-            self._buf.clear()
-            self._discarding = True
-            return
-        self._buf += chunk
+    def _end_line(self) -> None:
+        self._buf.clear()
+        self._skipping = False
+        self._overlong = False
 
-    def _reject_overlong(self, out: list[GnssEvent | Rejected]) -> None:
-        self._emit_reject(
-            REASON_OVERLONG, f"line longer than {MAX_LINE_BYTES} bytes dropped", self._buf, out
-        )
+    def _append(self, chunk: bytes, out: list[GnssEvent | Rejected]) -> None:
+        """Add part of a line (no LF in it), cutting the head of a line that grows too long."""
+        if self._skipping:
+            cut = _first_start(chunk, 0)
+            if cut < 0:
+                self.discarded_bytes += len(chunk)
+                return
+            self.discarded_bytes += cut
+            chunk = chunk[cut:]
+            self._skipping = False
+        if len(self._buf) + len(chunk) <= MAX_LINE_BYTES:
+            self._buf += chunk
+            return
+        combined = self._buf + chunk
+        if not self._overlong:
+            self._overlong = True
+            self._emit_reject(
+                REASON_OVERLONG,
+                f"more than {MAX_LINE_BYTES} bytes without a line end (binary output?): "
+                "the bytes before the last sentence start are dropped",
+                combined,
+                out,
+            )
+        keep = _first_start(combined, len(combined) - MAX_LINE_BYTES)
+        if keep < 0:  # no start character in the last MAX_LINE_BYTES: nothing worth keeping
+            self.discarded_bytes += len(combined)
+            self._buf.clear()
+            self._skipping = True
+        else:
+            self.discarded_bytes += keep
+            self._buf[:] = combined[keep:]
 
     def _emit_reject(
         self, reason: str, detail: str, raw: bytes | bytearray, out: list[GnssEvent | Rejected]
@@ -194,8 +221,15 @@ class GnssLineDecoder:
     def flush(self) -> list[GnssEvent | Rejected]:
         """End of stream (port closed): what is buffered is an unfinished line, say so."""
         out: list[GnssEvent | Rejected] = []
-        if self._buf and not self._discarding:
+        if self._buf and not self._skipping:
             self._emit_reject(REASON_TRUNCATED, "stream ended inside a line", self._buf, out)
-        self._buf.clear()
-        self._discarding = False
+        self._end_line()
         return out
+
+
+def _first_start(data: bytes | bytearray, offset: int) -> int:
+    """Index of the first ``$`` or ``#`` at or after ``offset``, -1 if there is none."""
+    dollar, hash_ = data.find(b"$", offset), data.find(b"#", offset)
+    if dollar < 0 or hash_ < 0:
+        return max(dollar, hash_)
+    return min(dollar, hash_)

@@ -18,7 +18,7 @@ the crop table lives in config, so the decoder only checks the frame shape.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from protocol.errors import FieldError
 
@@ -87,12 +87,22 @@ class ZeroTilt:
     """F=0x06: take the current inclinometer angle as level."""
 
 
+# Kinds of rejected input: stable keys for the per-reason counters (the ``reason`` text varies).
+KIND_GARBAGE = "garbage"  # bytes that are not a 55 55 frame (noise, wrong baud rate)
+KIND_BAD_TRAILER = "bad_trailer"  # a 55 55 header without 0D 0A six bytes later
+KIND_INCOMPLETE = "incomplete_frame"  # a frame cut short by the line going quiet
+KIND_UNKNOWN_FUNCTION = "unknown_function"  # a well-formed frame with a function we lack
+KIND_BAD_FIELD = "bad_field"  # a known function with an impossible value in it
+
+
 @dataclass(frozen=True, slots=True)
 class Rejected:
-    """Bytes that are not a valid command; ``reason`` is short enough to show on the screen."""
+    """Bytes that are not a valid command; ``reason`` is short enough to show on the screen,
+    ``kind`` is its stable counter key (``KIND_*``)."""
 
     reason: str
     raw: bytes
+    kind: str = field(default=KIND_GARBAGE, compare=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,11 +166,13 @@ def _decode_framed(frame: bytes) -> HmiEvent:
         return EmptySeed()
     if function == F_SEED_LEVEL:
         if c not in (0, 1):
-            return Rejected(f"seed-level flag must be 0 or 1, got 0x{c:02X}", frame)
+            return Rejected(
+                f"seed-level flag must be 0 or 1, got 0x{c:02X}", frame, KIND_BAD_FIELD
+            )
         return SeedLevelMonitoring(enabled=c == 1)
     if function == F_ZERO_TILT:
         return ZeroTilt()
-    return Rejected(f"unknown function code 0x{function:02X}", frame)
+    return Rejected(f"unknown function code 0x{function:02X}", frame, KIND_UNKNOWN_FUNCTION)
 
 
 def parse_screen_replies(data: bytes) -> list[ScreenError | ScreenReply] | None:
@@ -194,6 +206,7 @@ class HmiDecoder:
         self._buf = bytearray()  # unexamined bytes: at most a partial frame between feeds
         self._garbage = bytearray()  # the current garbage run, < MAX_BUFFER
         self._reason: str | None = None
+        self._kind = KIND_GARBAGE
 
     @property
     def pending(self) -> bool:
@@ -225,7 +238,7 @@ class HmiDecoder:
             if frame[6:8] != TRAILER:
                 # Not a frame after all; drop one byte so a `55 55` inside it can still be found.
                 reason = f"bad trailer {frame[6]:02X} {frame[7]:02X}, expected 0D 0A"
-                self._add_garbage(frame[:1], reason, out)
+                self._add_garbage(frame[:1], reason, out, KIND_BAD_TRAILER)
                 i += 1
                 continue
             self._end_run(out)
@@ -238,15 +251,23 @@ class HmiDecoder:
         """The line went quiet: whatever is held (garbage, a truncated frame) is reported now."""
         out: list[HmiEvent] = []
         if self._buf:
-            reason = "incomplete frame" if self._buf.startswith(HEADER) else _GENERIC
-            self._add_garbage(self._buf, reason, out)
+            if self._buf.startswith(HEADER):
+                self._add_garbage(self._buf, "incomplete frame", out, KIND_INCOMPLETE)
+            else:
+                self._add_garbage(self._buf, _GENERIC, out)
             self._buf.clear()
         self._end_run(out)
         return out
 
-    def _add_garbage(self, chunk: bytes | bytearray, reason: str, out: list[HmiEvent]) -> None:
+    def _add_garbage(
+        self,
+        chunk: bytes | bytearray,
+        reason: str,
+        out: list[HmiEvent],
+        kind: str = KIND_GARBAGE,
+    ) -> None:
         if self._reason is None or (self._reason == _GENERIC and reason != _GENERIC):
-            self._reason = reason
+            self._reason, self._kind = reason, kind
         view = memoryview(chunk)
         while view:
             room = MAX_BUFFER - len(self._garbage)
@@ -259,6 +280,7 @@ class HmiDecoder:
     def _end_run(self, out: list[HmiEvent]) -> None:
         if not self._garbage:
             self._reason = None
+            self._kind = KIND_GARBAGE
             return
         raw = bytes(self._garbage)
         replies = parse_screen_replies(raw)
@@ -268,9 +290,10 @@ class HmiDecoder:
             reason = self._reason or _GENERIC
             if reason == _GENERIC:
                 reason = f"{len(raw)} byte(s) of garbage, not a 55 55 frame"
-            out.append(Rejected(reason, raw))
+            out.append(Rejected(reason, raw, self._kind))
         self._garbage.clear()
         self._reason = None
+        self._kind = KIND_GARBAGE
 
 
 class NextionReplyDecoder:

@@ -143,6 +143,13 @@ def split_nmea(line: str) -> tuple[str, str, list[str]]:
     if not line.startswith("$"):
         raise FrameError(f"not an NMEA sentence: does not start with '$' ({line[:16]!r})")
     if len(line) > MAX_NMEA_LINE_CHARS:
+        # The limit guards the sentences we decode; a long one we do not use (a proprietary
+        # $PQTM..., a $GNGSV from a busy sky) is simply not ours, like its shorter siblings.
+        name = line[1:].split(",", 1)[0]
+        match = _ADDRESS.match(name)
+        ours = match is not None and match.group("msg") in SUPPORTED_SENTENCES
+        if name.isalnum() and name.isascii() and not ours:
+            raise UnknownSentenceError(f"unknown sentence {name} ({len(line)} characters)", name)
         raise FrameError(f"line too long: {len(line)} > {MAX_NMEA_LINE_CHARS} characters")
     trailer = _TRAILER.search(line)
     if trailer is None:

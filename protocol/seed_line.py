@@ -20,7 +20,7 @@ newline.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from protocol.errors import FieldError, FrameError, ProtocolError
 
@@ -36,12 +36,20 @@ class SeedEdge:
     row: int
 
 
+# Kinds of rejected line: stable keys for the per-reason counters (the ``reason`` text varies).
+KIND_OVERLONG = "overlong"  # more than MAX_LINE_BYTES without a newline
+KIND_MALFORMED = "malformed"  # not 'D,<row>': empty, not ASCII, no comma, another record type
+KIND_BAD_ROW = "bad_row"  # 'D,' with a row that is not a number or not on this planter
+
+
 @dataclass(frozen=True)
 class Rejected:
-    """A line that is not a seed edge, with the reason a field engineer can act on."""
+    """A line that is not a seed edge, with the reason a field engineer can act on and its
+    stable counter key (``KIND_*``)."""
 
     line: bytes
     reason: str
+    kind: str = field(default=KIND_MALFORMED, compare=False)
 
 
 SeedLineEvent = SeedEdge | Rejected
@@ -109,22 +117,27 @@ class SeedLineDecoder:
             self._buf += chunk
             if nl < 0:
                 if len(self._buf) > MAX_LINE_BYTES:
-                    events.append(self._reject(bytes(self._buf[:MAX_LINE_BYTES]), "line too long"))
+                    events.append(
+                        self._reject(
+                            bytes(self._buf[:MAX_LINE_BYTES]), "line too long", KIND_OVERLONG
+                        )
+                    )
                     self._buf.clear()
                     self._discarding = True
                 continue
             line = bytes(self._buf)
             self._buf.clear()
             if len(line) > MAX_LINE_BYTES:
-                events.append(self._reject(line[:MAX_LINE_BYTES], "line too long"))
+                events.append(self._reject(line[:MAX_LINE_BYTES], "line too long", KIND_OVERLONG))
                 continue
             try:
                 events.append(parse_seed_line(line, self.rows))
                 self.edges += 1
             except ProtocolError as exc:
-                events.append(self._reject(line, str(exc)))
+                kind = KIND_BAD_ROW if isinstance(exc, FieldError) else KIND_MALFORMED
+                events.append(self._reject(line, str(exc), kind))
         return events
 
-    def _reject(self, line: bytes, reason: str) -> Rejected:
+    def _reject(self, line: bytes, reason: str, kind: str) -> Rejected:
         self.rejected += 1
-        return Rejected(line, reason)
+        return Rejected(line, reason, kind)

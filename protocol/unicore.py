@@ -139,6 +139,10 @@ def split_unicore(line: str) -> tuple[str, list[str], list[str]]:
     if not line.startswith("#"):
         raise FrameError(f"not a Unicore log: does not start with '#' ({line[:16]!r})")
     if len(line) > MAX_UNICORE_LINE_CHARS:
+        # the limit guards the heading logs we decode; a long log we do not use is not ours
+        log = line[1:].split(",", 1)[0].split(";", 1)[0]
+        if log.isalnum() and log.isascii() and log not in HEADING_LOGS:
+            raise UnknownSentenceError(f"unknown Unicore log {log} ({len(line)} characters)", log)
         raise FrameError(f"line too long: {len(line)} > {MAX_UNICORE_LINE_CHARS} characters")
     trailer = _TRAILER.search(line)
     if trailer is None:

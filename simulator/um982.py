@@ -147,6 +147,10 @@ def um982_sentences(
     return [encode_nmea(rmc), encode_nmea(gga), heading]
 
 
+# binary bytes that would end a line or start a sentence become 0x00 (see binary_output)
+_NO_LINE_OR_START = bytes(0 if b in b"\n$#" else b for b in range(256))
+
+
 def corrupt_checksum(line: str) -> str:
     """The same line with its last checksum digit changed, so it must be rejected."""
     last = line[-1]
@@ -263,6 +267,12 @@ class Um982Emulator:
     def garbage(self, n_bytes: int) -> None:
         """Write ``n_bytes`` of random line noise before the next epoch's lines."""
         self._garbage += self._rng.randbytes(n_bytes)
+
+    def binary_output(self, n_bytes: int) -> None:
+        """Write ``n_bytes`` of a binary log (no LF, '$' or '#' in it) right before the next
+        epoch's lines, as a receiver with binary logs enabled on the same port does."""
+        noise = self._rng.randbytes(n_bytes).translate(_NO_LINE_OR_START)
+        self._garbage += noise
 
     def drop_heading(self, on: bool = True) -> None:
         """Stop (or resume) sending #HEADINGA, as when the secondary antenna loses lock."""

@@ -32,6 +32,16 @@ class GnssSection(OptionalPart):
     heading_offset_deg: float = Field(0.0, ge=-180, le=180)
 
 
+# The fastest one row of a precision planter can plausibly drop seeds, plus a margin: a
+# vacuum disc meter at 16 km/h (4.44 m/s, the top of high-speed planting) singulating at the
+# closest in-row spacing such planters sow, about 3 cm (soybeans), delivers 148 seeds/s; a
+# third more for doubles and a moment of overspeed gives 200. A 48-row planter at 16 km/h
+# with 10 cm maize spacing is at 44 seeds/s a row. Anything above the limit is a sensor or
+# module fault (noise counted as seeds, a firmware flood), not seeds: such edges are counted
+# and raise seed_sensors.implausible_rate instead of becoming records.
+DEFAULT_MAX_SEEDS_PER_S_PER_ROW = 200.0
+
+
 class SeedSensorsSection(OptionalPart):
     enabled: bool = False
     source: Literal["serial", "gpio"] = "serial"
@@ -42,6 +52,8 @@ class SeedSensorsSection(OptionalPart):
     debounce_ms: float = Field(2.0, ge=0, le=100)
     # through-beam sensors usually pull the line low when a seed breaks the beam
     gpio_bias: Literal["pull_up", "pull_down", "disabled", "as_is"] = "pull_up"
+    # per row, over any 1 s (gateway.seed_plausibility): edges beyond it are not stored
+    max_seeds_per_s_per_row: float = Field(DEFAULT_MAX_SEEDS_PER_S_PER_ROW, ge=10, le=5000)
 
 
 # Paper C, Table 1: seed fall time from sensor to furrow (ms) against speed (km/h).

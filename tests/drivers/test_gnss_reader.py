@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import logging
 import math
 import time
 from collections.abc import AsyncIterator, Callable
@@ -324,3 +325,38 @@ def test_heading_offset_is_configurable_and_bounded() -> None:
     assert parse_config({"gnss": {"heading_offset_deg": -90}}).gnss.heading_offset_deg == -90
     with pytest.raises(ConfigError, match=r"gnss\.heading_offset_deg"):
         parse_config({"gnss": {"heading_offset_deg": 270}})
+
+
+async def test_an_epoch_after_binary_output_is_kept_and_the_binary_bytes_are_counted(
+    emulator: Um982Emulator,
+) -> None:
+    """Binary logs on the same port used to cost the NMEA sentence that followed them."""
+    epochs: list[GnssEpoch] = []
+    async with GnssReader(emulator.device_path, on_epoch=epochs.append) as reader:
+        await _wait_for(lambda: len(epochs) >= 2)
+        written = emulator.epochs_written
+        emulator.binary_output(3000)
+        await _wait_for(lambda: reader.stats.discarded_bytes > 0)
+        await _wait_for(lambda: emulator.epochs_written >= written + 3)
+        await _wait_for(lambda: len(epochs) >= emulator.epochs_written - 1)
+        stats = reader.stats
+    assert stats.discarded_bytes == 3000
+    assert stats.rejected == {"overlong": 1}
+    utcs = [e.utc for e in epochs]
+    assert all(b - a == timedelta(seconds=0.1) for a, b in itertools.pairwise(utcs))  # no gap
+    assert all(e.heading_valid for e in epochs)
+
+
+async def test_rejected_lines_are_warned_about_rate_limited_not_once_per_line(
+    emulator: Um982Emulator, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO)
+    epochs: list[GnssEpoch] = []
+    async with GnssReader(emulator.device_path, on_epoch=epochs.append) as reader:
+        await _wait_for(lambda: len(epochs) >= 2)
+        emulator.corrupt_next(30)
+        await _wait_for(lambda: reader.stats.rejected.get("checksum", 0) >= 30)
+    checksum_warnings = [
+        r for r in caplog.records if r.levelno == logging.WARNING and "checksum" in r.getMessage()
+    ]
+    assert len(checksum_warnings) == 1  # the first; the rest within the interval held back

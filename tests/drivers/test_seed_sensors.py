@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import os
 import time
@@ -99,7 +100,25 @@ async def test_serial_bad_lines_are_counted_and_reading_continues(pty: PtyPair) 
         await wait_for(lambda: len(got) == 1)
     assert got[0].row == 2
     assert src.stats.rejected == 2
+    assert src.stats.rejected_by_reason == {"bad_row": 1, "malformed": 1}
     assert src.stats.last_rejected is not None and "not ASCII" in src.stats.last_rejected
+
+
+async def test_serial_bad_lines_are_warned_about_once_per_kind_and_interval(
+    pty: PtyPair, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Rejected lines were logged at DEBUG only: silent at INFO however many there were."""
+    caplog.set_level(logging.INFO)
+    got: list[SeedEdgeEvent] = []
+    src = SerialSeedSensors(pty.device_path, 115200, rows=4, on_edge=got.append, backoff=FAST)
+    async with running(src):
+        await wait_for(lambda: src.available)
+        os.write(pty.master_fd, b"D,9\r\n" * 200 + b"X,1\r\n" * 50 + b"D,2\r\n")
+        await wait_for(lambda: len(got) == 1)
+    assert src.stats.rejected_by_reason == {"bad_row": 200, "malformed": 50}
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 2, warnings
+    assert "row 9 outside 1..4" in warnings[0] and "unknown record type 'X'" in warnings[1]
 
 
 async def test_serial_a_failing_callback_does_not_stop_the_reader(pty: PtyPair) -> None:
@@ -388,6 +407,7 @@ def test_gpio_rising_edges_are_ignored_and_unknown_lines_counted() -> None:
     src.handle_event(falling(9, 1.0))
     assert got == []
     assert src.stats.rejected == 1
+    assert src.stats.rejected_by_reason == {"unknown_line": 1}
 
 
 async def test_gpio_a_missing_chip_is_retried_until_it_appears() -> None:

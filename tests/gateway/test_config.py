@@ -364,3 +364,18 @@ def test_the_daemon_logs_the_ignored_loop_hz_at_start(
     (record,) = [r for r in caplog.records if "loop_hz" in r.getMessage()]
     assert record.levelname == "WARNING"
     assert "rs485.poll_hz" in record.getMessage()
+
+
+@pytest.mark.parametrize("bad", [0, 9.9, 5001, -1])
+def test_the_seed_plausibility_limit_is_range_checked_and_named(bad: float) -> None:
+    with pytest.raises(ConfigError, match=r"seed_sensors\.max_seeds_per_s_per_row") as err:
+        parse_config({"gnss": {}, "seed_sensors": {"max_seeds_per_s_per_row": bad}})
+    assert ("5000" if bad > 5000 else "10") in str(err.value)  # the bound it broke
+
+
+def test_the_seed_plausibility_limit_defaults_to_a_fast_precision_planter_with_margin() -> None:
+    settings = parse_config({"gnss": {}, "seed_sensors": {}})
+    assert settings.seed_sensors.max_seeds_per_s_per_row == 200.0
+    assert parse_config(
+        {"gnss": {}, "seed_sensors": {"max_seeds_per_s_per_row": 450}}
+    ).seed_sensors.max_seeds_per_s_per_row == 450.0

@@ -78,3 +78,38 @@ def test_the_service_process_freezes_start_up_and_collects_young_objects_less_of
     assert frozen > 10_000  # the imported modules' objects at least
     assert after == [young, before[1], before[2]]
     assert young > before[0]
+
+
+def test_state_carries_rejected_input_per_device_and_reason(tmp_path: Path) -> None:
+    """Rejected input was counted inside the drivers only, invisible to the farm."""
+    from drivers.seed_sensors import SeedEdgeEvent
+    from protocol.hmi import Rejected as HmiRejected
+    from protocol.seed_line import SeedLineDecoder
+
+    settings = parse_config({"gnss": {"enabled": True}, "seed_sensors": {"enabled": True},
+                             "mqtt": {"enabled": True}})
+    daemon = Daemon(settings, tmp_path / "state")
+    try:
+        gnss, sensors = daemon.components["gnss"], daemon.components["seed_sensors"]
+        recorder = daemon.components["seeds"]
+        assert state_payload(daemon).rejected.model_dump() == {
+            "gnss": {}, "gnss_discarded_bytes": 0, "hmi": {}, "seed_sensors": {}
+        }
+        gnss._dispatch(gnss._decoder.feed(b"\xb5\x62" * 1000 + b"$GNRMC,1*00\r\nnoise\n"), 1.0)
+        sensors._feed(SeedLineDecoder(6), b"D,9\r\nD,9\r\nX\r\n")  # what a read hands over
+        assert daemon.hmi is not None
+        daemon.hmi.link._dispatch([HmiRejected("noise", b"\x00", "garbage")])
+        for k in range(1000):  # far beyond any seed meter, all at once on row 2
+            recorder.on_edge(SeedEdgeEvent(2, 10.0 + k * 1e-6))
+        recorder._position_queued()
+        rejected = state_payload(daemon).rejected
+        assert rejected.gnss == {"overlong": 1, "checksum": 1, "garbage": 1}
+        assert rejected.gnss_discarded_bytes == 2000
+        assert rejected.hmi == {"garbage": 1}
+        assert rejected.seed_sensors == {"bad_row": 2, "malformed": 1, "implausible_rate": 800}
+        summary = daemon.components["rejected"].summary()
+        assert summary is not None and "seed_sensors: bad_row 2, implausible_rate 800" in summary
+        assert daemon.components["rejected"].summary() is None  # nothing new since
+    finally:
+        for close in daemon.closers:
+            close()

@@ -158,3 +158,13 @@ def test_state_schema_lists_exactly_the_work_states_and_speed_sources() -> None:
     assert props["speed_source"]["enum"] == [*controller.sources, "none"]
     table = DOC.read_text(encoding="utf-8").split("| `work_state` |")[1].split("\n\n")[0]
     assert all(f"| `{w.value}` |" in table for w in WorkState)
+
+
+def test_a_new_rejection_count_alone_does_not_make_the_state_a_change() -> None:
+    """A storm of garbage would otherwise publish the state at the 10 messages/s cap."""
+    from gateway.payloads import RejectedInput
+
+    a = StatePayload(machine_id="m", utc=T0, work_state="seeding", speed_kmh=8.0)
+    b = a.model_copy(update={"rejected": RejectedInput(hmi={"garbage": 8239})})
+    assert a.same_as(b)
+    assert b.rejected.hmi == {"garbage": 8239}

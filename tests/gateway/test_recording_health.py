@@ -143,10 +143,40 @@ def test_a_failing_store_raises_one_critical_alarm_until_it_recovers(store: Reco
 
 
 def test_records_dropped_when_the_store_fails_too_long_are_counted(store: RecordStore) -> None:
-    recorder = SeedRecorder(settings(), FailingStore(store), clock=lambda: MONO0 + 6.0)
+    dense = settings()  # 10 025 seeds in 4 s on 6 rows: 418 a second a row, above the default
+    dense.seed_sensors.max_seeds_per_s_per_row = 1000.0
+    recorder = SeedRecorder(dense, FailingStore(store), clock=lambda: MONO0 + 6.0)
     n = MAX_BUFFERED_DROPS + 25
     feed(recorder, [(1 + i % 6, 1.0 + 4.0 * i / n) for i in range(n)], until=5.5)
     recorder.flush()
     assert recorder.records_lost == 25
     assert recorder.snapshot()["records_lost"] == 25
     assert recorder.snapshot()["buffered"] == MAX_BUFFERED_DROPS
+
+
+def test_a_flood_of_edges_on_one_row_raises_implausible_rate_naming_the_row_then_clears(
+    store: RecordStore,
+) -> None:
+    clock = Clock(MONO0)
+    alarms = AlarmBoard()
+    recorder = SeedRecorder(settings(), store, clock=clock)
+    health = RecordingHealth(alarms, recorder=recorder, clock=clock)
+    flood = [(3, 1.0 + k * 1e-5) for k in range(20_000)]  # 20 000 edges in 0.2 s
+    normal = [(1, 1.0 + 0.1 * k) for k in range(10)]
+    feed(recorder, flood + normal, until=2.5)
+    clock.t = MONO0 + 1.5
+    recorder.flush()
+    health.check()
+    clock.t = MONO0 + 2.6  # past the hold
+    health.check()
+    active = {a.code: a for a in alarms.active}
+    assert "seed_sensors.implausible_rate" in active
+    assert "row(s) 3 " in active["seed_sensors.implausible_rate"].message
+    snap = recorder.snapshot()
+    assert snap["implausible_edges"] == recorder.plausibility.implausible[3]
+    assert snap["rows"][3]["seeds"] + snap["rows"][3]["implausible_edges"] <= 20_000
+    assert snap["rows"][3]["seeds"] <= 200 * (0.2 + 1.0)
+    assert snap["rows"][1]["seeds"] == 10 and snap["rows"][1]["implausible_edges"] == 0
+    clock.t = MONO0 + 1.2 + 5.1  # no implausible edge for longer than the clear delay
+    health.check()
+    assert "seed_sensors.implausible_rate" not in _codes(alarms)

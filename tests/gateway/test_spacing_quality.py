@@ -122,3 +122,11 @@ def test_a_bad_spacing_among_many_is_refused_after_the_good_ones_before_it(
     one.add(0.2)
     one.add(0.21)
     assert vars(acc) == vars(one)
+
+
+def test_a_row_whose_seeds_mostly_share_one_spot_has_no_indices_instead_of_an_error() -> None:
+    """A flood of edges stamped together (median spacing 0) made the snapshot raise."""
+    acc = RowQualityAccumulator()
+    acc.add_many([0.0] * 50 + [0.1] * 10)
+    result = acc.result()
+    assert result.n == 60 and result.x_ref_m is None and result.multiples_index is None

@@ -166,3 +166,98 @@ def test_noise_and_a_cut_head_before_a_whole_sentence_are_one_garbage_report() -
     assert "28 bytes" in out[0].detail  # 3 noise + 25 of the cut RMC
     assert [type(e) for e in out[1:]] == [Gga, Heading]
     assert decoder.counts == {"ok": 2, REASON_GARBAGE: 1}
+
+
+# ---- binary output on the same port (u-blox UBX, Unicore binary logs) ----------------------
+
+_START_OR_LF = frozenset(b"$#\n")
+# binary junk that cannot start a sentence or end a line: the worst case, one endless "line"
+binary_junk = st.binary(max_size=5000).map(
+    lambda b: bytes(x for x in b if x not in _START_OR_LF)
+)
+
+
+def _one_sentence(kind: int) -> str:
+    return um982_sentences(T0, 45.0, 7.0, 250.0, 8.0, 90.0, 91.0)[kind]
+
+
+def _chunked(data: bytes, sizes: list[int]) -> list[bytes]:
+    chunks, i = [], 0
+    for size in sizes:
+        chunks.append(data[i : i + size])
+        i += size
+    chunks.append(data[i:])
+    return chunks
+
+
+def test_a_sentence_after_a_kilobyte_of_binary_without_newline_still_decodes() -> None:
+    binary = bytes(range(0x80, 0x100)) * 8  # 1 024 bytes, no '$', '#' or LF among them
+    line = _one_sentence(0)
+    decoder = GnssLineDecoder()
+    out = decoder.feed(binary + f"{line}\r\n".encode())
+    assert out[-1] == decode_line(line)
+    assert [r.reason for r in out if isinstance(r, Rejected)] == [REASON_OVERLONG]
+    assert decoder.discarded_bytes == len(binary)
+    assert decoder.counts == {"ok": 1, REASON_OVERLONG: 1}
+
+
+@settings(max_examples=150)
+@given(
+    junk=binary_junk,
+    kind=st.sampled_from([0, 1, 2]),
+    sizes=st.lists(st.integers(1, 700), max_size=30),
+)
+def test_any_binary_junk_then_a_valid_sentence_decodes_and_discards_exactly(
+    junk: bytes, kind: int, sizes: list[int]
+) -> None:
+    sentence = _one_sentence(kind)
+    line = junk + f"{sentence}\r\n".encode()
+    decoder = GnssLineDecoder()
+    out: list[GnssEvent | Rejected] = []
+    for chunk in _chunked(line, sizes):
+        out += decoder.feed(chunk)
+        assert decoder.buffered_bytes <= MAX_LINE_BYTES
+    assert out[-1] == decode_line(sentence)
+    overlong = len(junk) + len(sentence) + 1 > MAX_LINE_BYTES  # + the CR before the LF
+    assert decoder.discarded_bytes == (len(junk) if overlong else 0)
+    assert decoder.counts[REASON_OVERLONG] == (1 if overlong else 0)
+
+
+@settings(max_examples=150)
+@given(
+    junk=st.binary(max_size=5000).map(lambda b: b.replace(b"\n", b"")),
+    kind=st.sampled_from([0, 1, 2]),
+    sizes=st.lists(st.integers(1, 700), max_size=30),
+)
+def test_junk_with_stray_start_characters_still_lets_the_sentence_through_however_split(
+    junk: bytes, kind: int, sizes: list[int]
+) -> None:
+    sentence = _one_sentence(kind)
+    line = junk + f"{sentence}\r\n".encode()
+    whole = GnssLineDecoder()
+    expected = whole.feed(line)
+    assert expected[-1] == decode_line(sentence)
+    assert whole.discarded_bytes <= len(junk)
+    chunked = GnssLineDecoder()
+    out: list[GnssEvent | Rejected] = []
+    for chunk in _chunked(line, sizes):
+        out += chunked.feed(chunk)
+        assert chunked.buffered_bytes <= MAX_LINE_BYTES
+    assert out == expected
+    assert chunked.discarded_bytes == whole.discarded_bytes
+    assert chunked.counts == whole.counts
+
+
+def test_endless_binary_keeps_counting_the_discarded_bytes() -> None:
+    decoder = GnssLineDecoder()
+    for _ in range(100):
+        decoder.feed(b"\xb5\x62" * 2000)
+        assert decoder.buffered_bytes <= MAX_LINE_BYTES
+    assert decoder.discarded_bytes == 100 * 4000
+    assert decoder.counts == {REASON_OVERLONG: 1}  # one line, one report
+
+
+def test_an_overlong_proprietary_sentence_is_unknown_not_malformed() -> None:
+    decoder = GnssLineDecoder()
+    decoder.feed(f"{encode_nmea('PQTMEPE,' + ','.join(['1.234'] * 60))}\r\n".encode())
+    assert decoder.counts == {REASON_UNKNOWN: 1}

@@ -327,3 +327,18 @@ def test_fuzz_set_text_is_one_well_formed_instruction(text: str, encoding: str) 
     assert parsed is not None and parsed[0] == "t0"
     if text.isascii() and text.isprintable():
         assert parsed[1] == text
+
+
+@pytest.mark.parametrize(
+    ("data", "kind"),
+    [
+        (b"hello noise", "garbage"),
+        (frame(0x09), "unknown_function"),
+        (frame(0x05, 7), "bad_field"),
+        (frame(0x01, trailer=b"\x0d\x0b"), "bad_trailer"),
+        (b"\x55\x55\x03\x02", "incomplete_frame"),
+    ],
+)
+def test_every_rejection_has_a_stable_kind_for_the_counters(data: bytes, kind: str) -> None:
+    rejected = [e for e in decode_all(data) if isinstance(e, Rejected)]
+    assert [r.kind for r in rejected] == [kind]

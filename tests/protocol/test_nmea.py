@@ -8,9 +8,10 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from protocol.errors import ChecksumError, FieldError, ProtocolError
+from protocol.errors import ChecksumError, FieldError, FrameError, ProtocolError
 from protocol.nmea import (
     KMH_PER_KNOT,
+    MAX_NMEA_LINE_CHARS,
     Gga,
     Hdt,
     MissingFieldError,
@@ -179,6 +180,22 @@ def test_well_framed_sentences_we_do_not_use_are_unknown(sentence: str) -> None:
     with pytest.raises(UnknownSentenceError) as err:
         parse_nmea(encode_nmea(sentence))
     assert err.value.sentence == sentence.split(",")[0]
+
+
+@pytest.mark.parametrize("address", ["PQTMEPE", "KSXT", "GNGSV"])
+def test_a_sentence_we_do_not_use_is_unknown_even_when_longer_than_the_limit(address: str) -> None:
+    sentence = encode_nmea(address + "," + ",".join(["12.345"] * 40))
+    assert len(sentence) > MAX_NMEA_LINE_CHARS
+    with pytest.raises(UnknownSentenceError) as err:
+        parse_nmea(sentence)
+    assert err.value.sentence == address
+
+
+def test_an_overlong_sentence_we_decode_is_still_malformed() -> None:
+    sentence = encode_nmea("GNRMC,120000.00,A,4500.0,N,00700.0,E,1.0,90.0,010124,,,A" + "0" * 200)
+    with pytest.raises(FrameError, match="too long") as err:
+        parse_nmea(sentence)
+    assert not isinstance(err.value, UnknownSentenceError)
 
 
 def test_sentence_time_keeps_hundredths() -> None:

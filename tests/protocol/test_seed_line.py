@@ -130,3 +130,20 @@ def test_after_garbage_and_a_newline_every_following_seed_decodes(
     dec = SeedLineDecoder(ROWS)
     dec.feed(junk + b"\n")
     assert edges(dec.feed(stream(rows))) == rows
+
+
+@pytest.mark.parametrize(
+    ("data", "kind"),
+    [
+        (b"D,9\r\n", "bad_row"),
+        (b"D,x\r\n", "bad_row"),
+        (b"S,1\r\n", "malformed"),
+        (b"\xff\xfe\r\n", "malformed"),
+        (b"D" * 40 + b"\r\n", "overlong"),
+        (b"D" * 40, "overlong"),
+    ],
+)
+def test_every_rejection_has_a_stable_kind_for_the_counters(data: bytes, kind: str) -> None:
+    decoder = SeedLineDecoder(ROWS)
+    rejected = [e for e in decoder.feed(data) if isinstance(e, Rejected)]
+    assert [r.kind for r in rejected] == [kind]

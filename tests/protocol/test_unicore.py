@@ -13,6 +13,7 @@ from protocol.errors import ChecksumError, FieldError, FrameError, ProtocolError
 from protocol.nmea import MissingFieldError, TruncatedError, UnknownSentenceError
 from protocol.unicore import (
     GPS_UTC_LEAP_S,
+    MAX_UNICORE_LINE_CHARS,
     Heading,
     encode_headinga,
     encode_uniheadinga,
@@ -134,6 +135,20 @@ def test_other_unicore_logs_are_unknown_not_errors_of_the_link() -> None:
     line = _framed("BESTNAVA,90,GPS,FINE,2300,1000,0,0,18,10;SOL_COMPUTED,SINGLE,1,2,3")
     with pytest.raises(UnknownSentenceError, match="BESTNAVA"):
         parse_unicore(line)
+
+
+def test_an_unknown_log_longer_than_the_limit_is_unknown_not_malformed() -> None:
+    line = _framed("OBSVMA,90,GPS,FINE,2300,1000,0,0,18,10;" + ",".join(["123456.789"] * 80))
+    assert len(line) > MAX_UNICORE_LINE_CHARS
+    with pytest.raises(UnknownSentenceError, match="OBSVMA"):
+        parse_unicore(line)
+
+
+def test_an_overlong_heading_log_is_still_malformed() -> None:
+    line = _framed(OWN_LOG_CONTENT.decode() + ",0" * 400)
+    with pytest.raises(FrameError, match="too long") as err:
+        parse_unicore(line)
+    assert not isinstance(err.value, UnknownSentenceError)
 
 
 def test_short_body_is_a_missing_field() -> None:
