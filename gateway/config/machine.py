@@ -162,6 +162,14 @@ class SpeedSection(Section):
     # A reading above this is a sensor glitch (e.g. a radar's 0xFFFF = 655.35 km/h), not a
     # speed: it is dropped with an alarm instead of dragging the filter to full motor duty.
     max_plausible_kmh: float = Field(40.0, gt=0, le=100)
+    # The fastest the machine can change speed, in m/s2. The radar's trend filter never
+    # extrapolates a slope steeper than this, and a reading further from the filtered speed
+    # than this allows (plus noise) restarts its window (gateway.speed.TrendFilter). 1.5 m/s2
+    # (5.4 km/h per second): a tractor pulling a drill pulls away at about 0.5-1 m/s2 (the
+    # simulator drives at 0.6) and rarely brakes harder than 1.5 in the field; the radar
+    # stepping from 0 to 8 km/h between two 3 Hz polls would be 6.7 m/s2. Raise it for a
+    # light, quick machine; a value too low makes the filter lag real speed changes.
+    max_accel_mps2: float = Field(1.5, ge=0.2, le=10)
     correction: dict[str, float] = Field(default_factory=dict)
 
     _chain = field_validator("source", mode="before")(source_chain)
