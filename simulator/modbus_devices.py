@@ -13,7 +13,8 @@ over each reply as one complete frame, so no re-framing is needed here.
 The fault matrix of one device (``set_fault``), as a real RS485 node shows it to the master:
 ``silent`` (dead node), ``crc`` (every reply with a wrong CRC), ``wrong_id`` (replies carry
 another device id), ``exception`` (replies are Modbus exception 4, device failure),
-``truncated`` (replies lose their last bytes) and ``noise`` (line noise before every reply).
+``truncated`` (replies lose their last bytes) and ``noise`` (line noise before every reply
+and on one of its bytes).
 
 The PWM module has a communication-loss watchdog, as the module type sowgate supports does
 (``protocol.registers.PWM_COMM_TIMEOUT_REGISTER``): once the master has written a timeout,
@@ -336,8 +337,10 @@ class Rs485Simulator:
             return _with_crc(bytes([device_id, function | 0x80, EXCEPTION_DEVICE_FAILURE]))
         if fault == "truncated":
             return reply[:-TRUNCATED_BYTES]
-        if fault == "noise":
-            return self._rng.randbytes(NOISE_BYTES) + reply
+        if fault == "noise":  # noise before the reply and a byte of it hit as well
+            hit = 1 + self._rng.randrange(len(reply) - 3)
+            flipped = reply[hit] ^ (1 + self._rng.randrange(255))
+            return self._rng.randbytes(NOISE_BYTES) + reply[:hit] + bytes([flipped]) + reply[hit + 1 :]
         return reply
 
     # -------------------------------------------------------------------------------------
