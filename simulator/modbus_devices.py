@@ -340,7 +340,8 @@ class Rs485Simulator:
         if fault == "noise":  # noise before the reply and a byte of it hit as well
             hit = 1 + self._rng.randrange(len(reply) - 3)
             flipped = reply[hit] ^ (1 + self._rng.randrange(255))
-            return self._rng.randbytes(NOISE_BYTES) + reply[:hit] + bytes([flipped]) + reply[hit + 1 :]
+            hit_reply = reply[:hit] + bytes([flipped]) + reply[hit + 1 :]
+            return self._rng.randbytes(NOISE_BYTES) + hit_reply
         return reply
 
     # -------------------------------------------------------------------------------------
@@ -351,15 +352,15 @@ class Rs485Simulator:
             await asyncio.sleep(WATCHDOG_CHECK_S)
             assert self._loop is not None
             quiet_for = self._loop.time() - self._pwm_heard_at
-            if self.comm_timeout_s > 0.0 and quiet_for > self.comm_timeout_s:
-                if any(pct != 0.0 for pct in self.duty_pct.values()):
-                    self.watchdog_trips += 1
-                    log.info(
-                        "simulated PWM module heard nothing for %.2f s (timeout %.1f s): "
-                        "outputs off", quiet_for, self.comm_timeout_s,
-                    )
-                    for channel in ("motor", "fan"):
-                        self._set_duty(channel, 0.0)
+            on = any(pct != 0.0 for pct in self.duty_pct.values())
+            if on and self.comm_timeout_s > 0.0 and quiet_for > self.comm_timeout_s:
+                self.watchdog_trips += 1
+                log.info(
+                    "simulated PWM module heard nothing for %.2f s (timeout %.1f s): "
+                    "outputs off", quiet_for, self.comm_timeout_s,
+                )
+                for channel in ("motor", "fan"):
+                    self._set_duty(channel, 0.0)
 
     def _set_duty(self, channel: str, pct: float) -> None:
         self.duty_pct[channel] = pct
