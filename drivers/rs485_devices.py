@@ -17,7 +17,9 @@ from protocol.errors import FieldError, ProtocolError
 from protocol.registers import (
     RadarFormat,
     decode_angle,
+    decode_comm_timeout,
     decode_duty,
+    encode_comm_timeout,
     encode_duty,
     inclinometer_span,
 )
@@ -27,6 +29,11 @@ Channel = Literal["motor", "fan"]
 
 class BadReading(DeviceRejected):
     """The device answered a well-formed frame whose value makes no sense."""
+
+
+class WatchdogNotSet(DeviceRejected):
+    """The PWM module answered, but its communication-loss timeout does not read back as
+    written: it has no such watchdog (or a different one) and would not stop by itself."""
 
 
 class Radar:
@@ -95,6 +102,7 @@ class PwmModule:
             "motor": section.motor_register,
             "fan": section.fan_register,
         }
+        self.comm_timeout_register: int = section.comm_timeout_register
 
     @property
     def available(self) -> bool:
@@ -125,3 +133,24 @@ class PwmModule:
             return decode_duty(value)
         except ProtocolError as exc:
             raise BadReading(f"{self.name} (id {self.device_id}) {channel}: {exc}") from exc
+
+    async def set_comm_timeout(self, seconds: float) -> float:
+        """Program the module's communication-loss watchdog and read it back.
+
+        Returns the timeout the module holds. Raises :class:`WatchdogNotSet` if it reads back
+        otherwise, DeviceRejected if the module refuses the register (no such watchdog) and
+        DeviceUnavailable if it does not answer.
+        """
+        register = self.comm_timeout_register
+        try:
+            value = encode_comm_timeout(seconds)
+        except FieldError as exc:
+            raise FieldError(f"{self.name}: {exc}") from exc
+        await self.bus.write_register(self.name, self.device_id, register, value)
+        (back,) = await self.bus.read_holding(self.name, self.device_id, register, 1)
+        if back != value:
+            raise WatchdogNotSet(
+                f"{self.name} (id {self.device_id}) register {register:#06x} reads {back} "
+                f"after writing {value} (comm-loss timeout {seconds:g} s)"
+            )
+        return decode_comm_timeout(back)

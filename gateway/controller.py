@@ -52,6 +52,12 @@ class SpeedSource:
         self.last_t = t
         self.last_raw = raw
 
+    def dropped_glitch(self) -> None:
+        """A reading was dropped as implausible: the trend line is not fitted across the hole
+        (paper A's plain mean, ``filter = "mean"``, keeps its samples as the paper does)."""
+        if isinstance(self.filter, TrendFilter):
+            self.filter.reset()
+
     def value(self, now: float, stale_after_s: float) -> float | None:
         if self.last_t is None or now - self.last_t > stale_after_s:
             return None
@@ -105,13 +111,17 @@ class Controller:
             self.crop, self.rate_kg_ha = pwm.product, pwm.target_rate_kg_ha
         self.zero_offset_deg = s.inclinometer.zero_offset_deg
         corr = s.speed.correction
+        radar_filter: MovingAverage | TrendFilter = (
+            TrendFilter(
+                s.radar.filter_samples,
+                max_accel_mps2=s.speed.max_accel_mps2,
+                restart_after_s=s.speed.stale_after_s,
+            )
+            if s.radar.filter == "trend"
+            else MovingAverage(s.radar.filter_samples)
+        )
         self.sources: dict[str, SpeedSource] = {
-            "radar": SpeedSource(
-                (TrendFilter if s.radar.filter == "trend" else MovingAverage)(
-                    s.radar.filter_samples
-                ),
-                corr.get("radar", 1.0),
-            ),
+            "radar": SpeedSource(radar_filter, corr.get("radar", 1.0)),
             "gnss": SpeedSource(MovingAverage(OTHER_SOURCE_FILTER_SAMPLES), corr.get("gnss", 1.0)),
             "isobus": SpeedSource(
                 MovingAverage(OTHER_SOURCE_FILTER_SAMPLES), corr.get("isobus", 1.0)
@@ -158,6 +168,7 @@ class Controller:
                     source, kmh, speed.max_plausible_kmh,
                 )
             self._implausible_t[source] = t
+            self.sources[source].dropped_glitch()
             self.alarms.raise_(
                 code,
                 f"{source} speed readings above {speed.max_plausible_kmh:g} km/h ignored",

@@ -37,7 +37,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from drivers.errors import DriverError
+from drivers.errors import DeviceRejected, DriverError
 from drivers.modbus_bus import ModbusBus
 from drivers.rs485_devices import Channel, Inclinometer, PwmModule, Radar
 from drivers.tasks import cancel_all
@@ -61,6 +61,10 @@ DUTY_EPSILON_PCT = 0.05  # below this a change is not worth a bus write
 # A device alarms once it has not answered for this long (as speed.lost does): one CRC error
 # from motor noise must not flash "radar not answering" on the screen and over MQTT.
 DEVICE_LOST_AFTER_S = 2.0
+# A PWM module that refused its communication-loss timeout is asked again this often (it may
+# have been swapped); one that did not answer, as soon as this after the last try.
+WATCHDOG_RETRY_REFUSED_S = 10.0
+WATCHDOG_RETRY_UNANSWERED_S = 1.0
 # Allocations (net of frees) between two young-generation collections in the service process;
 # Python's default is 700 (see settle_gc).
 GC_YOUNG_THRESHOLD = 10_000
@@ -119,6 +123,18 @@ class Daemon:
         self.outputs: ControlOutputs | None = None
         self._written: dict[str, float] = {}
         self._written_at: float = -1e18
+        # Duties are rewritten at least this often: also the keep-alive of the PWM module's
+        # communication-loss watchdog, so well inside its timeout.
+        act = settings.actuators
+        self._refresh_s = min(act.refresh_s, act.comm_timeout_s / 2.0)
+        self._watchdog_verified = False
+        self._watchdog_retry_at = -1e18
+        if self.rs485 and act.comm_timeout_s < 3.0 / settings.rs485.poll_hz:
+            log.warning(
+                "actuators.comm_timeout_s %g s is less than 3 control periods "
+                "(rs485.poll_hz %g): one slow poll may let the PWM module switch off",
+                act.comm_timeout_s, settings.rs485.poll_hz,
+            )
         # device -> last tick it was answering (or its first failure if it never answered)
         self._answering_at: dict[str, float] = {}
         self._stop = asyncio.Event()
@@ -201,6 +217,7 @@ class Daemon:
         try:
             # both outputs are 0 before anything else happens
             await self._write_outputs(0.0, 0.0, force=True)
+            await self._keep_pwm_watchdog()
             await self._supervise()
         finally:
             await self._safe_off()  # again: the net for the paths that skipped _stop_control
@@ -305,6 +322,7 @@ class Daemon:
             out = self.controller.tick(self.clock())
             self.outputs = out
             await self._write_outputs(out.motor_pct, out.fan_pct, reply_t=reply_t)
+            await self._keep_pwm_watchdog()
             self._update_device_alarms()
             self.on_tick(out)
             next_at += period
@@ -325,7 +343,7 @@ class Daemon:
         if not self.rs485:
             return
         now = self.clock()
-        refresh = now - self._written_at >= self.settings.actuators.refresh_s
+        refresh = now - self._written_at >= self._refresh_s
         wanted: dict[Channel, float] = {"motor": round(motor, 1), "fan": round(fan, 1)}
         for channel, pct in wanted.items():
             prev = self._written.get(channel)
@@ -342,6 +360,45 @@ class Daemon:
             self._written[channel] = pct
         if refresh or force:
             self._written_at = now
+
+    async def _keep_pwm_watchdog(self) -> None:
+        """Program the PWM module's communication-loss timeout and verify it by reading back.
+
+        Done at start and again whenever the module was lost (a request to it failed, the port
+        vanished): it may have been power-cycled, and its watchdog is the only thing that
+        stops the motor while sowgate cannot reach it. A module that refuses the register or
+        reads back something else has no such watchdog: critical alarm ``pwm.no_watchdog``.
+        """
+        if not self.rs485:
+            return
+        if self._watchdog_verified:
+            if self.bus.available(self.pwm.name):
+                return
+            self._watchdog_verified = False  # lost since: program it again once it answers
+        now = self.clock()
+        if now < self._watchdog_retry_at:
+            return
+        timeout_s = self.settings.actuators.comm_timeout_s
+        try:
+            await self.pwm.set_comm_timeout(timeout_s)
+        except DeviceRejected as exc:
+            self._watchdog_retry_at = now + WATCHDOG_RETRY_REFUSED_S
+            self.alarms.set(
+                "pwm.no_watchdog",
+                True,
+                "PWM module has no communication-loss watchdog "
+                f"(register {self.pwm.comm_timeout_register:#06x}: {exc}); the motor would "
+                "keep running if RS485 failed: do not use this module",
+                "critical",
+            )
+            return
+        except DriverError:
+            self._watchdog_retry_at = now + WATCHDOG_RETRY_UNANSWERED_S
+            return  # not answering: pwm.unavailable says so
+        if not self.alarms.is_active("pwm.no_watchdog"):
+            log.info("PWM module comm-loss timeout set to %g s and verified", timeout_s)
+        self._watchdog_verified = True
+        self.alarms.clear("pwm.no_watchdog")
 
     def _update_device_alarms(self) -> None:
         if not self.rs485:

@@ -2,6 +2,8 @@
 
 The radar is polled at 3 Hz and averaged over the last 12 samples (paper A); while fewer than
 12 exist the mean is over what there is, so the controller has a speed from the first reply.
+The default ``trend`` filter fits a line instead, bounded by the machine's acceleration
+(:class:`TrendFilter`).
 """
 
 from __future__ import annotations
@@ -66,6 +68,15 @@ class Hysteresis:
         return self.state
 
 
+KMH_PER_MPS = 3.6
+# How far one reading may differ from the filtered speed beyond what the machine's acceleration
+# allows before it counts as a step (see TrendFilter): 15 % of the speed, at least 0.5 km/h.
+# Paper A's radar scatters by up to 4.12 % (Table 4), so ordinary noise is 3.6 sigma inside
+# this even before the acceleration allowance (1.8 km/h per 3 Hz poll at 1.5 m/s2) is added.
+STEP_MARGIN_FRACTION = 0.15
+STEP_MARGIN_MIN_KMH = 0.5
+
+
 class TrendFilter:
     """Least-squares line through the last ``n`` (t, v) samples, read at the newest sample.
 
@@ -73,14 +84,51 @@ class TrendFilter:
     out of a headland under-doses for several metres. The fitted line has no lag on a ramp
     and still averages noise over the same window (about twice the noise of the plain mean
     on a single reading, which the metering drive smooths anyway).
+
+    A line fitted to a *step* extrapolates it into a slope no tractor can make: a radar that
+    read 0 for 1 s at 8 km/h and then 8 again gave 10.2 km/h (93.6 % motor duty instead of
+    73 %), and a ramp remembered across an 8 s gap of failed polls gave more. So the line may
+    only say what a machine that accelerates at most ``max_accel_mps2`` can do:
+
+    * the fitted slope is clamped to +/- ``max_accel_mps2``;
+    * the window restarts (only the new reading is kept) when a reading differs from the
+      filtered speed by more than that acceleration allows since the previous reading plus
+      a noise margin (``STEP_MARGIN_*``): the readings before a step describe something the
+      machine cannot have become, so a line through both sides means nothing;
+    * the window restarts when no reading arrived for longer than ``restart_after_s`` (the
+      source was lost; what it said before says nothing about now), and when the caller
+      drops a glitch reading (:meth:`reset`).
+
+    After a restart the output is the mean of what there is until 3 readings exist, so its
+    noise is at most that of one raw reading and it settles back to the full window's.
     """
 
-    def __init__(self, n: int = 12) -> None:
+    def __init__(
+        self, n: int = 12, *, max_accel_mps2: float = 1.5, restart_after_s: float = 2.0
+    ) -> None:
         if n < 2:
             raise ValueError("trend filter needs n >= 2")
+        if not max_accel_mps2 > 0.0:
+            raise ValueError("trend filter needs max_accel_mps2 > 0")
+        if not restart_after_s > 0.0:
+            raise ValueError("trend filter needs restart_after_s > 0")
         self._samples: deque[tuple[float, float]] = deque(maxlen=n)
+        self.max_slope_kmh_per_s = max_accel_mps2 * KMH_PER_MPS
+        self.restart_after_s = restart_after_s
+        self.restarts = 0  # window restarts after a gap or a step (for tests and diagnostics)
 
     def add(self, value: float, t: float) -> float:
+        if self._samples:
+            last_t = self._samples[-1][0]
+            dt = t - last_t
+            estimate = self.value
+            reachable = (
+                self.max_slope_kmh_per_s * max(0.0, dt)
+                + max(STEP_MARGIN_MIN_KMH, STEP_MARGIN_FRACTION * abs(estimate))
+            )
+            if dt > self.restart_after_s or dt < 0.0 or abs(value - estimate) > reachable:
+                self._samples.clear()
+                self.restarts += 1
         self._samples.append((t, value))
         return self.value
 
@@ -97,6 +145,8 @@ class TrendFilter:
         if stt <= 0.0:
             return v_mean
         slope = sum((t - t_mean) * (v - v_mean) for t, v in self._samples) / stt
+        bound = self.max_slope_kmh_per_s
+        slope = max(-bound, min(bound, slope))
         return max(0.0, v_mean + slope * (self._samples[-1][0] - t_mean))
 
     def __len__(self) -> int:

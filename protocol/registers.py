@@ -21,6 +21,12 @@ WitMotion inclinometer (SINAT-485 / WT901-485 family)
 
 PWM output module
     One holding register per channel, duty in 0.1 % units, 0..1000 (100.0 %).
+    Register 0x0010 (``PWM_COMM_TIMEOUT_REGISTER``): communication-loss timeout in 0.1 s
+    units, 0 = off (the power-up value). The module type sowgate supports stops both outputs
+    (duty 0) by itself when it has received no request for that long, so the motor stops
+    when the bus is gone and sowgate can no longer write. sowgate writes it at start and
+    reads it back; a module that lacks it must not drive a metering motor (README, safe
+    states).
 """
 
 from __future__ import annotations
@@ -60,6 +66,9 @@ _AXIS_INDEX: dict[str, int] = {"roll": 0, "pitch": 1, "yaw": 2}
 
 DUTY_REGISTER_MAX = 1000  # 100.0 % in 0.1 % steps
 DUTY_UNITS_PER_PCT = 10
+PWM_COMM_TIMEOUT_REGISTER = 0x0010
+COMM_TIMEOUT_UNITS_PER_S = 10  # 0.1 s steps
+COMM_TIMEOUT_REGISTER_MAX = 6000  # 600.0 s, the longest the module accepts
 
 
 # ---------------------------------------------------------------------------------------------
@@ -277,3 +286,27 @@ def decode_duty(register: int) -> float:
     if not 0 <= register <= DUTY_REGISTER_MAX:
         raise FieldError(f"duty register {register} outside 0..{DUTY_REGISTER_MAX}")
     return register / DUTY_UNITS_PER_PCT
+
+
+# ---------------------------------------------------------------------------------------------
+# PWM module communication-loss watchdog
+
+
+def encode_comm_timeout(seconds: float) -> int:
+    """Register value for a communication-loss timeout (0.1 s steps; 0 switches it off)."""
+    if not math.isfinite(seconds) or not 0.0 <= seconds <= (
+        COMM_TIMEOUT_REGISTER_MAX / COMM_TIMEOUT_UNITS_PER_S
+    ):
+        raise FieldError(
+            f"comm-loss timeout {seconds} s outside 0..{COMM_TIMEOUT_REGISTER_MAX / 10:g} s"
+        )
+    return round(seconds * COMM_TIMEOUT_UNITS_PER_S)
+
+
+def decode_comm_timeout(register: int) -> float:
+    """Communication-loss timeout in seconds from a register value (0 = off)."""
+    if not 0 <= register <= COMM_TIMEOUT_REGISTER_MAX:
+        raise FieldError(
+            f"comm-loss timeout register {register} outside 0..{COMM_TIMEOUT_REGISTER_MAX}"
+        )
+    return register / COMM_TIMEOUT_UNITS_PER_S

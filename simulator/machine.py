@@ -93,6 +93,7 @@ class SimulatedMachine:
     with_gnss: bool = False
     with_seed_tubes: bool = False
     discharge_bias: float = 0.0  # plant discharge off the fitted model by this fraction
+    pwm_watchdog: bool = True  # False: a PWM module without a comm-loss timeout register
     settings_overrides: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -180,6 +181,7 @@ class SimulatedMachine:
                     tilt_deg=self.tilt_deg,
                     on_duty=self.on_duty,
                     rng=random.Random(self.seed + 2),
+                    pwm_watchdog=self.pwm_watchdog,
                 )
             )
             self.hmi = await self._stack.enter_async_context(HmiPeer())

@@ -10,6 +10,17 @@ the pymodbus server keeps running. Faults that concern whole frames (silence, CR
 noise before a reply) are applied in the server's ``trace_packet`` hook, where pymodbus hands
 over each reply as one complete frame, so no re-framing is needed here.
 
+The fault matrix of one device (``set_fault``), as a real RS485 node shows it to the master:
+``silent`` (dead node), ``crc`` (every reply with a wrong CRC), ``wrong_id`` (replies carry
+another device id), ``exception`` (replies are Modbus exception 4, device failure),
+``truncated`` (replies lose their last bytes) and ``noise`` (line noise before every reply
+and on one of its bytes).
+
+The PWM module has a communication-loss watchdog, as the module type sowgate supports does
+(``protocol.registers.PWM_COMM_TIMEOUT_REGISTER``): once the master has written a timeout,
+a module that hears no request for that long sets both duties to 0 by itself. A module
+without it (``pwm_watchdog=False``) answers "illegal data address" for that register.
+
 Why silence is done by hand: a real RS485 device that is dead, or an id nobody owns, says
 nothing and the master times out. pymodbus's server would instead answer an exception (its
 ``ignore_missing_devices`` is not honoured by the SimDevice datastore), so replies from
@@ -28,10 +39,10 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Literal
+from typing import Literal, get_args
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerType
+from pymodbus.framer import FramerRTU, FramerType
 from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -40,8 +51,10 @@ from protocol.errors import ProtocolError
 from protocol.registers import (
     WITMOTION_ANGLE_BASE,
     RadarFormat,
+    decode_comm_timeout,
     decode_duty,
     encode_angle,
+    encode_duty,
     inclinometer_span,
 )
 from simulator.pty_link import PtyPair
@@ -49,10 +62,16 @@ from simulator.pty_link import PtyPair
 log = logging.getLogger(__name__)
 
 Channel = Literal["motor", "fan"]
+Fault = Literal["silent", "crc", "wrong_id", "exception", "truncated", "noise"]
+FAULTS: tuple[Fault, ...] = get_args(Fault)
 
 RELAY_CHUNK = 4096  # bytes per read on the relay; Modbus RTU frames are at most 256
 MAX_GARBAGE_BYTES = 4096  # one injection; more would only test the pty buffer
 _CATCH_ALL_ID = 0  # pymodbus routes ids without a SimDevice to id 0
+EXCEPTION_DEVICE_FAILURE = 4  # the code a "exception" fault answers with
+TRUNCATED_BYTES = 3  # what a "truncated" reply loses (its CRC and one data byte)
+NOISE_BYTES = 5  # line noise put before every reply under a "noise" fault
+WATCHDOG_CHECK_S = 0.05  # how often the simulated PWM module looks at its watchdog
 
 
 class Rs485Simulator:
@@ -75,6 +94,7 @@ class Rs485Simulator:
         link_path: str | os.PathLike[str] | None = None,
         baudrate: int = 9600,
         rng: random.Random | None = None,
+        pwm_watchdog: bool = True,
     ) -> None:
         self.radar = radar or RadarSection()
         self.inclinometer = inclinometer or InclinometerSection()
@@ -103,11 +123,20 @@ class Rs485Simulator:
         self._loop: asyncio.AbstractEventLoop | None = None
 
         self._silent: set[int] = set()
+        self._faults: dict[int, Fault] = {}
+        self._radar_held: float | None = None
         self._corrupt_left = 0
         self._garbage: bytes = b""
         self.duty_pct: dict[str, float] = {"motor": 0.0, "fan": 0.0}
         self.replies_dropped = 0  # replies swallowed because the id is silent or unknown
         self.requests_seen: dict[int, int] = {}
+        # the PWM module's communication-loss watchdog (see the module docstring)
+        self.pwm_watchdog = pwm_watchdog
+        self.comm_timeout_s = 0.0  # 0: off, as the module powers up
+        self.comm_timeout_writes = 0  # how often the master wrote the timeout register
+        self.watchdog_trips = 0  # how often the module stopped both outputs by itself
+        self._pwm_heard_at = 0.0  # loop time of the last request the module heard
+        self._watchdog_task: asyncio.Task[None] | None = None
 
     # -------------------------------------------------------------------------------------
     # lifecycle
@@ -146,12 +175,20 @@ class Rs485Simulator:
             await self._server.serve_forever(background=True)
             self._loop.add_reader(self._server_pty.master_fd, self._pump_from_server)
             self._open_line()
+            self._watchdog_task = self._loop.create_task(
+                self._run_pwm_watchdog(), name="sim-pwm-watchdog"
+            )
         except BaseException:
             await self.close()
             raise
 
     async def close(self) -> None:
         """Stop the server and remove both ptys and the symlink. Idempotent."""
+        if self._watchdog_task is not None:
+            task, self._watchdog_task = self._watchdog_task, None
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
         self._close_line()
         if self._server is not None:
             server, self._server = self._server, None
@@ -208,6 +245,22 @@ class Rs485Simulator:
         else:
             self._silent.discard(device_id)
 
+    def set_fault(self, device_id: int, fault: Fault | None) -> None:
+        """Every reply of ``device_id`` shows ``fault`` (see the module docstring) until
+        ``set_fault(device_id, None)``. ``silent`` is :meth:`set_silent`."""
+        if fault is not None and fault not in FAULTS:
+            raise ValueError(f"unknown fault {fault!r}, expected one of {FAULTS}")
+        self.set_silent(device_id, fault == "silent")
+        if fault is None or fault == "silent":
+            self._faults.pop(device_id, None)
+        else:
+            self._faults[device_id] = fault
+
+    def hold_radar(self, kmh: float | None) -> None:
+        """The radar reads ``kmh`` whatever the plant does (e.g. 0 while it loses its echo);
+        ``None`` hands it back to the plant."""
+        self._radar_held = kmh
+
     @property
     def vanished(self) -> bool:
         return self._line is None
@@ -262,12 +315,57 @@ class Rs485Simulator:
         if device_id in self._silent or device_id not in self.device_ids.values():
             self.replies_dropped += 1
             return b""
+        fault = self._faults.get(device_id)
+        if fault is not None:
+            data = self._faulty_reply(fault, data)
         if self._corrupt_left > 0:
             self._corrupt_left -= 1
             data = data[:-1] + bytes([data[-1] ^ 0xFF])
         if self._garbage:
             data, self._garbage = self._garbage + data, b""
         return data
+
+    def _faulty_reply(self, fault: Fault, reply: bytes) -> bytes:
+        """What a device with ``fault`` puts on the line instead of ``reply``."""
+        device_id, function = reply[0], reply[1] & 0x7F
+        if fault == "crc":
+            return reply[:-1] + bytes([reply[-1] ^ 0xFF])
+        if fault == "wrong_id":
+            other = (device_id % 247) + 1
+            return _with_crc(bytes([other]) + reply[1:-2])
+        if fault == "exception":
+            return _with_crc(bytes([device_id, function | 0x80, EXCEPTION_DEVICE_FAILURE]))
+        if fault == "truncated":
+            return reply[:-TRUNCATED_BYTES]
+        if fault == "noise":  # noise before the reply and a byte of it hit as well
+            hit = 1 + self._rng.randrange(len(reply) - 3)
+            flipped = reply[hit] ^ (1 + self._rng.randrange(255))
+            hit_reply = reply[:hit] + bytes([flipped]) + reply[hit + 1 :]
+            return self._rng.randbytes(NOISE_BYTES) + hit_reply
+        return reply
+
+    # -------------------------------------------------------------------------------------
+    # the PWM module's communication-loss watchdog
+
+    async def _run_pwm_watchdog(self) -> None:
+        while True:
+            await asyncio.sleep(WATCHDOG_CHECK_S)
+            assert self._loop is not None
+            quiet_for = self._loop.time() - self._pwm_heard_at
+            on = any(pct != 0.0 for pct in self.duty_pct.values())
+            if on and self.comm_timeout_s > 0.0 and quiet_for > self.comm_timeout_s:
+                self.watchdog_trips += 1
+                log.info(
+                    "simulated PWM module heard nothing for %.2f s (timeout %.1f s): "
+                    "outputs off", quiet_for, self.comm_timeout_s,
+                )
+                for channel in ("motor", "fan"):
+                    self._set_duty(channel, 0.0)
+
+    def _set_duty(self, channel: str, pct: float) -> None:
+        self.duty_pct[channel] = pct
+        if self._on_duty is not None:
+            self._on_duty(channel, pct)
 
     # -------------------------------------------------------------------------------------
     # device models
@@ -292,6 +390,13 @@ class Rs485Simulator:
             SimData(self.actuators.motor_register, values=0, datatype=DataType.REGISTERS),
             SimData(self.actuators.fan_register, values=0, datatype=DataType.REGISTERS),
         ]
+        if self.pwm_watchdog:
+            pwm_regs.append(
+                SimData(
+                    self.actuators.comm_timeout_register, values=0, datatype=DataType.REGISTERS
+                )
+            )
+        pwm_regs.sort(key=lambda d: d.address)
         return [
             SimDevice(self.radar.device_id, simdata=[radar_regs], action=self._radar_action),
             SimDevice(
@@ -312,8 +417,9 @@ class Rs485Simulator:
     ) -> ExcCodes | None:
         if self.radar.device_id in self._silent or set_values is not None:
             return None
+        kmh = self._radar_kmh() if self._radar_held is None else self._radar_held
         try:
-            words = self._radar_format.encode_kmh(self._radar_kmh())
+            words = self._radar_format.encode_kmh(kmh)
         except (ProtocolError, ArithmeticError, ValueError) as exc:
             log.warning("simulated radar cannot encode its speed: %s", exc)
             return ExcCodes.DEVICE_FAILURE
@@ -355,29 +461,40 @@ class Rs485Simulator:
         registers: list[int],
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
-        if set_values is None or self.actuators.device_id in self._silent:
+        if self.actuators.device_id in self._silent:
+            return None  # a dead node hears nothing: its watchdog keeps counting
+        assert self._loop is not None
+        self._pwm_heard_at = self._loop.time()
+        timeout_reg = self.actuators.comm_timeout_register if self.pwm_watchdog else None
+        channels = {self.actuators.motor_register: "motor", self.actuators.fan_register: "fan"}
+        if set_values is None:  # a read: answer what the outputs really are
+            for reg, channel in channels.items():
+                if address <= reg < address + count:
+                    registers[reg - start_address] = encode_duty(self.duty_pct[channel])
+            if timeout_reg is not None and address <= timeout_reg < address + count:
+                registers[timeout_reg - start_address] = round(self.comm_timeout_s * 10)
             return None
         changes: list[tuple[str, float]] = []
+        timeout_s: float | None = None
         for i, raw in enumerate(set_values):
             reg = address + i
-            channel = (
-                "motor"
-                if reg == self.actuators.motor_register
-                else "fan"
-                if reg == self.actuators.fan_register
-                else None
-            )
-            if channel is None:
-                continue
             try:
-                changes.append((channel, decode_duty(int(raw))))
+                if reg == timeout_reg:
+                    timeout_s = decode_comm_timeout(int(raw))
+                elif reg in channels:
+                    changes.append((channels[reg], decode_duty(int(raw))))
             except ProtocolError:
-                return ExcCodes.ILLEGAL_VALUE  # the module refuses > 100 %, nothing changes
+                return ExcCodes.ILLEGAL_VALUE  # the module refuses it, nothing changes
+        if timeout_s is not None:
+            self.comm_timeout_s = timeout_s
+            self.comm_timeout_writes += 1
         for channel, pct in changes:
-            self.duty_pct[channel] = pct
-            if self._on_duty is not None:
-                self._on_duty(channel, pct)
+            self._set_duty(channel, pct)
         return None
+
+
+def _with_crc(frame: bytes) -> bytes:
+    return frame + FramerRTU.compute_CRC(frame).to_bytes(2, "big")
 
 
 def _read_some(fd: int) -> bytes:

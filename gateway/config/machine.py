@@ -15,6 +15,7 @@ from pydantic import (
 from pydantic_settings import NoDecode
 
 from gateway.config._base import FieldProblem, OptionalPart, Section, check_unique, source_chain
+from protocol.registers import PWM_COMM_TIMEOUT_REGISTER
 
 
 class MachineSection(Section):
@@ -70,12 +71,27 @@ class ActuatorsSection(Section):
     motor_register: int = Field(0, ge=0, le=65535)
     fan_register: int = Field(1, ge=0, le=65535)
     refresh_s: float = Field(2.0, gt=0, le=2.0)
+    # The module's communication-loss watchdog: with no request from sowgate for this long
+    # it sets motor and fan to 0 by itself, the only way the motor stops when the bus is
+    # gone (sowgate cannot write then). Written at start and after every loss of the module,
+    # and read back; a module that refuses it raises the critical alarm pwm.no_watchdog.
+    # Absent: 2 s. 0 (watchdog off) is refused: such a module must not drive the motor.
+    # Keep it at 3 control periods (1/rs485.poll_hz) or more; sowgate refreshes the duties
+    # at least every comm_timeout_s / 2.
+    comm_timeout_s: float = Field(2.0, ge=0.5, le=60)
+    comm_timeout_register: int = Field(PWM_COMM_TIMEOUT_REGISTER, ge=0, le=65535)
 
     @model_validator(mode="after")
     def _distinct_registers(self) -> ActuatorsSection:
         if self.motor_register == self.fan_register:
             raise FieldProblem(
                 "fan_register", "must differ from motor_register", self.fan_register
+            )
+        if self.comm_timeout_register in (self.motor_register, self.fan_register):
+            raise FieldProblem(
+                "comm_timeout_register",
+                "must differ from motor_register and fan_register",
+                self.comm_timeout_register,
             )
         return self
 
@@ -162,6 +178,14 @@ class SpeedSection(Section):
     # A reading above this is a sensor glitch (e.g. a radar's 0xFFFF = 655.35 km/h), not a
     # speed: it is dropped with an alarm instead of dragging the filter to full motor duty.
     max_plausible_kmh: float = Field(40.0, gt=0, le=100)
+    # The fastest the machine can change speed, in m/s2. The radar's trend filter never
+    # extrapolates a slope steeper than this, and a reading further from the filtered speed
+    # than this allows (plus noise) restarts its window (gateway.speed.TrendFilter). 1.5 m/s2
+    # (5.4 km/h per second): a tractor pulling a drill pulls away at about 0.5-1 m/s2 (the
+    # simulator drives at 0.6) and rarely brakes harder than 1.5 in the field; the radar
+    # stepping from 0 to 8 km/h between two 3 Hz polls would be 6.7 m/s2. Raise it for a
+    # light, quick machine; a value too low makes the filter lag real speed changes.
+    max_accel_mps2: float = Field(1.5, ge=0.2, le=10)
     correction: dict[str, float] = Field(default_factory=dict)
 
     _chain = field_validator("source", mode="before")(source_chain)

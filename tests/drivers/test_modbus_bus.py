@@ -136,6 +136,24 @@ async def test_pwm_duty_writes_reach_the_module(
     assert pwm.available
 
 
+async def test_pwm_comm_loss_timeout_is_written_and_read_back(
+    pwm: PwmModule, sim: Rs485Simulator
+) -> None:
+    assert await pwm.set_comm_timeout(2.0) == 2.0
+    assert sim.comm_timeout_s == 2.0 and sim.comm_timeout_writes == 1
+
+
+async def test_a_pwm_module_without_the_watchdog_is_rejected_by_name(plant: Plant) -> None:
+    async with (
+        Rs485Simulator(
+            radar_kmh=lambda: plant.kmh, tilt_deg=lambda: plant.tilt, pwm_watchdog=False
+        ) as s,
+        make_bus(s.device_path) as b,
+    ):
+        with pytest.raises(DeviceRejected, match=r"pwm \(id 3\) rejected write 20 to register 16"):
+            await PwmModule(b, ActuatorsSection()).set_comm_timeout(2.0)
+
+
 async def test_out_of_range_duty_is_refused_before_touching_the_bus(
     pwm: PwmModule, bus: ModbusBus, plant: Plant
 ) -> None:

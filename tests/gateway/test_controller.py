@@ -89,6 +89,22 @@ def test_a_glitch_speed_reading_is_ignored_not_metered() -> None:
     assert not c.alarms.is_active("radar.implausible")
 
 
+def test_a_dropped_glitch_restarts_the_trend_window_but_not_paper_a_mean() -> None:
+    """The samples before a glitch and after it are two runs with a hole between: the trend
+    line is not fitted across it. ``filter = "mean"`` stays paper A's plain 12-sample mean."""
+    for radar_filter, kept in (("trend", 1), ("mean", 12)):
+        settings = parse_config({"radar": {"filter": radar_filter}})
+        c = Controller(settings, AlarmBoard("m1"))
+        t = 0.0
+        for _ in range(12):
+            c.on_speed("radar", 5.0, t)
+            t += 1 / 3
+        assert c.on_speed("radar", 655.35, t) is False
+        t += 1 / 3
+        c.on_speed("radar", 5.0, t)
+        assert len(c.sources["radar"].filter) == kept, radar_filter
+
+
 def test_a_source_sending_only_glitches_goes_stale_and_stops_metering() -> None:
     c, _ = make()
     c.execute(cmd.Start(), "test")

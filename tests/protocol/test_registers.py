@@ -261,3 +261,27 @@ def test_struct_agrees_with_float32_encoding() -> None:
     """Cross-check against struct so the word split is not tested against itself."""
     hi, lo = encode_number(3.5, "float32", "big")
     assert struct.unpack(">f", hi.to_bytes(2, "big") + lo.to_bytes(2, "big"))[0] == 3.5
+
+
+def test_comm_loss_timeout_is_in_tenths_of_a_second_and_0_is_off() -> None:
+    from protocol.registers import decode_comm_timeout, encode_comm_timeout
+
+    assert encode_comm_timeout(2.0) == 20
+    assert encode_comm_timeout(0.0) == 0
+    assert decode_comm_timeout(20) == 2.0
+    assert decode_comm_timeout(6000) == 600.0
+
+
+@pytest.mark.parametrize("seconds", [-0.1, 600.1, math.nan, math.inf])
+def test_out_of_range_comm_loss_timeout_raises(seconds: float) -> None:
+    from protocol.registers import encode_comm_timeout
+
+    with pytest.raises(FieldError, match="comm-loss timeout"):
+        encode_comm_timeout(seconds)
+
+
+def test_out_of_range_comm_loss_timeout_register_raises() -> None:
+    from protocol.registers import decode_comm_timeout
+
+    with pytest.raises(FieldError, match="comm-loss timeout register 6001"):
+        decode_comm_timeout(6001)

@@ -15,8 +15,13 @@ from pymodbus.client import AsyncModbusSerialClient
 from pymodbus.exceptions import ModbusIOException
 
 from gateway.config import ActuatorsSection, InclinometerSection, RadarSection
-from protocol.registers import RadarFormat, decode_angle, encode_angle
-from simulator.modbus_devices import Rs485Simulator
+from protocol.registers import (
+    PWM_COMM_TIMEOUT_REGISTER,
+    RadarFormat,
+    decode_angle,
+    encode_angle,
+)
+from simulator.modbus_devices import FAULTS, Fault, Rs485Simulator
 from simulator.pty_link import PtyPair
 
 TIMEOUT_S = 0.15
@@ -310,3 +315,86 @@ async def test_close_removes_the_device_path(plant: Plant) -> None:
     await simulator.close()
     await simulator.close()
     assert not link_exists(path)
+
+
+# --- the fault matrix of one device (set_fault) ---------------------------------------------
+
+
+@pytest.mark.parametrize("fault", FAULTS)
+async def test_every_fault_spoils_each_reply_until_cleared(
+    fault: Fault, sim: Rs485Simulator, master: AsyncModbusSerialClient
+) -> None:
+    """The master gets nothing usable from a faulty radar, the other devices are unaffected,
+    and clearing the fault brings the radar back."""
+    sim.set_fault(1, fault)
+    for _ in range(3):
+        try:
+            rr = await master.read_holding_registers(0, count=1, device_id=1)
+        except ModbusIOException:
+            continue
+        assert fault == "exception", f"{fault}: a reply got through: {rr}"
+        assert rr.isError() and rr.exception_code == 4
+    rr = await master.read_holding_registers(0x3E, count=1, device_id=0x50)
+    assert not rr.isError()
+    sim.set_fault(1, None)
+    rr = await master.read_holding_registers(0, count=1, device_id=1)
+    assert rr.registers == [525]
+
+
+def test_an_unknown_fault_is_refused() -> None:
+    sim = Rs485Simulator(radar_kmh=lambda: 0.0, tilt_deg=lambda: 0.0)
+    with pytest.raises(ValueError, match="unknown fault"):
+        sim.set_fault(1, "gremlins")  # type: ignore[arg-type]
+
+
+async def test_a_held_radar_reading_overrides_the_plant(
+    sim: Rs485Simulator, master: AsyncModbusSerialClient
+) -> None:
+    sim.hold_radar(0.0)
+    assert (await master.read_holding_registers(0, count=1, device_id=1)).registers == [0]
+    sim.hold_radar(None)
+    assert (await master.read_holding_registers(0, count=1, device_id=1)).registers == [525]
+
+
+# --- the PWM module's communication-loss watchdog -----------------------------------------
+
+
+async def test_pwm_watchdog_stops_both_outputs_when_the_master_goes_quiet(
+    sim: Rs485Simulator, master: AsyncModbusSerialClient, plant: Plant
+) -> None:
+    await master.write_register(PWM_COMM_TIMEOUT_REGISTER, 5, device_id=3)  # 0.5 s
+    assert (await master.read_holding_registers(0x10, count=1, device_id=3)).registers == [5]
+    assert sim.comm_timeout_s == 0.5
+    await master.write_register(0, 700, device_id=3)
+    await master.write_register(1, 600, device_id=3)
+    for _ in range(5):  # any request keeps it alive, reads too
+        await asyncio.sleep(0.2)
+        await master.read_holding_registers(0, count=1, device_id=3)
+    assert sim.duty_pct == {"motor": 70.0, "fan": 60.0} and sim.watchdog_trips == 0
+    await asyncio.sleep(0.8)
+    assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
+    assert plant.duties[-2:] == [("motor", 0.0), ("fan", 0.0)]
+    assert sim.watchdog_trips == 1
+    rr = await master.read_holding_registers(0, count=2, device_id=3)
+    assert rr.registers == [0, 0]  # reads show what the outputs really are
+
+
+async def test_pwm_watchdog_is_off_until_the_master_sets_it(
+    sim: Rs485Simulator, master: AsyncModbusSerialClient
+) -> None:
+    await master.write_register(0, 700, device_id=3)
+    await asyncio.sleep(0.5)
+    assert sim.duty_pct["motor"] == 70.0 and sim.comm_timeout_s == 0.0
+
+
+async def test_a_module_without_the_watchdog_refuses_its_register(plant: Plant) -> None:
+    async with Rs485Simulator(
+        radar_kmh=lambda: 0.0, tilt_deg=lambda: 0.0, pwm_watchdog=False
+    ) as simulator:
+        client = AsyncModbusSerialClient(simulator.device_path, timeout=TIMEOUT_S, retries=0)
+        try:
+            assert await client.connect()
+            rr = await client.write_register(PWM_COMM_TIMEOUT_REGISTER, 20, device_id=3)
+            assert rr.isError() and rr.exception_code == 2
+        finally:
+            client.close()
