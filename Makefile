@@ -50,6 +50,7 @@ dist: $(STAMP)
 
 schemas: $(STAMP)
 	$(BIN)/python -m gateway.payloads --write docs/schemas
+	$(BIN)/python -m gateway.alarm_codes --write docs/mqtt.md
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build dist

@@ -10,11 +10,15 @@ an event is emitted when the alarm is raised, when its severity changes, and whe
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
+from gateway.alarm_codes import lookup
 from gateway.records import AlarmEvent, AlarmSeverity
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -48,6 +52,9 @@ class AlarmBoard:
 
     def raise_(self, code: str, message: str, severity: AlarmSeverity = "warning") -> None:
         current = self._active.get(code)
+        if current is None and lookup(code) is None:
+            # gateway/alarm_codes.py is the documented list; tests check it is complete
+            log.error("alarm code %r is not in gateway.alarm_codes.REGISTRY", code)
         if current is not None and current.severity == severity:
             current.message = message  # the live text, without an event per tick
             return
