@@ -6,12 +6,16 @@ terminal in a cab knows exactly which line of which table to fix.
 
 from __future__ import annotations
 
+import difflib
 import os
+import re
 import tomllib
+import types
+import typing
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from gateway.config._base import FieldProblem, OptionalPart, switch_on_present_parts
@@ -265,11 +269,70 @@ def _loc(loc: tuple[int | str, ...]) -> str:
     return out
 
 
+def _env_variable(loc: tuple[int | str, ...]) -> str | None:
+    """The ``SOWGATE_…`` variable that set the value at ``loc`` (or a table holding it), if any.
+
+    The environment beats the file, so when such a variable exists the bad value is its value,
+    and a fitter who looks in the file would find nothing wrong there.
+    """
+    if not loc or not all(isinstance(part, str) for part in loc):
+        return None  # list items ([[channel]]) cannot be set one by one from the environment
+    by_upper = {name.upper(): name for name in os.environ}
+    prefix = Settings.model_config.get("env_prefix", "")
+    delimiter = Settings.model_config.get("env_nested_delimiter") or "__"
+    for n in range(len(loc), 0, -1):
+        name = by_upper.get((prefix + delimiter.join(str(p) for p in loc[:n])).upper())
+        if name is not None:
+            return name
+    return None
+
+
+def _without_none(kind: Any) -> Any:
+    args = [a for a in typing.get_args(kind) if a is not type(None)]
+    if typing.get_origin(kind) in (typing.Union, types.UnionType) and len(args) == 1:
+        return args[0]
+    return kind
+
+
+def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
+    """The config model (table) that the path ``loc`` leads to, for naming its valid keys."""
+    kind: Any = Settings
+    for part in loc:
+        kind = _without_none(kind)
+        if typing.get_origin(kind) in (list, dict):
+            kind = typing.get_args(kind)[-1]  # part is a [[table]] index or a dict key
+            continue
+        if not (isinstance(kind, type) and issubclass(kind, BaseModel)):
+            return None
+        fields = {f.alias or name: f for name, f in kind.model_fields.items()}
+        if part not in fields:
+            return None
+        kind = fields[str(part)].annotation
+    kind = _without_none(kind)
+    return kind if isinstance(kind, type) and issubclass(kind, BaseModel) else None
+
+
+def _closest_key(loc: tuple[int | str, ...]) -> str | None:
+    """For an unknown key, the valid key of the same table it most likely misspells."""
+    model = _model_at(loc[:-1])
+    if model is None or not isinstance(loc[-1], str):
+        return None
+    keys = [f.alias or name for name, f in model.model_fields.items()]
+    match = difflib.get_close_matches(loc[-1], keys, n=1, cutoff=0.6)
+    return match[0] if match else None
+
+
 def format_validation_error(exc: ValidationError) -> list[str]:
-    """One ``section.key: problem (got value)`` line per pydantic error."""
+    """One ``section.key: problem (got value)`` line per pydantic error.
+
+    A value set by an environment variable says so (``rs485.poll_hz (from
+    $SOWGATE_RS485__POLL_HZ): …``), and an unknown key suggests the valid one it most likely
+    misspells (``did you mean baudrate?``).
+    """
     lines = []
     for err in exc.errors(include_url=False):
-        loc = _loc(tuple(err["loc"]))
+        raw_loc = tuple(err["loc"])
+        loc = _loc(raw_loc)
         msg = err["msg"].removeprefix("Value error, ")
         got = err.get("input")
         problem = err.get("ctx", {}).get("error")
@@ -277,6 +340,16 @@ def format_validation_error(exc: ValidationError) -> list[str]:
             key = problem.key if problem.key.startswith("[") else "." + problem.key
             loc = problem.key if not loc else loc + key
             msg, got = problem.problem, problem.value
+            raw_loc = tuple(
+                int(p) if p.isdigit() else p for p in re.findall(r"[^.\[\]]+", loc)
+            )
+        if err["type"] == "extra_forbidden":
+            closest = _closest_key(raw_loc)
+            if closest is not None:
+                msg += f"; did you mean {closest}?"
+        variable = _env_variable(raw_loc)
+        if variable is not None and loc:
+            loc += f" (from ${variable})"
         if not loc:  # a cross-section check whose message names the keys itself
             lines.append(msg)
         elif err["type"] in {"missing"} or isinstance(got, dict):
