@@ -179,11 +179,12 @@ class MqttLink:
         )
 
     def notify_state_changed(self) -> None:
-        """The state may have changed: compare it now, publish it if it did.
+        """The state may have changed: compare it now, publish it at once if the change is
+        one a dashboard must see at once (``StatePayload.same_as``), else at ``state_hz``.
 
-        The daemon calls this after every control tick, which is when speed, duty and work
-        state change; the link itself adds alarms. Comparing on these notices instead of on a
-        timer of its own costs the box no extra wake-ups.
+        The daemon calls this after every control tick, which is when the work state changes;
+        the link itself adds alarms. Comparing on these notices instead of on a timer of its
+        own costs the box no extra wake-ups.
         """
         self._state_wake.set()
 
@@ -377,7 +378,8 @@ class MqttLink:
             return None
 
     async def _state_loop(self, client: aiomqtt.Client) -> None:
-        """Publish at ``state_hz`` and on every change (``notify_state_changed``)."""
+        """Publish at ``state_hz``, and at once when the work state, crop, target rate or
+        alarms change (``notify_state_changed``, ``StatePayload.same_as``)."""
         period = 1.0 / self.cfg.state_hz
         last: StatePayload | None = None
         last_at = -float("inf")

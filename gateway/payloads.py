@@ -21,7 +21,15 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, RootModel
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    JsonValue,
+    RootModel,
+    ValidationInfo,
+    field_validator,
+)
 
 from gateway.records import AlarmEvent, AlarmSeverity, FixQuality, SeedRecord
 from gateway.work_state import WorkState
@@ -89,8 +97,23 @@ class RejectedInput(_Payload):
     )
 
 
+# Decimals each state value is published with: its sensor's (or actuator's) resolution. A
+# dashboard gets 6.0, not the 5.999999999999997 the arithmetic gives; docs/mqtt.md lists them.
+STATE_DECIMALS = {
+    "speed_kmh": 2,  # 0.01 km/h, the radar's register resolution
+    "tilt_deg": 2,  # 0.01 degree
+    "target_rate_kg_ha": 2,
+    "commanded_rate_kg_ha": 2,
+    "motor_duty_pct": 1,  # 0.1 %, the PWM module's duty register
+    "fan_duty_pct": 1,
+    "area_ha": 4,  # 0.0001 ha = 1 m2
+    "seed_mass_kg": 2,  # 10 g
+}
+
+
 class StatePayload(_Payload):
-    """Retained on ``state`` at ``state_hz`` and on every change: what the cab screen shows."""
+    """Retained on ``state`` at ``state_hz``, and at once when the work state, the crop or
+    target rate, or the alarms change: what the cab screen shows."""
 
     machine_id: str
     utc: datetime
@@ -136,14 +159,27 @@ class StatePayload(_Payload):
         "published at state_hz, a new count alone does not trigger a message)",
     )
 
+    @field_validator(*STATE_DECIMALS, mode="after")
+    @classmethod
+    def _to_resolution(cls, value: float | None, info: ValidationInfo) -> float | None:
+        assert info.field_name is not None
+        return None if value is None else round(value, STATE_DECIMALS[info.field_name])
+
+    def _urgent_part(self) -> tuple[object, ...]:
+        alarms = tuple((a.code, a.severity) for a in self.alarms)
+        return (self.work_state, self.crop, self.target_rate_kg_ha, alarms)
+
     def same_as(self, other: StatePayload | None) -> bool:
-        """Equal apart from the timestamp and the rejection counters: decides whether a change
-        must be published now. A storm of garbage would otherwise publish the state at the
-        10 messages/s cap for as long as it lasts; the counters ride along at ``state_hz``."""
+        """Whether ``other`` differs in nothing that must be published at once: the work
+        state, the crop, the target rate, and which alarms are active (code and severity).
+
+        Everything else (speed, tilt, duties, counters, a live value in an alarm's text)
+        changes on nearly every control tick while seeding: publishing each change sent the
+        state 3 times a second instead of the documented ``state_hz``. Those values ride along
+        at ``state_hz``."""
         if other is None:
             return False
-        ignored = {"utc", "rejected"}
-        return self.model_dump(exclude=ignored) == other.model_dump(exclude=ignored)
+        return self._urgent_part() == other._urgent_part()
 
 
 class SeedBatch(_Payload):

@@ -155,45 +155,85 @@ async def test_records_alarms_state_and_status_reach_the_broker(
     assert retained  # status is retained on the broker
 
 
-async def test_state_follows_change_notices_at_most_ten_times_a_second(
+async def test_state_goes_out_at_state_hz_and_at_once_on_a_work_state_change(
     mosquitto: Mosquitto, tmp_path: Path
 ) -> None:
-    """The daemon says after each control tick that the state may have changed: a change goes
-    out at once (not at the next period), a burst of changes is capped at 10 messages/s, and
-    a notice without a change publishes nothing."""
+    """The daemon says after each control tick that the state may have changed. Steady seeding
+    changes speed and duty on every tick: that is published at state_hz, not per tick (it was
+    86 messages in 29 s at 1 Hz). A work-state change goes out at once, and a burst of them is
+    capped at 10 messages/s."""
     settings = parse_config({
         "machine": {"id": MACHINE},
-        "mqtt": {"enabled": True, "port": mosquitto.port, "keepalive": 5, "state_hz": 0.2},
+        "mqtt": {"enabled": True, "port": mosquitto.port, "keepalive": 5, "state_hz": 1},
     })
-    speed = [8.0]
+    now = {"speed": 8.0, "work_state": "seeding"}
 
     def state() -> StatePayload:
-        return StatePayload(machine_id=MACHINE, utc=datetime.now(UTC), work_state="seeding",
-                            speed_kmh=speed[0], speed_source="radar")
+        return StatePayload(machine_id=MACHINE, utc=datetime.now(UTC),
+                            work_state=str(now["work_state"]), speed_kmh=float(now["speed"]),
+                            motor_duty_pct=float(now["speed"]) * 5.1, speed_source="radar")
 
-    def speeds() -> list[float]:
-        return [json.loads(p)["speed_kmh"] for p in sub.on("state")]
+    def states() -> list[dict[str, object]]:
+        return [json.loads(p) for p in sub.on("state")]
 
     async with (
         subscriber(mosquitto.port, BASE) as sub,
         running_link(settings, tmp_path / "r.db", state) as run,
     ):
-        await eventually(lambda: speeds() == [8.0], 5, "the first state")
-        speed[0] = 9.0
+        await eventually(lambda: len(states()) == 1, 5, "the first state")
+        started = time.monotonic()
+        while time.monotonic() - started < 3.0:  # 3 s of seeding, a control tick every 0.1 s
+            now["speed"] = 8.0 + 0.1 * (time.monotonic() % 1.0)  # jitters on every tick
+            run.link.notify_state_changed()
+            await asyncio.sleep(0.1)
+        periodic = len(states()) - 1
+        assert 2 <= periodic <= 4  # ~1 per second, not ~30
+        assert all(isinstance(s["speed_kmh"], float) and round(s["speed_kmh"], 2) == s["speed_kmh"]
+                   for s in states())
+
+        now["work_state"] = "turning"
         run.link.notify_state_changed()
-        await eventually(lambda: speeds()[-1:] == [9.0], 1.0, "the change, within 1 s")
-        for _ in range(20):  # a 10 ms control tick changing the speed every time
-            speed[0] += 0.5
+        await eventually(lambda: states()[-1]["work_state"] == "turning", 0.5,
+                         "the work-state change, well before the next period")
+        before = len(states())
+        for i in range(20):  # a work state flapping on every 10 ms tick
+            now["work_state"] = "seeding" if i % 2 else "paused"
             run.link.notify_state_changed()
             await asyncio.sleep(0.01)
-        await eventually(lambda: speeds()[-1:] == [speed[0]], 1.0, "the final speed")
-        burst = len(speeds()) - 2
-        assert 1 <= burst <= 5  # ~0.3 s of changes at ≤ 10 messages/s
-        for _ in range(5):  # notices without a change
-            run.link.notify_state_changed()
-            await asyncio.sleep(0.05)
-        await asyncio.sleep(0.3)
-        assert len(speeds()) == burst + 2
+        await eventually(lambda: states()[-1]["work_state"] == now["work_state"], 1.0,
+                         "the final work state")
+        assert 1 <= len(states()) - before <= 5  # ~0.3 s of changes at <= 10 messages/s
+
+
+async def test_an_alarm_publishes_the_state_at_once(mosquitto: Mosquitto, tmp_path: Path) -> None:
+    settings = parse_config({
+        "machine": {"id": MACHINE},
+        "mqtt": {"enabled": True, "port": mosquitto.port, "keepalive": 5, "state_hz": 0.2},
+    })
+    board: list[AlarmBoard] = []
+
+    def state() -> StatePayload:
+        from gateway.payloads import ActiveAlarmInfo
+
+        active = board[0].active if board else []
+        return StatePayload(
+            machine_id=MACHINE, utc=datetime.now(UTC), work_state="seeding",
+            alarms=[ActiveAlarmInfo(code=a.code, severity=a.severity, message=a.message,
+                                    since=a.since) for a in active],
+        )
+
+    async with (
+        subscriber(mosquitto.port, BASE) as sub,
+        running_link(settings, tmp_path / "r.db", state) as run,
+    ):
+        board.append(run.alarms)
+        await eventually(lambda: len(sub.on("state")) == 1, 5, "the first state")
+        run.alarms.raise_("speed.lost", "no valid ground speed", "critical")
+        def codes() -> list[str]:
+            return [a["code"] for a in json.loads(sub.on("state")[-1])["alarms"]]
+
+        await eventually(lambda: codes() == ["speed.lost"], 1.0,
+                         "the alarm in the state, long before the 5 s period")
 
 
 async def test_bad_commands_get_precise_error_acks_and_change_nothing(

@@ -94,13 +94,38 @@ def test_empty_command_refuses_unknown_keys() -> None:
         EmptyCommand.model_validate({"force": True})
 
 
-def test_state_change_detection_ignores_the_timestamp() -> None:
-    a = StatePayload(machine_id="m", utc=T0, work_state="working", speed_kmh=8.0)
-    b = a.model_copy(update={"utc": datetime(2026, 4, 20, 9, tzinfo=UTC)})
-    c = a.model_copy(update={"speed_kmh": 9.0})
-    assert a.same_as(b)
-    assert not a.same_as(c)
+def test_only_work_state_crop_target_and_alarms_make_a_state_urgent() -> None:
+    """Speed, tilt, duties and counters change on nearly every tick: they ride along at
+    state_hz; the work state, crop, target rate and the set of alarms go out at once."""
+    from gateway.payloads import ActiveAlarmInfo
+
+    a = StatePayload(machine_id="m", utc=T0, work_state="seeding", speed_kmh=8.0, crop="wheat",
+                     target_rate_kg_ha=200.0, motor_duty_pct=40.0, area_ha=1.0)
+    alarm = ActiveAlarmInfo(code="rate.low_duty", severity="info", message="duty 3 %", since=T0)
+    assert a.same_as(a.model_copy(update={"utc": datetime(2026, 4, 20, 9, tzinfo=UTC)}))
+    assert a.same_as(a.model_copy(update={"speed_kmh": 9.0, "motor_duty_pct": 45.0,
+                                          "area_ha": 1.1, "tilt_deg": 3.0}))
+    assert not a.same_as(a.model_copy(update={"work_state": "turning"}))
+    assert not a.same_as(a.model_copy(update={"crop": "maize"}))
+    assert not a.same_as(a.model_copy(update={"target_rate_kg_ha": 210.0}))
+    with_alarm = a.model_copy(update={"alarms": [alarm]})
+    assert not a.same_as(with_alarm)
+    live_text = alarm.model_copy(update={"message": "duty 2 %"})
+    assert with_alarm.same_as(a.model_copy(update={"alarms": [live_text]}))
     assert not a.same_as(None)
+
+
+def test_state_values_are_rounded_to_their_resolution() -> None:
+    s = StatePayload(machine_id="m", utc=T0, work_state="seeding", speed_kmh=5.999999999999997,
+                     tilt_deg=-2.00499, target_rate_kg_ha=224.99999999, commanded_rate_kg_ha=6.0001,
+                     motor_duty_pct=41.04999, fan_duty_pct=60.00000001, area_ha=3.4200000007,
+                     seed_mass_kg=769.5049)
+    sent = json.loads(s.model_dump_json())
+    assert (sent["speed_kmh"], sent["tilt_deg"]) == (6.0, -2.0)
+    assert (sent["target_rate_kg_ha"], sent["commanded_rate_kg_ha"]) == (225.0, 6.0)
+    assert (sent["motor_duty_pct"], sent["fan_duty_pct"]) == (41.0, 60.0)
+    assert (sent["area_ha"], sent["seed_mass_kg"]) == (3.42, 769.5)
+    assert StatePayload(machine_id="m", utc=T0, work_state="stopped").speed_kmh is None
 
 
 def test_seed_batch_carries_record_ids() -> None:
