@@ -7,8 +7,9 @@ Wiring (two pty pairs, bytes pumped by :class:`Rs485Simulator`)::
 
 The relay is the "cable": it lets the simulator unplug the port (``vanish``/``restore``) while
 the pymodbus server keeps running. Faults that concern whole frames (silence, CRC corruption,
-noise before a reply) are applied in the server's ``trace_packet`` hook, where pymodbus hands
-over each reply as one complete frame, so no re-framing is needed here.
+noise before a reply, and the lasting per-device reply faults of ``set_reply_fault``: wrong
+id, exception, truncated) are applied in the server's ``trace_packet`` hook, where pymodbus
+hands over each reply as one complete frame, so no re-framing is needed here.
 
 Why silence is done by hand: a real RS485 device that is dead, or an id nobody owns, says
 nothing and the master times out. pymodbus's server would instead answer an exception (its
@@ -49,6 +50,10 @@ from simulator.pty_link import PtyPair
 log = logging.getLogger(__name__)
 
 Channel = Literal["motor", "fan"]
+# What a faulty device (or cable) does to every one of its replies, see set_reply_fault.
+ReplyFault = Literal["crc", "wrong_id", "exception", "truncated", "noise"]
+REPLY_FAULTS: tuple[ReplyFault, ...] = ("crc", "wrong_id", "exception", "truncated", "noise")
+MAX_REPLY_NOISE_BYTES = 16  # line noise ahead of each reply under the "noise" fault
 
 RELAY_CHUNK = 4096  # bytes per read on the relay; Modbus RTU frames are at most 256
 MAX_GARBAGE_BYTES = 4096  # one injection; more would only test the pty buffer
@@ -103,6 +108,7 @@ class Rs485Simulator:
         self._loop: asyncio.AbstractEventLoop | None = None
 
         self._silent: set[int] = set()
+        self._reply_faults: dict[int, ReplyFault] = {}
         self._corrupt_left = 0
         self._garbage: bytes = b""
         self.duty_pct: dict[str, float] = {"motor": 0.0, "fan": 0.0}
@@ -208,6 +214,25 @@ class Rs485Simulator:
         else:
             self._silent.discard(device_id)
 
+    def set_reply_fault(self, device_id: int, fault: ReplyFault | None) -> None:
+        """Every reply of ``device_id`` is spoiled by ``fault`` until it is cleared (None).
+
+        The request reached the device and it acted on it (a write is applied); what comes
+        back is wrong, as with a failing transceiver or a second device on the same id:
+
+        * ``crc``: the last CRC byte inverted;
+        * ``wrong_id``: a well-formed reply (valid CRC) from another id;
+        * ``exception``: a well-formed Modbus exception reply, code 4 (device failure);
+        * ``truncated``: only the first half of the frame, then silence;
+        * ``noise``: 1..16 random bytes of line noise ahead of the intact reply.
+        """
+        if fault is None:
+            self._reply_faults.pop(device_id, None)
+        elif fault in REPLY_FAULTS:
+            self._reply_faults[device_id] = fault
+        else:
+            raise ValueError(f"unknown reply fault {fault!r}; known: {', '.join(REPLY_FAULTS)}")
+
     @property
     def vanished(self) -> bool:
         return self._line is None
@@ -262,12 +287,30 @@ class Rs485Simulator:
         if device_id in self._silent or device_id not in self.device_ids.values():
             self.replies_dropped += 1
             return b""
+        fault = self._reply_faults.get(device_id)
+        if fault is not None:
+            data = self._spoil(fault, data)
         if self._corrupt_left > 0:
             self._corrupt_left -= 1
             data = data[:-1] + bytes([data[-1] ^ 0xFF])
         if self._garbage:
             data, self._garbage = self._garbage + data, b""
         return data
+
+    def _spoil(self, fault: ReplyFault, frame: bytes) -> bytes:
+        """``frame`` (id, PDU, CRC) as ``fault`` delivers it (see ``set_reply_fault``)."""
+        if fault == "crc":
+            return frame[:-1] + bytes([frame[-1] ^ 0xFF])
+        if fault == "wrong_id":
+            body = bytes([frame[0] % 247 + 1]) + frame[1:-2]  # the next id, valid CRC
+            return body + _crc16(body)
+        if fault == "exception":
+            body = bytes([frame[0], frame[1] | 0x80, int(ExcCodes.DEVICE_FAILURE)])
+            return body + _crc16(body)
+        if fault == "truncated":
+            return frame[: max(1, len(frame) // 2)]
+        noise = self._rng.randbytes(self._rng.randint(1, MAX_REPLY_NOISE_BYTES))
+        return noise + frame
 
     # -------------------------------------------------------------------------------------
     # device models
@@ -378,6 +421,16 @@ class Rs485Simulator:
             if self._on_duty is not None:
                 self._on_duty(channel, pct)
         return None
+
+
+def _crc16(body: bytes) -> bytes:
+    """Modbus RTU CRC-16 (poly 0xA001 reflected, init 0xFFFF), low byte first."""
+    crc = 0xFFFF
+    for byte in body:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc.to_bytes(2, "little")
 
 
 def _read_some(fd: int) -> bytes:

@@ -203,6 +203,7 @@ class Um982Emulator:
         self._corrupt_left = 0
         self._garbage = bytearray()
         self._drop_heading = False
+        self._interleave = b""
         self.truth: deque[TruthEpoch] = deque(maxlen=TRUTH_CAPACITY)
         self.epochs_written = 0
         self.lines_corrupted = 0
@@ -263,6 +264,15 @@ class Um982Emulator:
     def garbage(self, n_bytes: int) -> None:
         """Write ``n_bytes`` of random line noise before the next epoch's lines."""
         self._garbage += self._rng.randbytes(n_bytes)
+
+    def inject(self, data: bytes) -> None:
+        """Write ``data`` (chosen bytes: binary output, junk) before the next epoch's lines."""
+        self._garbage += data
+
+    def interleave(self, data: bytes | None) -> None:
+        """Write ``data`` before every line from now on (None: stop), as a receiver with
+        binary logs switched on mixes them with its NMEA sentences on the one port."""
+        self._interleave = data or b""
 
     def drop_heading(self, on: bool = True) -> None:
         """Stop (or resume) sending #HEADINGA, as when the secondary antenna loses lock."""
@@ -343,7 +353,9 @@ class Um982Emulator:
                 continue
             lines = self.sample_epoch(k)
             await asyncio.sleep(max(0.0, t_epoch + self.output_latency_s - self._clock()))
-            payload = bytes(self._garbage) + "".join(f"{ln}\r\n" for ln in lines).encode()
+            payload = bytes(self._garbage) + b"".join(
+                self._interleave + f"{ln}\r\n".encode() for ln in lines
+            )
             self._garbage.clear()
             self._write(payload)
             self.epochs_written += 1
