@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto demo test lint typecheck bench schemas clean
+.PHONY: mosquitto demo test reliability lint typecheck bench schemas clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -24,6 +24,12 @@ test: $(STAMP) mosquitto
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/pytest -q
+
+# The fault matrix alone (also part of `make test`, which writes its table to
+# build/reliability.md): regenerates docs/reliability.md from this run. Needs root (tmpfs).
+reliability: $(STAMP) mosquitto
+	SOWGATE_RELIABILITY_COMMAND="make reliability" \
+	  $(BIN)/pytest -q tests/reliability --reliability-report=docs/reliability.md
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

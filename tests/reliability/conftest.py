@@ -10,6 +10,7 @@ Only the groups of the rows selected (``-k``) run. The table goes to
 from __future__ import annotations
 
 import asyncio
+import os
 import shlex
 import sys
 import tempfile
@@ -57,6 +58,8 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
     if not path.is_absolute():
         path = Path(session.config.invocation_params.dir) / path
     path.parent.mkdir(parents=True, exist_ok=True)
-    command = "pytest " + shlex.join(session.config.invocation_params.args)
+    command = os.environ.get("SOWGATE_RELIABILITY_COMMAND") or "pytest " + shlex.join(
+        session.config.invocation_params.args
+    )
     path.write_text(render(results, command))
     print(f"\nfault matrix written to {path}", file=sys.stderr)
