@@ -25,6 +25,7 @@ from typing import Any
 from gateway.store import RecordStore
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
+from simulator.seed_tubes import SeedTubeEmulator
 
 MACHINE_ID = "seeder-01"
 BASE = f"sowgate/{MACHINE_ID}"
@@ -287,3 +288,72 @@ def fill(directory: Path, name: str = "filler") -> int:
                 except OSError:
                     break
     return written
+
+
+# ---- shared by the rows ------------------------------------------------------------------
+
+
+def finish_row(res: RowResult, daemon: DaemonProcess, tracebacks_before: int = 0) -> None:
+    """Daemon state and uncaught exceptions, common to every row with a daemon."""
+    res.daemon = daemon.describe_exit()
+    tb = daemon.tracebacks() - tracebacks_before
+    res.tracebacks = str(tb)
+    res.check(tb == 0, f"{tb} Traceback(s) (uncaught or logged exceptions) in the daemon log "
+                       f"{daemon.log_path}")
+
+
+def fmt_s(seconds: float | None) -> str:
+    return "never" if seconds is None else f"{seconds:.1f} s"
+
+
+def edges_since(tubes: SeedTubeEmulator, n0: int) -> int:
+    return len(tubes.truth) - n0
+
+
+def edge_mono(tubes: SeedTubeEmulator, t_edge: float) -> float:
+    assert tubes.t0_mono is not None
+    return tubes.t0_mono + t_edge
+
+
+def mqtt_overrides(port: int, **extra: Any) -> dict[str, Any]:
+    return {
+        "mqtt": {"enabled": True, "port": port, "keepalive": 5, "reconnect_max_s": 1.0},
+        "control": {"start_working": True},
+        **extra,
+    }
+
+
+async def records_vs_edges(
+    res: RowResult, machine: TracedMachine, daemon: DaemonProcess, db: Path, n_open: int
+) -> tuple[int, int]:
+    """Stop the daemon once the pass has ended; (edges sensed, records stored)."""
+    await eventually(lambda: machine.pose().speed_kmh == 0.0, 120.0, "end of the pass")
+    await asyncio.sleep(1.0)  # the last seeds fall
+    tubes = machine.seed_tubes
+    sent = edges_since(tubes, n_open)
+    code = await daemon.stop()
+    res.check(code == 0, f"graceful stop exited {code}")
+    ids = seed_ids(db)
+    res.check(contiguous(ids), f"ids not contiguous ({len(ids)} rows)")
+    check = integrity(db)
+    res.check(check == "ok", f"integrity_check says {check!r}")
+    return sent, len(ids)
+
+
+async def steady_duty(machine: TracedMachine, seconds: float) -> Steady:
+    t0 = time.monotonic()
+    await asyncio.sleep(seconds)
+    return Steady.of(machine.duty_between(t0, time.monotonic()))
+
+
+def recovered_after(
+    machine: TracedMachine, t_end: float, steady: Steady, tolerance_pct: float
+) -> float | None:
+    """Seconds from ``t_end`` until the duty was back in the steady band (± ``tolerance_pct``),
+    None if it never was."""
+    for t, d in machine.duty:
+        if t >= t_end and steady.low - tolerance_pct <= d <= steady.high + tolerance_pct:
+            return t - t_end
+    return None
+
+

@@ -9,7 +9,7 @@ import subprocess
 from pathlib import Path
 
 from tests.reliability.harness import RowResult
-from tests.reliability.matrix import ROWS, Row
+from tests.reliability.rows import ROWS, Row
 
 HEADER = """# Reliability: the fault matrix
 

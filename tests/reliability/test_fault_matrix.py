@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from tests.reliability.harness import RowResult
-from tests.reliability.matrix import ROWS, ROWS_BY_NAME
+from tests.reliability.rows import ROWS, ROWS_BY_NAME
 
 # the campaign (about three minutes, the broker outage alone one) runs in the first row's setup
 CAMPAIGN_TIMEOUT_S = 600
