@@ -7,9 +7,14 @@ Wiring (two pty pairs, bytes pumped by :class:`Rs485Simulator`)::
 
 The relay is the "cable": it lets the simulator unplug the port (``vanish``/``restore``) while
 the pymodbus server keeps running. Faults that concern whole frames (silence, CRC corruption,
-noise before a reply, and the lasting per-device reply faults of ``set_reply_fault``: wrong
-id, exception, truncated) are applied in the server's ``trace_packet`` hook, where pymodbus
-hands over each reply as one complete frame, so no re-framing is needed here.
+noise before a reply) are applied in the server's ``trace_packet`` hook, where pymodbus hands
+over each reply as one complete frame, so no re-framing is needed here.
+
+The fault matrix of one device (``set_fault``), as a real RS485 node shows it to the master:
+``silent`` (dead node), ``crc`` (every reply with a wrong CRC), ``wrong_id`` (replies carry
+another device id), ``exception`` (replies are Modbus exception 4, device failure),
+``truncated`` (replies lose their last bytes) and ``noise`` (line noise before every reply
+and on one of its bytes).
 
 Why silence is done by hand: a real RS485 device that is dead, or an id nobody owns, says
 nothing and the master times out. pymodbus's server would instead answer an exception (its
@@ -29,10 +34,10 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Literal
+from typing import Literal, get_args
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerType
+from pymodbus.framer import FramerRTU, FramerType
 from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -50,14 +55,15 @@ from simulator.pty_link import PtyPair
 log = logging.getLogger(__name__)
 
 Channel = Literal["motor", "fan"]
-# What a faulty device (or cable) does to every one of its replies, see set_reply_fault.
-ReplyFault = Literal["crc", "wrong_id", "exception", "truncated", "noise"]
-REPLY_FAULTS: tuple[ReplyFault, ...] = ("crc", "wrong_id", "exception", "truncated", "noise")
-MAX_REPLY_NOISE_BYTES = 16  # line noise ahead of each reply under the "noise" fault
+Fault = Literal["silent", "crc", "wrong_id", "exception", "truncated", "noise"]
+FAULTS: tuple[Fault, ...] = get_args(Fault)
 
 RELAY_CHUNK = 4096  # bytes per read on the relay; Modbus RTU frames are at most 256
 MAX_GARBAGE_BYTES = 4096  # one injection; more would only test the pty buffer
 _CATCH_ALL_ID = 0  # pymodbus routes ids without a SimDevice to id 0
+EXCEPTION_DEVICE_FAILURE = 4  # the code a "exception" fault answers with
+TRUNCATED_BYTES = 3  # what a "truncated" reply loses (its CRC and one data byte)
+NOISE_BYTES = 5  # line noise put before every reply under a "noise" fault
 
 
 class Rs485Simulator:
@@ -108,7 +114,8 @@ class Rs485Simulator:
         self._loop: asyncio.AbstractEventLoop | None = None
 
         self._silent: set[int] = set()
-        self._reply_faults: dict[int, ReplyFault] = {}
+        self._faults: dict[int, Fault] = {}
+        self._radar_held: float | None = None
         self._corrupt_left = 0
         self._garbage: bytes = b""
         self.duty_pct: dict[str, float] = {"motor": 0.0, "fan": 0.0}
@@ -214,24 +221,21 @@ class Rs485Simulator:
         else:
             self._silent.discard(device_id)
 
-    def set_reply_fault(self, device_id: int, fault: ReplyFault | None) -> None:
-        """Every reply of ``device_id`` is spoiled by ``fault`` until it is cleared (None).
-
-        The request reached the device and it acted on it (a write is applied); what comes
-        back is wrong, as with a failing transceiver or a second device on the same id:
-
-        * ``crc``: the last CRC byte inverted;
-        * ``wrong_id``: a well-formed reply (valid CRC) from another id;
-        * ``exception``: a well-formed Modbus exception reply, code 4 (device failure);
-        * ``truncated``: only the first half of the frame, then silence;
-        * ``noise``: 1..16 random bytes of line noise ahead of the intact reply.
-        """
-        if fault is None:
-            self._reply_faults.pop(device_id, None)
-        elif fault in REPLY_FAULTS:
-            self._reply_faults[device_id] = fault
+    def set_fault(self, device_id: int, fault: Fault | None) -> None:
+        """Every reply of ``device_id`` shows ``fault`` (see the module docstring) until
+        ``set_fault(device_id, None)``. ``silent`` is :meth:`set_silent`."""
+        if fault is not None and fault not in FAULTS:
+            raise ValueError(f"unknown fault {fault!r}, expected one of {FAULTS}")
+        self.set_silent(device_id, fault == "silent")
+        if fault is None or fault == "silent":
+            self._faults.pop(device_id, None)
         else:
-            raise ValueError(f"unknown reply fault {fault!r}; known: {', '.join(REPLY_FAULTS)}")
+            self._faults[device_id] = fault
+
+    def hold_radar(self, kmh: float | None) -> None:
+        """The radar reads ``kmh`` whatever the plant does (e.g. 0 while it loses its echo);
+        ``None`` hands it back to the plant."""
+        self._radar_held = kmh
 
     @property
     def vanished(self) -> bool:
@@ -287,9 +291,9 @@ class Rs485Simulator:
         if device_id in self._silent or device_id not in self.device_ids.values():
             self.replies_dropped += 1
             return b""
-        fault = self._reply_faults.get(device_id)
+        fault = self._faults.get(device_id)
         if fault is not None:
-            data = self._spoil(fault, data)
+            data = self._faulty_reply(fault, data)
         if self._corrupt_left > 0:
             self._corrupt_left -= 1
             data = data[:-1] + bytes([data[-1] ^ 0xFF])
@@ -297,20 +301,24 @@ class Rs485Simulator:
             data, self._garbage = self._garbage + data, b""
         return data
 
-    def _spoil(self, fault: ReplyFault, frame: bytes) -> bytes:
-        """``frame`` (id, PDU, CRC) as ``fault`` delivers it (see ``set_reply_fault``)."""
+    def _faulty_reply(self, fault: Fault, reply: bytes) -> bytes:
+        """What a device with ``fault`` puts on the line instead of ``reply``."""
+        device_id, function = reply[0], reply[1] & 0x7F
         if fault == "crc":
-            return frame[:-1] + bytes([frame[-1] ^ 0xFF])
+            return reply[:-1] + bytes([reply[-1] ^ 0xFF])
         if fault == "wrong_id":
-            body = bytes([frame[0] % 247 + 1]) + frame[1:-2]  # the next id, valid CRC
-            return body + _crc16(body)
+            other = (device_id % 247) + 1
+            return _with_crc(bytes([other]) + reply[1:-2])
         if fault == "exception":
-            body = bytes([frame[0], frame[1] | 0x80, int(ExcCodes.DEVICE_FAILURE)])
-            return body + _crc16(body)
+            return _with_crc(bytes([device_id, function | 0x80, EXCEPTION_DEVICE_FAILURE]))
         if fault == "truncated":
-            return frame[: max(1, len(frame) // 2)]
-        noise = self._rng.randbytes(self._rng.randint(1, MAX_REPLY_NOISE_BYTES))
-        return noise + frame
+            return reply[:-TRUNCATED_BYTES]
+        if fault == "noise":  # noise before the reply and a byte of it hit as well
+            hit = 1 + self._rng.randrange(len(reply) - 3)
+            flipped = reply[hit] ^ (1 + self._rng.randrange(255))
+            hit_reply = reply[:hit] + bytes([flipped]) + reply[hit + 1 :]
+            return self._rng.randbytes(NOISE_BYTES) + hit_reply
+        return reply
 
     # -------------------------------------------------------------------------------------
     # device models
@@ -355,8 +363,9 @@ class Rs485Simulator:
     ) -> ExcCodes | None:
         if self.radar.device_id in self._silent or set_values is not None:
             return None
+        kmh = self._radar_kmh() if self._radar_held is None else self._radar_held
         try:
-            words = self._radar_format.encode_kmh(self._radar_kmh())
+            words = self._radar_format.encode_kmh(kmh)
         except (ProtocolError, ArithmeticError, ValueError) as exc:
             log.warning("simulated radar cannot encode its speed: %s", exc)
             return ExcCodes.DEVICE_FAILURE
@@ -423,14 +432,8 @@ class Rs485Simulator:
         return None
 
 
-def _crc16(body: bytes) -> bytes:
-    """Modbus RTU CRC-16 (poly 0xA001 reflected, init 0xFFFF), low byte first."""
-    crc = 0xFFFF
-    for byte in body:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc.to_bytes(2, "little")
+def _with_crc(frame: bytes) -> bytes:
+    return frame + FramerRTU.compute_CRC(frame).to_bytes(2, "big")
 
 
 def _read_some(fd: int) -> bytes:

@@ -59,27 +59,23 @@ async def _modbus_fault(
     radar_id = sim.radar.device_id
     tb0 = daemon.tracebacks()
     t0 = time.monotonic()
-    if fault == "silent":
-        sim.set_silent(radar_id, True)
-    elif fault == "speed_gap":
-        machine.radar_override_kmh = 0.0
+    if fault == "speed_gap":
+        sim.hold_radar(0.0)
     elif fault == "vanished":
         sim.vanish()
     else:
-        sim.set_reply_fault(radar_id, fault)  # type: ignore[arg-type]
+        sim.set_fault(radar_id, fault)  # type: ignore[arg-type]
     stopped_at: float | None = None
     while time.monotonic() - t0 < (SPEED_GAP_S if fault == "speed_gap" else MODBUS_FAULT_S):
         if stopped_at is None and machine.motor_pct() == 0.0:
             stopped_at = time.monotonic() - t0
         await asyncio.sleep(0.05)
-    if fault == "silent":
-        sim.set_silent(radar_id, False)
-    elif fault == "speed_gap":
-        machine.radar_override_kmh = None
+    if fault == "speed_gap":
+        sim.hold_radar(None)
     elif fault == "vanished":
         sim.restore()
     else:
-        sim.set_reply_fault(radar_id, None)
+        sim.set_fault(radar_id, None)
     t1 = time.monotonic()
     await asyncio.sleep(AFTER_FAULT_S)
     t2 = time.monotonic()

@@ -171,7 +171,6 @@ class TracedMachine(SimulatedMachine):
     def __post_init__(self) -> None:
         super().__post_init__()
         self.duty: list[tuple[float, float]] = []  # (monotonic s, motor duty % at the module)
-        self.radar_override_kmh: float | None = None  # a radar that reads this, right or wrong
         self._sampler: asyncio.Task[None] | None = None
 
     async def __aenter__(self) -> TracedMachine:
@@ -191,11 +190,6 @@ class TracedMachine(SimulatedMachine):
             if sim is not None:
                 self.duty.append((time.monotonic(), sim.duty_pct["motor"]))
             await asyncio.sleep(DUTY_SAMPLE_S)
-
-    def radar_kmh(self) -> float:
-        if self.radar_override_kmh is not None:
-            return self.radar_override_kmh
-        return super().radar_kmh()
 
     def motor_pct(self) -> float:
         assert self.rs485 is not None

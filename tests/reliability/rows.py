@@ -76,8 +76,8 @@ ROWS: tuple[Row, ...] = (
             ("crc", "every reply with a wrong CRC"),
             ("wrong_id", "every reply from another device id (valid CRC)"),
             ("exception", "every reply a Modbus exception (device failure)"),
-            ("truncated", "every reply cut after half its bytes"),
-            ("noise", "1–16 bytes of line noise ahead of every reply"),
+            ("truncated", "every reply loses its last 3 bytes"),
+            ("noise", "5 bytes of line noise ahead of every reply and one of its bytes hit"),
         )
     ),
     Row("radar_speed_gap_1s", "modbus",

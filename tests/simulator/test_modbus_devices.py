@@ -7,18 +7,16 @@ import asyncio
 import os
 import select
 import termios
-import tty
 from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
 from pymodbus.client import AsyncModbusSerialClient
 from pymodbus.exceptions import ModbusIOException
-from pymodbus.framer import FramerRTU
 
 from gateway.config import ActuatorsSection, InclinometerSection, RadarSection
 from protocol.registers import RadarFormat, decode_angle, encode_angle
-from simulator.modbus_devices import Rs485Simulator
+from simulator.modbus_devices import FAULTS, Fault, Rs485Simulator
 from simulator.pty_link import PtyPair
 
 TIMEOUT_S = 0.15
@@ -314,84 +312,40 @@ async def test_close_removes_the_device_path(plant: Plant) -> None:
     assert not link_exists(path)
 
 
-# --- lasting reply faults (the reliability suite's Modbus rows) -------------------------------
+# --- the fault matrix of one device (set_fault) ---------------------------------------------
 
 
-def _wire_crc(body: bytes) -> bytes:
-    """The CRC as pymodbus computes it, so the simulator's own is checked independently."""
-    return int(FramerRTU.compute_CRC(body)).to_bytes(2, "big")
-
-
-async def _raw_request(path: str, request: bytes, quiet_s: float = 0.15) -> bytes:
-    """Send one raw frame on the port and collect what comes back until the line is quiet."""
-    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-    try:
-        tty.setraw(fd)
-        os.write(fd, request)
-        loop = asyncio.get_running_loop()
-        data = b""
-        deadline = loop.time() + 2.0
-        last = loop.time()
-        while loop.time() < deadline and (not data or loop.time() - last < quiet_s):
-            try:
-                chunk = os.read(fd, 256)
-            except BlockingIOError:
-                chunk = b""
-            if chunk:
-                data += chunk
-                last = loop.time()
-            await asyncio.sleep(0.01)
-        return data
-    finally:
-        os.close(fd)
-
-
-READ_RADAR = bytes([1, 3, 0, 0, 0, 1])
-
-
-async def test_each_reply_fault_spoils_every_reply_of_its_device_until_cleared(
-    sim: Rs485Simulator,
+@pytest.mark.parametrize("fault", FAULTS)
+async def test_every_fault_spoils_each_reply_until_cleared(
+    fault: Fault, sim: Rs485Simulator, master: AsyncModbusSerialClient
 ) -> None:
-    request = READ_RADAR + _wire_crc(READ_RADAR)
-    body = bytes([1, 3, 2, 0x02, 0x0D])  # 525 = 5.25 km/h
-    good = body + _wire_crc(body)
-    assert await _raw_request(sim.device_path, request) == good
-
-    sim.set_reply_fault(1, "crc")
-    for _ in range(2):  # lasting, not once
-        reply = await _raw_request(sim.device_path, request)
-        assert reply[:-1] == good[:-1] and reply[-1] != good[-1]
-
-    sim.set_reply_fault(1, "wrong_id")
-    other = bytes([2]) + body[1:]
-    assert await _raw_request(sim.device_path, request) == other + _wire_crc(other)
-
-    sim.set_reply_fault(1, "exception")
-    exc = bytes([1, 0x83, 4])  # function 3 | 0x80, device failure
-    assert await _raw_request(sim.device_path, request) == exc + _wire_crc(exc)
-
-    sim.set_reply_fault(1, "truncated")
-    assert await _raw_request(sim.device_path, request) == good[: len(good) // 2]
-
-    sim.set_reply_fault(1, "noise")
-    reply = await _raw_request(sim.device_path, request)
-    assert reply.endswith(good) and 1 <= len(reply) - len(good) <= 16
-
-    sim.set_reply_fault(1, None)
-    assert await _raw_request(sim.device_path, request) == good
+    """The master gets nothing usable from a faulty radar, the other devices are unaffected,
+    and clearing the fault brings the radar back."""
+    sim.set_fault(1, fault)
+    for _ in range(3):
+        try:
+            rr = await master.read_holding_registers(0, count=1, device_id=1)
+        except ModbusIOException:
+            continue
+        assert fault == "exception", f"{fault}: a reply got through: {rr}"
+        assert rr.isError() and rr.exception_code == 4
+    rr = await master.read_holding_registers(0x3E, count=1, device_id=0x50)
+    assert not rr.isError()
+    sim.set_fault(1, None)
+    rr = await master.read_holding_registers(0, count=1, device_id=1)
+    assert rr.registers == [525]
 
 
-async def test_a_reply_fault_leaves_the_other_devices_alone(
+def test_an_unknown_fault_is_refused() -> None:
+    sim = Rs485Simulator(radar_kmh=lambda: 0.0, tilt_deg=lambda: 0.0)
+    with pytest.raises(ValueError, match="unknown fault"):
+        sim.set_fault(1, "gremlins")  # type: ignore[arg-type]
+
+
+async def test_a_held_radar_reading_overrides_the_plant(
     sim: Rs485Simulator, master: AsyncModbusSerialClient
 ) -> None:
-    sim.set_reply_fault(1, "exception")
-    rr = await master.read_holding_registers(0, count=1, device_id=1)
-    assert rr.isError() and rr.exception_code == 4
-    await master.write_register(0, 500, device_id=3)  # the PWM module still answers
-    assert sim.duty_pct["motor"] == 50.0
-
-
-def test_unknown_reply_fault_is_refused() -> None:
-    sim = Rs485Simulator(radar_kmh=lambda: 0.0, tilt_deg=lambda: 0.0)
-    with pytest.raises(ValueError, match="unknown reply fault"):
-        sim.set_reply_fault(1, "smoke")  # type: ignore[arg-type]
+    sim.hold_radar(0.0)
+    assert (await master.read_holding_registers(0, count=1, device_id=1)).registers == [0]
+    sim.hold_radar(None)
+    assert (await master.read_holding_registers(0, count=1, device_id=1)).registers == [525]
