@@ -265,18 +265,14 @@ class Um982Emulator:
         """Write ``n_bytes`` of random line noise before the next epoch's lines."""
         self._garbage += self._rng.randbytes(n_bytes)
 
-    def inject(self, data: bytes) -> None:
-        """Write ``data`` (chosen bytes: binary output, junk) before the next epoch's lines."""
-        self._garbage += data
+    def drop_heading(self, on: bool = True) -> None:
+        """Stop (or resume) sending #HEADINGA, as when the secondary antenna loses lock."""
+        self._drop_heading = on
 
     def interleave(self, data: bytes | None) -> None:
         """Write ``data`` before every line from now on (None: stop), as a receiver with
         binary logs switched on mixes them with its NMEA sentences on the one port."""
         self._interleave = data or b""
-
-    def drop_heading(self, on: bool = True) -> None:
-        """Stop (or resume) sending #HEADINGA, as when the secondary antenna loses lock."""
-        self._drop_heading = on
 
     def unplug(self) -> None:
         """The port vanishes: both pty ends close, the reader sees EIO, the path disappears."""

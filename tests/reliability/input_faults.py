@@ -293,7 +293,7 @@ async def group_config(tmp: Path) -> dict[str, RowResult]:
         ("mqtt.tls.ca_file", _with(base, "mqtt.tls", {"ca_file": str(missing)}), None, True),
         ("mqtt.password_file", _with(_with(base, "mqtt.username", "box"), "mqtt.password_file",
                                      str(missing)), None, True),
-        ("state", base, {"SOWGATE_STATE_DIR": str(a_file)}, False),
+        ("SOWGATE_STATE_DIR", base, {"SOWGATE_STATE_DIR": str(a_file)}, False),
     ]
     codes = []
     for key, data, env, checked_by_check_config in file_cases:
