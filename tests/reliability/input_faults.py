@@ -150,7 +150,7 @@ def _leaves(table: dict[str, Any], prefix: str = "") -> Iterable[tuple[str, Any]
 
 
 def _with(base: dict[str, Any], dotted: str, value: Any) -> dict[str, Any]:
-    data = json.loads(json.dumps(base))
+    data: dict[str, Any] = json.loads(json.dumps(base))
     *path, last = dotted.split(".")
     node = data
     for part in path:

@@ -59,8 +59,11 @@ async def group_kills(tmp: Path) -> dict[str, RowResult]:
                 if t_killed is not None:
                     restarts.append(time.monotonic() - t_killed)
                 n_open = len(tubes.truth)
-                await eventually(lambda n0=n_open: edges_since(tubes, n0) >= 10, 30.0,
-                                 "seeds falling")
+
+                def falling(n0: int = n_open) -> bool:
+                    return edges_since(tubes, n0) >= 10
+
+                await eventually(falling, 30.0, "seeds falling")
                 await asyncio.sleep(1.5 + rng.uniform(0.0, 1.0))  # any phase of the commit
                 n_kill, t_killed = len(tubes.truth), time.monotonic()
                 code = await daemon.kill()
