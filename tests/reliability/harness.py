@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import re
 import signal
 import statistics
 import sys
@@ -287,13 +288,24 @@ def fill(directory: Path, name: str = "filler") -> int:
 # ---- shared by the rows ------------------------------------------------------------------
 
 
+EXCEPTION_LINE = re.compile(r"^[A-Za-z_][\w.]*(?:Error|Exception|Interrupt|Exit)\b.*$", re.M)
+
+
 def finish_row(res: RowResult, daemon: DaemonProcess, tracebacks_before: int = 0) -> None:
     """Daemon state and uncaught exceptions, common to every row with a daemon."""
     res.daemon = daemon.describe_exit()
     tb = daemon.tracebacks() - tracebacks_before
     res.tracebacks = str(tb)
-    res.check(tb == 0, f"{tb} Traceback(s) (uncaught or logged exceptions) in the daemon log "
-                       f"{daemon.log_path}")
+    if tb > 0:
+        log = daemon.log_text()
+        at = 0
+        for _ in range(tracebacks_before + 1):  # the first Traceback of this row
+            at = log.index("Traceback", at) + 1
+        kinds = sorted({m.group(0)[:120] for m in EXCEPTION_LINE.finditer(log, at)})
+        res.problems.append(
+            f"{tb} Traceback(s) (uncaught or logged exceptions) in the daemon's log: "
+            + "; ".join(kinds[:3])
+        )
 
 
 def fmt_s(seconds: float | None) -> str:

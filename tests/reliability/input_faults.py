@@ -256,10 +256,12 @@ async def group_config(tmp: Path) -> dict[str, RowResult]:
     cases = config_cases()
     rejected = accepted = run_ok = 0
     run_tables: set[str] = set()
+    tracebacks = 0
     for i, case in enumerate(cases):
         path = tmp / f"case{i}.toml"
         path.write_text(case.text)
         code, err = _check_config_in_process(path)
+        tracebacks += "Traceback" in err
         values.check("Traceback" not in err, f"{case.what}: check-config crashed: {err[-300:]}")
         if code == 0:
             accepted += 1
@@ -276,12 +278,13 @@ async def group_config(tmp: Path) -> dict[str, RowResult]:
         run_code, run_err = await _run_process(path, {"SOWGATE_STATE_DIR": str(tmp / "st")})
         values.check(run_code == EXIT_CONFIG and _names(case, run_err),
                      f"{case.what}: `sowgate run` exit {run_code}: {run_err.strip()[:200]}")
+        tracebacks += "Traceback" in run_err
         values.check("Traceback" not in run_err, f"{case.what}: run printed a traceback")
         run_ok += run_code == EXIT_CONFIG
     values.lost = "—"
     values.daemon = (f"check-config: {rejected} rejected, {accepted} accepted; `sowgate run` "
                      f"on one per table: {run_ok} of {len(run_tables)} exit {EXIT_CONFIG}")
-    values.tracebacks = str(sum("Traceback" in p for p in values.problems))
+    values.tracebacks = str(tracebacks)
     values.notes.append(f"{len(cases)} mutated configs")
 
     files = RowResult()
@@ -296,6 +299,7 @@ async def group_config(tmp: Path) -> dict[str, RowResult]:
         ("SOWGATE_STATE_DIR", base, {"SOWGATE_STATE_DIR": str(a_file)}, False),
     ]
     codes = []
+    file_tracebacks = 0
     for key, data, env, checked_by_check_config in file_cases:
         path = tmp / f"files-{key}.toml"
         path.write_text(tomli_w.dumps(data))
@@ -307,13 +311,14 @@ async def group_config(tmp: Path) -> dict[str, RowResult]:
                     f"{key}: `sowgate run` "
                     + ("still running after 10 s" if run_code is None else f"exit {run_code}")
                     + f", output: {run_err.strip()[-200:] or 'nothing'}")
+        file_tracebacks += "Traceback" in run_err
         files.check("Traceback" not in run_err, f"{key}: run printed a traceback")
         if checked_by_check_config:
             code, err = _check_config_in_process(path)
             files.check(code == EXIT_CONFIG and key in err,
                         f"{key}: check-config exit {code}: {err.strip()[:200] or 'nothing'}")
     files.daemon = "; ".join(codes)
-    files.tracebacks = str(sum("traceback" in p for p in files.problems))
+    files.tracebacks = str(file_tracebacks)
     return {"config_fuzz_values": values, "config_fuzz_files": files}
 
 

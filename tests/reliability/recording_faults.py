@@ -86,8 +86,8 @@ async def group_kills(tmp: Path) -> dict[str, RowResult]:
                                           f"more than the {window} of the commit window")
             total_lost = sum(lost for lost, _ in losses)
             total_allowed = sum(window for _, window in losses)
-            res.lost = (f"{total_lost} in {KILLS} kills (max {max(x for x, _ in losses)} a kill; "
-                        f"commit window held {total_allowed})")
+            res.lost = (f"{total_lost} in {KILLS} kills, at most {max(x for x, _ in losses)} a "
+                        f"kill (the seeds of the kills' commit windows: {total_allowed})")
             median = sorted(restarts)[len(restarts) // 2]
             res.recovery = (f"restart → seed port open: median {median:.1f} s, "
                             f"max {max(restarts):.1f} s")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime
 import os
 import platform
+import re
 import subprocess
 from pathlib import Path
 
@@ -24,7 +25,7 @@ Every row ran against the real daemon process (`sowgate run`) on ptys, against t
 machine and, where MQTT matters, a real mosquitto on a free port. The same rows run in every
 `make test` (table written to `build/reliability.md`, not tracked); `make reliability` runs
 only them and rewrites this file. The code is in `tests/reliability/`; the invariants and
-their limits are the constants at the top of `tests/reliability/matrix.py`.
+their limits are the constants at the top of `tests/reliability/rows.py`.
 
 Columns: **lost** — records lost (seed edges sent by the simulator vs records in the store,
 and vs records delivered on MQTT where MQTT is involved); **recovery** — time until things
@@ -45,8 +46,12 @@ def _git(*args: str) -> str:
         return "unknown"
 
 
+TMP_DIR = re.compile(r"/tmp/sowgate-reliability-[^/\s']+")
+
+
 def _cell(text: str) -> str:
-    return text.replace("|", "\\|").replace("\n", " ")
+    """One table cell: no pipes or line breaks, and the run's scratch directory as <tmp>."""
+    return TMP_DIR.sub("<tmp>", text).replace("|", "\\|").replace("\n", " ")
 
 
 def render(results: dict[str, RowResult], command: str) -> str:
