@@ -228,21 +228,26 @@ def _check_config_in_process(path: Path) -> tuple[int, str]:
 async def _run_process(
     config: Path, env: dict[str, str] | None = None, timeout: float = 10.0
 ) -> tuple[int | None, str]:
+    """``sowgate run --config CONFIG``: its exit code (None: still running after ``timeout``,
+    then killed) and what it wrote to standard error (kept in a file, so a kill loses none)."""
     import os
     import sys
 
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "gateway.cli", "run", "--config", str(config),
-        env={**os.environ, **(env or {})}, stdin=asyncio.subprocess.DEVNULL,
-        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE,
-    )
+    err_path = config.with_suffix(".stderr")
+    with err_path.open("wb") as err:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "gateway.cli", "run", "--config", str(config),
+            env={**os.environ, **(env or {})}, stdin=asyncio.subprocess.DEVNULL,
+            stdout=asyncio.subprocess.DEVNULL, stderr=err,
+        )
+    code: int | None
     try:
-        _, err = await asyncio.wait_for(proc.communicate(), timeout)
-        return proc.returncode, err.decode(errors="replace")
+        code = await asyncio.wait_for(proc.wait(), timeout)
     except TimeoutError:
         proc.kill()
-        _, err = await proc.communicate()
-        return None, err.decode(errors="replace")
+        await proc.wait()
+        code = None
+    return code, err_path.read_text(errors="replace")
 
 
 def _names(case: ConfigCase, text: str) -> bool:
