@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto demo test lint typecheck bench schemas dist clean lock
+.PHONY: mosquitto demo test reliability lint typecheck bench schemas dist clean lock
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -36,6 +36,12 @@ test: $(STAMP) mosquitto
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/pytest -q
+
+# The fault matrix alone (also part of `make test`, which writes its table to
+# build/reliability.md): regenerates docs/reliability.md from this run. Needs root (tmpfs).
+reliability: $(STAMP) mosquitto
+	SOWGATE_RELIABILITY_COMMAND="make reliability" \
+	  $(BIN)/pytest -q tests/reliability --reliability-report=docs/reliability.md
 
 # every benchmark, to docs/benchmarks.md: a generated page, rewritten by each run (review the
 # diff, then commit it). `python -m benchmarks bench_x` alone writes benchmarks/latest.md.

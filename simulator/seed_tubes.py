@@ -222,6 +222,16 @@ class SeedTubeEmulator:
             raise RuntimeError("seed tube emulator not started")
         return self._pair.device_path
 
+    def inject(self, data: bytes) -> int:
+        """Write ``data`` (line noise, junk) on the sensor line now, between the seeds; the
+        bytes the pty took (a full buffer drops the rest, as a UART would)."""
+        if self._pair is None:
+            raise RuntimeError("seed tube emulator not started")
+        try:
+            return os.write(self._pair.master_fd, data)
+        except OSError:
+            return 0
+
     @property
     def planned(self) -> list[SeedTruth]:
         return list(self._plan)

@@ -207,6 +207,7 @@ class Um982Emulator:
         self._corrupt_left = 0
         self._garbage = bytearray()
         self._drop_heading = False
+        self._interleave = b""
         self.truth: deque[TruthEpoch] = deque(maxlen=TRUTH_CAPACITY)
         self.epochs_written = 0
         self.lines_corrupted = 0
@@ -277,6 +278,11 @@ class Um982Emulator:
     def drop_heading(self, on: bool = True) -> None:
         """Stop (or resume) sending #HEADINGA, as when the secondary antenna loses lock."""
         self._drop_heading = on
+
+    def interleave(self, data: bytes | None) -> None:
+        """Write ``data`` before every line from now on (None: stop), as a receiver with
+        binary logs switched on mixes them with its NMEA sentences on the one port."""
+        self._interleave = data or b""
 
     def unplug(self) -> None:
         """The port vanishes: both pty ends close, the reader sees EIO, the path disappears."""
@@ -353,7 +359,9 @@ class Um982Emulator:
                 continue
             lines = self.sample_epoch(k)
             await asyncio.sleep(max(0.0, t_epoch + self.output_latency_s - self._clock()))
-            payload = bytes(self._garbage) + "".join(f"{ln}\r\n" for ln in lines).encode()
+            payload = bytes(self._garbage) + b"".join(
+                self._interleave + f"{ln}\r\n".encode() for ln in lines
+            )
             self._garbage.clear()
             self._write(payload)
             self.epochs_written += 1

@@ -165,3 +165,15 @@ async def test_a_simulated_machine_plants_the_rows_its_daemon_config_has() -> No
         # a daemon for another planter than the one whose seeds are simulated is refused
         with pytest.raises(ValueError, match="settings_overrides"):
             machine.settings(machine={"rows": 6})
+
+
+async def test_injected_junk_reaches_the_line_between_the_seeds() -> None:
+    drive = Drive(legs=[Leg(1.0, 0.0)])  # standing: no seed of its own
+    async with SeedTubeEmulator(drive, EXACT) as tubes:
+        fd = os.open(tubes.device_path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
+        try:
+            assert tubes.inject(b"\x00junk\r\n") == 7
+            await asyncio.sleep(0.05)
+            assert os.read(fd, 64) == b"\x00junk\r\n"
+        finally:
+            os.close(fd)

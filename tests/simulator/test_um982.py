@@ -173,3 +173,26 @@ async def test_unplug_removes_the_port_and_replug_restores_it(tmp_path: Path) ->
             assert b"GNGGA" in await _read_for(fd, 0.3)
         finally:
             os.close(fd)
+
+
+async def test_interleaved_binary_precedes_every_line_until_switched_off(tmp_path: Path) -> None:
+    """A receiver with binary logs on: the chosen bytes before each sentence, then plain NMEA."""
+    drive = Drive([Leg(30.0, 6.0)])
+    binary = bytes(range(0x80, 0x80 + 40))
+    async with Um982Emulator(
+        drive.pose_at, origin_lat=48.0, origin_lon=11.0, link_path=tmp_path / "gnss", seed=1
+    ) as emu:
+        fd = os.open(emu.device_path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            await _read_for(fd, 0.15)
+            emu.interleave(binary)
+            mixed = await _read_for(fd, 0.35)
+            emu.interleave(None)
+            await _read_for(fd, 0.15)
+            plain = await _read_for(fd, 0.3)
+        finally:
+            os.close(fd)
+    lines = [ln for ln in mixed.split(b"\r\n") if ln]
+    assert len(lines) >= 6
+    assert all(ln.startswith(binary) and ln[len(binary):][:1] in (b"$", b"#") for ln in lines)
+    assert binary not in plain and b"$GNRMC" in plain
