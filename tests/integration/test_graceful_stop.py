@@ -113,3 +113,29 @@ async def test_a_stop_while_a_poll_is_unanswered_waits_for_the_reply_then_writes
         assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
         assert sim.watchdog_trips == 0  # set by the final write, not by the module itself
         assert "could not set motor and fan to 0" not in caplog.text
+
+
+async def test_a_silent_pwm_module_at_stop_is_reported_with_what_will_stop_the_motor(
+    tmp_path: Path,
+    make_machine: Callable[..., SimulatedMachine],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The final write swallowed the driver error: "could not set motor and fan to 0 on
+    exit" never appeared, and the operator was not told the motor may still be turning."""
+    caplog.set_level(logging.INFO)
+    async with metering(tmp_path, make_machine()) as (rig, sim):
+        sim.set_fault(sim.device_ids["pwm"], "silent")
+        rig.daemon.request_stop()
+        await asyncio.wait_for(rig.task, 5.0)
+        port = sim.device_path
+    errors = [
+        r.getMessage()
+        for r in caplog.records
+        if r.levelno >= logging.ERROR and "could not set motor and fan to 0" in r.getMessage()
+    ]
+    assert len(errors) == 1, caplog.text  # once, not again from the exit path's safety net
+    (error,) = errors
+    assert "PWM module" in error and "id 3" in error and port in error
+    assert "actuators.comm_timeout_s" in error and "2 s" in error  # its watchdog stops it
+    assert rig.daemon.safe_off_failure == error
+    assert sim.duty_pct["motor"] > 0  # it really was not reached
