@@ -299,8 +299,9 @@ class Daemon:
         """Motor and fan to 0 before exit, whatever else has gone wrong; if the PWM module
         cannot be reached, say so (ERROR, ``safe_off_failure``) and what will stop it.
 
-        Tried once to the end: the call in ``run``'s exit path is the net for a stop that never got to
-        ``_stop_control``, not a second wait of up to ``SAFE_OFF_TIMEOUT_S`` on a dead module.
+        Tried once to the end: the call in ``run``'s exit path is the net for a stop that
+        never got to ``_stop_control`` (or was cancelled in it), not a second wait of up to
+        ``SAFE_OFF_TIMEOUT_S`` on a dead module.
         """
         if self._safe_off_tried:
             return
