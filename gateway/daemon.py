@@ -291,7 +291,9 @@ class Daemon:
 
     async def _stop_control(self, control: asyncio.Task[None]) -> None:
         """The safe state first, not delayed by the recording drain that runs beside it. The
-        loop is stopped before the 0 is written so that no later duty write can undo it."""
+        loop is stopped before the 0 is written so that no later duty write can undo it; a
+        poll it had on the bus is waited out first (``ModbusBus`` keeps the bus until its
+        reply is in), so the final write never meets that reply."""
         await cancel_all([control])
         await self._safe_off()
 
