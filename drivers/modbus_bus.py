@@ -308,8 +308,7 @@ class ModbusBus:
                 raise error
             self._rx_bytes.clear()
             try:
-                async with asyncio.timeout(self.timeout_s * (self.retries + 1) + REQUEST_GRACE_S):
-                    response = await call(client)
+                response = await self._finish_even_if_cancelled(call(client))
             except TimeoutError as exc:
                 error = DeviceUnavailable(f"{label}: {what} hung in the Modbus client; reset")
                 self._failed(stats, "timeouts", error)
@@ -352,6 +351,38 @@ class ModbusBus:
             raise error
         self._succeeded(stats)
         return response
+
+    async def _finish_even_if_cancelled(self, request: Awaitable[Any]) -> Any:
+        """Await ``request`` (already sent, or about to be) to its end, even if the caller is
+        cancelled meanwhile; then re-raise the cancellation.
+
+        Why: a request cancelled between sending and the reply leaves that reply on its way.
+        The next request (the daemon's final motor/fan-to-0 write after a stop cancelled a
+        poll) then met it: pymodbus logged "request ask for id=3 but got id=1, Skipping" or
+        "received pdu without a corresponding request". Waiting out the request, bounded by
+        the Modbus timeout, keeps the bus lock until the line is quiet again; the caller
+        still ends as cancelled (and acts on nothing it read).
+        """
+        bound_s = self.timeout_s * (self.retries + 1) + REQUEST_GRACE_S
+
+        async def bounded() -> Any:
+            async with asyncio.timeout(bound_s):
+                return await request
+
+        inner = asyncio.ensure_future(bounded())
+        try:
+            return await asyncio.shield(inner)
+        except asyncio.CancelledError:
+            if inner.done():
+                raise
+            # drivers.tasks.cancel_all cancels again every 0.5 s: keep waiting, the request
+            # ends by itself within bound_s
+            while not inner.done():
+                with contextlib.suppress(asyncio.CancelledError):
+                    await asyncio.wait({inner})
+            if not inner.cancelled():
+                inner.exception()  # retrieved: the caller is cancelled, not failed
+            raise
 
     def _stats_for(self, device: str, device_id: int) -> DeviceStats:
         stats = self._stats.get(device)

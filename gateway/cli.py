@@ -23,6 +23,9 @@ from gateway.config import (
 
 log = logging.getLogger("sowgate")
 
+# ``sowgate run`` stopped but could not set motor and fan to 0 (the PWM module did not answer)
+EXIT_NOT_SAFE = 1
+
 DESCRIPTION = """\
 sowgate: the seeder daemon, config checking, a demo on a simulated machine,
 and field tools (export, calibration, GNSS decoding)."""
@@ -131,22 +134,27 @@ def cmd_run(args: argparse.Namespace) -> int:
     _setup_logging(args.verbose)
     from gateway.daemon import Daemon, settle_gc
 
-    async def main() -> None:
+    async def main() -> str | None:
         daemon = Daemon(settings, state)
         settle_gc()
         if args.tui:
             await _with_live_view(daemon, daemon.run())
         else:
             await daemon.run()
+        return daemon.safe_off_failure
 
     try:
-        asyncio.run(main())
+        not_safe = asyncio.run(main())
     except ConfigError as exc:
         # found while building the daemon (a check only possible with its parts): still a
         # config problem, so 78, which systemd does not restart in a loop
         for line in exc.problems:
             print(line, file=sys.stderr)
         return EXIT_CONFIG
+    if not_safe is not None:
+        # logged already; the last line again, after a live view that may have hidden it
+        print(f"sowgate: {not_safe}", file=sys.stderr)
+        return EXIT_NOT_SAFE
     return 0
 
 

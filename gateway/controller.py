@@ -32,6 +32,11 @@ CRITICAL_READINGS_WITHIN_S = 5.0  # ... taken together, not one stale and two ne
 WORK_STATE_SOURCES = ("inclinometer", "hitch")
 WORK_STATE_LABEL = {"inclinometer": "inclinometer", "hitch": "ISOBUS rear hitch status"}
 OTHER_SOURCE_FILTER_SAMPLES = 5
+# ``rate.outside_calibration`` is raised only once the needed shaft speed has been outside the
+# crop model's fitted range this long (as DEVICE_LOST_AFTER_S for a silent device): every
+# pull-away from standstill crosses the low end of the range in about a second, and a start-up
+# ramp is not a fault. It clears at the first tick back in range.
+OUTSIDE_CALIBRATION_HOLD_S = 2.0
 
 
 @dataclass
@@ -141,6 +146,7 @@ class Controller:
         self._hitch_t: float | None = None
         self._speed_lost_since: float | None = None
         self._emptying_since: float | None = None
+        self._outside_since: float | None = None  # first tick of the current outside spell
         self._last_tick: float | None = None
         self._message: str | None = None
         self.last: ControlOutputs | None = None
@@ -440,11 +446,10 @@ class Controller:
             motor = plan.duty_pct
             too_fast = isinstance(plan.problem, TooFastError)
             outside = isinstance(plan.problem, OutsideCalibrationError)
-            if plan.problem is not None:
-                self.alarms.raise_(
-                    "rate.too_fast" if too_fast else "rate.outside_calibration",
-                    str(plan.problem),
-                )
+            if too_fast:
+                self.alarms.raise_("rate.too_fast", str(plan.problem))
+            elif outside:
+                self._outside_calibration(now, str(plan.problem))
             self.alarms.set("rate.low_duty", plan.warning is not None, plan.warning or "", "info")
             q = flow_at(omega_for_duty(motor, model), model) if motor > 0 else 0.0
             commanded_rate = rate_for_flow(q, self.settings.machine.working_width_m, speed)
@@ -455,6 +460,7 @@ class Controller:
         if not too_fast:
             self.alarms.clear("rate.too_fast")
         if not outside:
+            self._outside_since = None
             self.alarms.clear("rate.outside_calibration")
         if out.motor is not Motor.FOLLOW:
             self.alarms.clear("rate.low_duty")
@@ -474,6 +480,14 @@ class Controller:
             target_rate_kg_ha=target_rate,
         )
         return self.last
+
+    def _outside_calibration(self, now: float, message: str) -> None:
+        """Raise ``rate.outside_calibration`` once the spell has lasted
+        ``OUTSIDE_CALIBRATION_HOLD_S``: a pull-away passes through the range's low end."""
+        if self._outside_since is None:
+            self._outside_since = now
+        if now - self._outside_since >= OUTSIDE_CALIBRATION_HOLD_S:
+            self.alarms.raise_("rate.outside_calibration", message)
 
     def take_message(self) -> str | None:
         msg, self._message = self._message, None

@@ -128,7 +128,12 @@ class Daemon:
         act = settings.actuators
         self._refresh_s = min(act.refresh_s, act.comm_timeout_s / 2.0)
         self._watchdog_verified = False
+        self._watchdog_ever_verified = False  # the module held its timeout at least once
         self._watchdog_retry_at = -1e18
+        self._safe_off_tried = False
+        # Why motor and fan may still be running after exit (None: set to 0, or no RS485);
+        # ``sowgate run`` repeats it as its last line and exits non-zero.
+        self.safe_off_failure: str | None = None
         if self.rs485 and act.comm_timeout_s < 3.0 / settings.rs485.poll_hz:
             log.warning(
                 "actuators.comm_timeout_s %g s is less than 3 control periods "
@@ -286,17 +291,49 @@ class Daemon:
 
     async def _stop_control(self, control: asyncio.Task[None]) -> None:
         """The safe state first, not delayed by the recording drain that runs beside it. The
-        loop is stopped before the 0 is written so that no later duty write can undo it."""
+        loop is stopped before the 0 is written so that no later duty write can undo it; a
+        poll it had on the bus is waited out first (``ModbusBus`` keeps the bus until its
+        reply is in), so the final write never meets that reply."""
         await cancel_all([control])
         await self._safe_off()
 
     async def _safe_off(self) -> None:
-        """Motor and fan to 0 before exit, whatever else has gone wrong."""
+        """Motor and fan to 0 before exit, whatever else has gone wrong; if the PWM module
+        cannot be reached, say so (ERROR, ``safe_off_failure``) and what will stop it.
+
+        Tried once to the end: the call in ``run``'s exit path is the net for a stop that
+        never got to ``_stop_control`` (or was cancelled in it), not a second wait of up to
+        ``SAFE_OFF_TIMEOUT_S`` on a dead module.
+        """
+        if self._safe_off_tried:
+            return
+        failed: dict[Channel, str] = {}
         try:
             async with asyncio.timeout(SAFE_OFF_TIMEOUT_S):
-                await self._write_outputs(0.0, 0.0, force=True)
-        except (TimeoutError, DriverError) as exc:
-            log.error("could not set motor and fan to 0 on exit: %s", exc)
+                failed = await self._write_outputs(0.0, 0.0, force=True)
+        except TimeoutError:
+            failed = {"motor": f"no answer within {SAFE_OFF_TIMEOUT_S:g} s"}
+        self._safe_off_tried = True  # not when cancelled half-way: then the net tries again
+        if not failed:
+            return
+        act = self.settings.actuators
+        if self._watchdog_ever_verified:
+            fallback = (
+                "its communication-loss watchdog sets both to 0 by itself after "
+                f"actuators.comm_timeout_s = {act.comm_timeout_s:g} s without a request"
+            )
+        else:
+            fallback = (
+                "no communication-loss watchdog was verified on it "
+                f"(actuators.comm_timeout_s = {act.comm_timeout_s:g} s): switch the metering "
+                "motor and the fan off by hand"
+            )
+        self.safe_off_failure = (
+            f"could not set motor and fan to 0 on exit: PWM module (id {self.pwm.device_id}) "
+            f"on RS485 port {self.bus.port}: {'; '.join(dict.fromkeys(failed.values()))}; "
+            f"{fallback}"
+        )
+        log.error("%s", self.safe_off_failure)
 
     # ---- the control loop --------------------------------------------------------------------
     async def _control_loop(self) -> None:
@@ -339,9 +376,12 @@ class Daemon:
 
     async def _write_outputs(
         self, motor: float, fan: float, *, force: bool = False, reply_t: float | None = None
-    ) -> None:
+    ) -> dict[Channel, str]:
+        """Write the duties that changed (or all, when due or forced); the channels whose
+        write failed, with the driver's error (the control loop retries them next tick)."""
+        failed: dict[Channel, str] = {}
         if not self.rs485:
-            return
+            return failed
         now = self.clock()
         refresh = now - self._written_at >= self._refresh_s
         wanted: dict[Channel, float] = {"motor": round(motor, 1), "fan": round(fan, 1)}
@@ -354,12 +394,14 @@ class Daemon:
                 reply_t = None  # latency is to the first write after the reply
             try:
                 await self.pwm.write_duty(channel, pct)
-            except DriverError:
+            except DriverError as exc:
                 self._written.pop(channel, None)  # unknown: rewrite as soon as it answers
+                failed[channel] = str(exc)
                 continue
             self._written[channel] = pct
         if refresh or force:
             self._written_at = now
+        return failed
 
     async def _keep_pwm_watchdog(self) -> None:
         """Program the PWM module's communication-loss timeout and verify it by reading back.
@@ -397,7 +439,7 @@ class Daemon:
             return  # not answering: pwm.unavailable says so
         if not self.alarms.is_active("pwm.no_watchdog"):
             log.info("PWM module comm-loss timeout set to %g s and verified", timeout_s)
-        self._watchdog_verified = True
+        self._watchdog_verified = self._watchdog_ever_verified = True
         self.alarms.clear("pwm.no_watchdog")
 
     def _update_device_alarms(self) -> None:

@@ -124,6 +124,9 @@ class Rs485Simulator:
 
         self._silent: set[int] = set()
         self._faults: dict[int, Fault] = {}
+        self._reply_delay_s: dict[int, float] = {}
+        self.replies_pending = 0  # delayed replies not on the line yet
+        self._held_replies: list[bytes] = []  # what the server sent since, queued behind them
         self._radar_held: float | None = None
         self._corrupt_left = 0
         self._garbage: bytes = b""
@@ -256,6 +259,41 @@ class Rs485Simulator:
         else:
             self._faults[device_id] = fault
 
+    def set_reply_delay(self, device_id: int, seconds: float) -> None:
+        """``device_id`` answers ``seconds`` after each request (a slow node), so a test can
+        find a request still outstanding; 0 answers at once again."""
+        if seconds < 0:
+            raise ValueError(f"reply delay must be >= 0 s (got {seconds})")
+        self._reply_delay_s[device_id] = seconds
+
+    def _delay_reply(self, data: bytes) -> bool:
+        """Hold ``data`` (bytes the server put on the line) if it is the reply of a slow
+        device, or if an earlier reply is still held: one reply at a time on a half-duplex
+        line, so whatever the server answers meanwhile comes after it. True if held."""
+        delay = self._reply_delay_s.get(data[0], 0.0) if data else 0.0
+        if self.replies_pending == 0 and delay <= 0:
+            return False
+        assert self._loop is not None
+        self._held_replies.append(data)
+        if delay > 0:
+            self.replies_pending += 1
+            self._loop.call_later(delay, self._release_reply)
+        return True
+
+    def _release_reply(self) -> None:
+        """Put the oldest held reply, and all queued behind it up to the next slow one, on
+        the line."""
+        self.replies_pending -= 1
+        while self._held_replies:
+            data = self._held_replies.pop(0)
+            if self._line is not None:
+                _write_all(self._line.master_fd, data, "daemon")
+            next_slow = self._held_replies and self._reply_delay_s.get(
+                self._held_replies[0][0], 0.0
+            ) > 0
+            if next_slow:
+                break
+
     def hold_radar(self, kmh: float | None) -> None:
         """The radar reads ``kmh`` whatever the plant does (e.g. 0 while it loses its echo);
         ``None`` hands it back to the plant."""
@@ -301,6 +339,8 @@ class Rs485Simulator:
         if self._server_pty is None:
             return
         data = _read_some(self._server_pty.master_fd)
+        if self._delay_reply(data):
+            return
         if data and self._line is not None:
             _write_all(self._line.master_fd, data, "daemon")
 

@@ -156,3 +156,34 @@ async def test_demo_publishes_to_the_broker_named_in_the_environment(tmp_path: P
     said = out.decode()
     assert f"MQTT: broker 127.0.0.1:{broker.port} (reachable)" in said, said
     assert "sowgate/seeder-01/status" in said, said
+
+
+async def test_sowgate_run_says_so_and_exits_1_when_the_pwm_module_is_silent_at_stop(
+    tmp_path: Path,
+) -> None:
+    async with SimulatedMachine(drive=steady_drive()) as machine:
+        cfg = machine.write_config(tmp_path / "sowgate.toml", control={"start_working": True})
+        env = {**os.environ, "SOWGATE_STATE_DIR": str(tmp_path / "state")}
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "gateway.cli", "run", "--config", str(cfg),
+            env=env,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        try:
+            sim = machine.rs485
+            assert sim is not None
+            await _wait(lambda: sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0, 20.0)
+            sim.set_fault(sim.device_ids["pwm"], "silent")
+            proc.send_signal(signal.SIGTERM)
+            _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+    text = stderr.decode()
+    assert proc.returncode == 1, text
+    last = text.strip().splitlines()[-1]
+    assert last.startswith("sowgate: could not set motor and fan to 0 on exit: PWM module"), text
+    assert "actuators.comm_timeout_s = 2 s" in last
+    assert "ERROR gateway.daemon: could not set motor and fan to 0 on exit" in text

@@ -13,6 +13,7 @@ from gateway.daemon import Daemon
 from gateway.rate_model import plan_duty
 from gateway.work_state import WorkState
 from simulator.machine import SimulatedMachine
+from simulator.plant import Drive, Leg
 from tests.integration.conftest import metering, running
 
 
@@ -222,3 +223,20 @@ async def test_gnss_speed_takes_over_when_the_radar_is_lost_and_hands_back(
         await rig.until(
             lambda: rig.daemon.outputs.speed_source == "radar", timeout=6.0, what="radar again"
         )
+
+
+async def test_pulling_away_in_work_leaves_no_outside_calibration_alarm_in_the_log(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    """As in the demo: standing lowered, then away at the tractor's 0.6 m/s^2. Every
+    pull-away used to raise and clear rate.outside_calibration within a third of a second."""
+    drive = Drive(legs=[Leg(2.0, 0.0), Leg(600.0, 5.0)], dt=0.02)
+    async with metering(tmp_path, make_machine(crop="wheat", drive=drive)) as (rig, _sim):
+        def at_full_speed() -> bool:
+            out = rig.daemon.outputs
+            return out is not None and (out.speed_kmh or 0.0) > 4.8
+
+        await rig.until(at_full_speed, timeout=15.0, what="full speed")
+        await asyncio.sleep(1.0)
+        log = [(e.code, e.active) for e in rig.daemon.alarm_log]
+    assert [e for e in log if e[0] == "rate.outside_calibration"] == [], log
