@@ -90,7 +90,8 @@ REGISTRY: tuple[AlarmCode, ...] = (
     ),
     AlarmCode(
         "rate.outside_calibration", ("warning",),
-        "the needed shaft speed is outside the crop model's fitted range",
+        "the needed shaft speed has been outside the crop model's fitted range for 2 s "
+        "(OUTSIDE_CALIBRATION_HOLD_S: the ramp when pulling away is not a fault)",
         "check the rate achieved; calibrate the crop over this range",
     ),
     AlarmCode(
