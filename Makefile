@@ -55,8 +55,8 @@ dist: $(STAMP)
 	@ls dist/sowgate-*.whl
 
 schemas: $(STAMP)
-	$(BIN)/python -m gateway.payloads --write docs/schemas
-	$(BIN)/python -m gateway.alarm_codes --write docs/mqtt.md
+	$(BIN)/python -m gateway.link.payloads --write docs/schemas
+	$(BIN)/python -m gateway.core.alarm_codes --write docs/mqtt.md
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build dist

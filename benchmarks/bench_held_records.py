@@ -22,8 +22,8 @@ from typing import Any
 
 from benchmarks.bench_mqtt import NOMINAL_PER_S, SyntheticField, _planter
 from gateway.config import parse_config
-from gateway.seed_recorder import SeedRecorder
-from gateway.store import MAX_HELD_RECORDS, RecordStore, StoreError
+from gateway.recording.recorder import SeedRecorder
+from gateway.recording.store import MAX_HELD_RECORDS, RecordStore, StoreError
 
 SECONDS = 30.0  # of sowing held: ~63 000 records
 RIDE_THROUGH_RATE = 2_000.0  # seeds/s the README's figure is stated for

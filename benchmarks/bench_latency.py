@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from gateway.daemon import Daemon
+from gateway.app.daemon import Daemon
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
 

@@ -10,7 +10,7 @@ Issue 4 §8. Everything runs against one mosquitto started here on a free port.
     aiomqtt publishing the same records in the same 500-record batches from memory, no store
     and no positioning. Both again through a relay adding a 4G-like round trip (``RTT_S``).
     A third local row starts at the store (already positioned drops): the outbox's own cost.
-(b) Control latency under load. The real ``gateway.daemon.Daemon`` runs against
+(b) Control latency under load. The real ``gateway.app.daemon.Daemon`` runs against
     ``simulator.machine.SimulatedMachine`` (RS485 and HMI on ptys, as in bench_latency), with
     its own record store and MQTT link; synthetic epochs and seed edges come in real time at
     the nominal 2 100 seeds/s. The seed edges are read by the real ``GpioSeedSensors`` from a
@@ -54,14 +54,14 @@ import aiomqtt
 
 from drivers.gnss_reader import GnssEpoch
 from drivers.seed_sensors import GpioSeedSensors, SeedEdgeEvent
-from gateway.alarms import AlarmBoard
-from gateway.commands import Command
 from gateway.config import Settings, load_config, parse_config
-from gateway.mqtt_link import MqttLink
-from gateway.payloads import SeedBatch, StatePayload
-from gateway.records import SeedDrop, SeedRecord
-from gateway.seed_recorder import SeedRecorder
-from gateway.store import RecordStore
+from gateway.core.alarms import AlarmBoard
+from gateway.core.commands import Command
+from gateway.core.records import SeedDrop, SeedRecord
+from gateway.link.mqtt import MqttLink
+from gateway.link.payloads import SeedBatch, StatePayload
+from gateway.recording.recorder import SeedRecorder
+from gateway.recording.store import RecordStore
 from tests.mosquitto import Mosquitto
 
 ROWS = 48
@@ -400,7 +400,7 @@ async def _raw(port: int, records: list[SeedRecord]) -> float:
 
 async def _daemon_child(config: Path, state_dir: Path, run_s: float,
                         seeds_per_s: float) -> dict[str, Any]:
-    from gateway.daemon import Daemon, settle_gc
+    from gateway.app.daemon import Daemon, settle_gc
 
     settings = load_config(config)
     daemon = Daemon(settings, state_dir)
@@ -410,7 +410,7 @@ async def _daemon_child(config: Path, state_dir: Path, run_s: float,
     # driver reading the edges and handing them on, and the recorder, are counted.
     making = {"cpu_s": 0.0, "seeds": 0.0}
     if seeds_per_s > 0:
-        recorder = SeedRecorder(settings, daemon.components["store"])
+        recorder = SeedRecorder(settings, daemon.parts.store)
         field = SyntheticField(t0_mono=time.monotonic(), seeds_per_s=seeds_per_s)
         lines = SyntheticLines(field, making)
         sensors = GpioSeedSensors(
@@ -420,7 +420,7 @@ async def _daemon_child(config: Path, state_dir: Path, run_s: float,
 
         async def feed_epochs() -> None:
             # as GnssReader does: each epoch as it arrives, GNSS_LATENCY_S after its UTC
-            # time, to the listeners the daemon wires (gateway.optional_parts): the GPIO
+            # time, to the listeners the daemon wires (gateway.app.wiring): the GPIO
             # lines are read first, then the recorder queues the epoch
             assert recorder is not None
             loop = asyncio.get_running_loop()
@@ -446,7 +446,7 @@ async def _daemon_child(config: Path, state_dir: Path, run_s: float,
     stopper = asyncio.create_task(stop_later(), name="bench-stop")
     await daemon.run()
     await stopper
-    link = daemon.components.get("mqtt")
+    link = daemon.parts.mqtt
     return {
         "latencies_s": list(daemon.latencies_s),
         "stored": recorder.records_stored if recorder else 0,
@@ -593,7 +593,7 @@ def run() -> dict[str, object]:
         "the JSON encoding, while each outbox record is also positioned, written, committed, "
         "read back and marked: the local ratio is the CPU cost per record, the RTT ratio is "
         "what a 4G link sees).\n\n"
-        "Real daemon (`gateway.daemon.Daemon`, own process) against the simulated machine "
+        "Real daemon (`gateway.app.daemon.Daemon`, own process) against the simulated machine "
         f"(RS485 + HMI on ptys, {POLL_HZ:g} Hz control loop, duty rewritten every tick), its "
         "record store and MQTT link "
         f"on the same broker; seeds fed in real time at {NOMINAL_PER_S:,.0f}/s into a "

@@ -5,9 +5,10 @@ deep fertiliser 300 kg/ha at 29.31 g/rev, seed 225 kg/ha at 11.20 g/rev (g/rev p
 
 What runs, all in simulated time (deterministic for a seed, ~seconds of CPU):
 1. Rotation test on each simulated meter (30 s at 10..60 r/min, weighed) -> g/rev fitted by
-   ``gateway.calibration.grams_per_rev`` (paper B's method, < 20 r/min excluded).
+   ``gateway.calibration.fits.grams_per_rev`` (paper B's method, < 20 r/min excluded).
 2. sowgate closed loop: every 100 ms the measured speed (GNSS-like, 10 Hz, sigma 0.05 km/h)
-   and the fitted g/rev give the target shaft speed (``gateway.channels.target_shaft_rpm``),
+   and the fitted g/rev give the target shaft speed
+   (``gateway.metering.channels.target_shaft_rpm``),
    sent through the DBC codec (0.01 r/min quantisation) to the PID + hydraulic motor plant;
    its status frames go through the codec and ``ChannelSupervisor`` (alarms are counted).
 3. Open-loop baseline in the same run (same speed profile, same meters): a fixed shaft speed
@@ -32,8 +33,8 @@ import statistics
 from dataclasses import dataclass
 from typing import Any
 
-from gateway.calibration import RotationRun, grams_per_rev
-from gateway.channels import ChannelSupervisor, target_shaft_rpm
+from gateway.calibration.fits import RotationRun, grams_per_rev
+from gateway.metering.channels import ChannelSupervisor, target_shaft_rpm
 from protocol import can_metering as cm
 from simulator.can_pid import MeterPlant
 

@@ -15,7 +15,7 @@ loaded the box is:
   polling jitter; ground truth is the outlet's true position when the seed reaches the furrow.
 
 Events are fed to three ``SeedPositioner``s in host-arrival order, exactly as the daemon would
-see them. The oracle is ``gateway.positioning.oracle_landing``: true trajectory and true
+see them. The oracle is ``gateway.recording.positioning.oracle_landing``: true trajectory and true
 landing instant, plus precisely the receiver's error — the floor for any method using this
 receiver. Targets: interpolated ≤ 0.4 × paper and ≤ 1.3 × oracle (mean error).
 """
@@ -32,7 +32,7 @@ from typing import Any
 
 from drivers.gnss_reader import EpochAssembler, GnssEpoch
 from gateway.config.recording import PositioningSection
-from gateway.positioning import (
+from gateway.recording.positioning import (
     Landing,
     LocalFrame,
     MeasuredEpoch,

@@ -38,14 +38,14 @@ from pathlib import Path
 
 from rich.console import Console
 
-from gateway import commands as cmd
-from gateway.alarms import AlarmBoard
-from gateway.calibration_apply import apply_calibrations
-from gateway.calibration_cli import run_calibration
-from gateway.cli import build_parser
+from gateway.app.cli import build_parser
+from gateway.calibration.apply import apply_calibrations
+from gateway.calibration.cli import run_calibration
 from gateway.config import CropModel, Settings, parse_config
-from gateway.controller import Controller
-from gateway.rate_model import duty_for_omega, plan_duty
+from gateway.control.controller import Controller
+from gateway.control.rate_model import duty_for_omega, plan_duty
+from gateway.core import commands as cmd
+from gateway.core.alarms import AlarmBoard
 from simulator.drill_truth import (
     LOT_DRIFT,
     PAPER_A_MOTOR,

@@ -15,8 +15,8 @@ import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
-from gateway.records import SeedDrop
-from gateway.store import SYNC_INTERVAL_S, RecordStore
+from gateway.core.records import SeedDrop
+from gateway.recording.store import SYNC_INTERVAL_S, RecordStore
 
 RECORDS = 200_000
 APPEND_SIZE = 50  # seeds per control tick at ~2 000 seeds/s and 40 Hz

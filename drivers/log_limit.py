@@ -94,7 +94,7 @@ class RateLimitedLog:
         """Write what was held back for keys whose interval has passed, with the count.
 
         Without it a storm's tail is only reported when the same key next occurs, which may
-        be never; the totals are in the daemon's periodic summary (gateway.rejected_input)
+        be never; the totals are in the daemon's periodic summary (gateway.app.rejected_input)
         either way, so calling this is for owners that want the tail in their own words."""
         now = self._clock()
         for state in self._keys.values():

@@ -1,1 +1,7 @@
-"""Composition of drivers into the seeder controller: config, control, records, MQTT, CLI."""
+"""The seeder controller, composed from the drivers: one package per domain.
+
+Layers, lowest first (enforced by the import-linter contracts in pyproject.toml):
+``protocol`` <- ``drivers`` <- ``gateway.core`` / ``gateway.config`` <- the domains
+(``control``, ``metering``, ``recording``, ``calibration``) <- ``link`` / ``ui`` <- ``app``.
+A package imports only from the layers below it; the domains do not import each other.
+"""

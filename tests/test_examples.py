@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
-from gateway.cli import main
+from gateway.app.cli import main
 from gateway.config import Settings
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -52,12 +52,14 @@ from gateway.config.startup import (
     resolve_state_dir,
     start_problems,
 )
-from gateway.errors import ConfigError
+from gateway.core.errors import ConfigError
 
 EXIT_CONFIG = 78  # EX_CONFIG from sysexits.h; systemd's RestartPreventExitStatus uses it
 
 __all__ = [
+    "AS_APPLIED_FILE",
     "EXIT_CONFIG",
+    "STORE_FILE",
     "ActuatorsSection",
     "CanSection",
     "ChannelSection",
@@ -80,6 +82,7 @@ __all__ = [
     "SpeedSection",
     "StoreSection",
     "TlsSection",
+    "as_applied_path",
     "format_validation_error",
     "input_file_problems",
     "load_config",
@@ -90,6 +93,7 @@ __all__ = [
     "prepare_state_dir",
     "start_problems",
     "state_dir",
+    "store_path",
 ]
 
 
@@ -381,6 +385,24 @@ def load_config(path: str | os.PathLike[str]) -> Settings:
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError([f"{p}: not valid TOML: {exc}"]) from None
     return parse_config(data)
+
+
+STORE_FILE = "records.sqlite3"
+AS_APPLIED_FILE = "as_applied.csv"
+
+
+def store_path(settings: Settings, state: Path | None = None) -> Path:
+    """The record store: ``store.path``, else ``records.sqlite3`` in the state directory."""
+    if settings.store.path:
+        return Path(settings.store.path)
+    return (state if state is not None else state_dir()) / STORE_FILE
+
+
+def as_applied_path(settings: Settings, state: Path | None = None) -> Path:
+    """The as-applied log: ``prescription.as_applied_path``, else one in the state directory."""
+    if settings.prescription.as_applied_path:
+        return Path(settings.prescription.as_applied_path)
+    return (state if state is not None else state_dir()) / AS_APPLIED_FILE
 
 
 def state_dir() -> Path:

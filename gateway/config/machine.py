@@ -180,8 +180,8 @@ class SpeedSection(Section):
     max_plausible_kmh: float = Field(40.0, gt=0, le=100)
     # The fastest the machine can change speed, in m/s2. The radar's trend filter never
     # extrapolates a slope steeper than this, and a reading further from the filtered speed
-    # than this allows (plus noise) restarts its window (gateway.speed.TrendFilter). 1.5 m/s2
-    # (5.4 km/h per second): a tractor pulling a drill pulls away at about 0.5-1 m/s2 (the
+    # than this allows (plus noise) restarts its window (gateway.control.speed.TrendFilter).
+    # 1.5 m/s2 (5.4 km/h per second): a tractor pulling a drill pulls away at about 0.5-1 m/s2 (the
     # simulator drives at 0.6) and rarely brakes harder than 1.5 in the field; the radar
     # stepping from 0 to 8 km/h between two 3 Hz polls would be 6.7 m/s2. Raise it for a
     # light, quick machine; a value too low makes the filter lag real speed changes.

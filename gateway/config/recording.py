@@ -52,7 +52,7 @@ class SeedSensorsSection(OptionalPart):
     debounce_ms: float = Field(2.0, ge=0, le=100)
     # through-beam sensors usually pull the line low when a seed breaks the beam
     gpio_bias: Literal["pull_up", "pull_down", "disabled", "as_is"] = "pull_up"
-    # per row, over any 1 s (gateway.seed_plausibility): edges beyond it are not stored
+    # per row, over any 1 s (gateway.recording.seed_plausibility): edges beyond it are not stored
     max_seeds_per_s_per_row: float = Field(DEFAULT_MAX_SEEDS_PER_S_PER_ROW, ge=10, le=5000)
 
 
@@ -140,5 +140,5 @@ class StoreSection(Section):
     retention_days: float = Field(30.0, gt=0, le=3650)
     backlog_alarm_records: int = Field(200_000, ge=1)
     # the seed recorder flushes and commits every 0.5 s on the same tick grid
-    # (gateway.seed_recorder.FLUSH_INTERVAL_S), so the store's own tick shares its wake-up
+    # (gateway.recording.recorder.FLUSH_INTERVAL_S), so the store's own tick shares its wake-up
     commit_interval_s: float = Field(0.5, gt=0, le=1.0)

@@ -12,8 +12,8 @@ from typing import Any
 
 import pytest
 
-from gateway.daemon import Daemon
-from gateway.work_state import WorkState
+from gateway.app.daemon import Daemon
+from gateway.control.work_state import WorkState
 from simulator.machine import SimulatedMachine
 from simulator.modbus_devices import Rs485Simulator
 from simulator.plant import Drive, Leg

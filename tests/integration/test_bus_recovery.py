@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from gateway.rate_model import plan_duty
+from gateway.control.rate_model import plan_duty
 from simulator.machine import SimulatedMachine
 from simulator.modbus_devices import FAULTS, Fault, Rs485Simulator
 from simulator.plant import SensorNoise

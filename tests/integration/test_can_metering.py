@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from drivers.can_bus import CanBus
-from gateway.channels import target_shaft_rpm
+from gateway.metering.channels import target_shaft_rpm
 from simulator.can_pid import MeteringControllerSim, MeterPlant
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg

@@ -13,7 +13,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from gateway.controller import ControlOutputs
+from gateway.control.controller import ControlOutputs
 from tests.integration.conftest import running
 from tests.integration.test_recording_end_to_end import BASE, recording_machine
 from tests.mosquitto import Mosquitto, subscriber
@@ -64,7 +64,7 @@ async def test_control_latency_is_the_same_with_the_broker_up_down_and_black_hol
             }
             async with running(tmp_path, machine, **overrides) as rig:
                 daemon = rig.daemon
-                link = daemon.components["mqtt"]
+                link = daemon.parts.mqtt
 
                 def on_tick(_: ControlOutputs) -> None:
                     ticks.append(time.monotonic())

@@ -29,7 +29,7 @@ async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
         proc = await asyncio.create_subprocess_exec(
             sys.executable,
             "-m",
-            "gateway.cli",
+            "gateway.app.cli",
             "run",
             "--config",
             str(cfg),
@@ -54,7 +54,8 @@ async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
 async def _demo(state: Path, *args: str) -> str:
     """``sowgate demo --no-tui ARGS`` in its own process, its store in ``state``; its output."""
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "gateway.cli", "demo", "--no-tui", "--state-dir", str(state), *args,
+        sys.executable, "-m", "gateway.app.cli", "demo", "--no-tui", "--state-dir", str(state),
+        *args,
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
     )
@@ -110,7 +111,7 @@ async def test_systemd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> Non
             proc = await asyncio.create_subprocess_exec(
                 sys.executable,
                 "-m",
-                "gateway.cli",
+                "gateway.app.cli",
                 "run",
                 "--config",
                 str(cfg),
@@ -143,7 +144,7 @@ async def test_demo_publishes_to_the_broker_named_in_the_environment(tmp_path: P
             env = {**os.environ,
                    "SOWGATE_MQTT__HOST": "127.0.0.1", "SOWGATE_MQTT__PORT": str(broker.port)}
             proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "gateway.cli", "demo", "--no-tui", "--duration", "8",
+                sys.executable, "-m", "gateway.app.cli", "demo", "--no-tui", "--duration", "8",
                 "--state-dir", str(tmp_path), env=env,
                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
             )
@@ -165,7 +166,7 @@ async def test_sowgate_run_says_so_and_exits_1_when_the_pwm_module_is_silent_at_
         cfg = machine.write_config(tmp_path / "sowgate.toml", control={"start_working": True})
         env = {**os.environ, "SOWGATE_STATE_DIR": str(tmp_path / "state")}
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "gateway.cli", "run", "--config", str(cfg),
+            sys.executable, "-m", "gateway.app.cli", "run", "--config", str(cfg),
             env=env,
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.PIPE,
@@ -186,4 +187,4 @@ async def test_sowgate_run_says_so_and_exits_1_when_the_pwm_module_is_silent_at_
     last = text.strip().splitlines()[-1]
     assert last.startswith("sowgate: could not set motor and fan to 0 on exit: PWM module"), text
     assert "actuators.comm_timeout_s = 2 s" in last
-    assert "ERROR gateway.daemon: could not set motor and fan to 0 on exit" in text
+    assert "ERROR gateway.app.daemon: could not set motor and fan to 0 on exit" in text

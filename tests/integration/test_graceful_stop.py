@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from gateway.daemon import Daemon
+from gateway.app.daemon import Daemon
 from simulator.machine import SimulatedMachine
 from simulator.modbus_devices import Rs485Simulator
 from tests.integration.conftest import metering

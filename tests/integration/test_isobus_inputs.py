@@ -10,8 +10,8 @@ import pytest
 
 from drivers.can_bus import CanBus
 from drivers.tasks import cancel_and_wait
-from gateway.rate_model import plan_duty
-from gateway.work_state import WorkState
+from gateway.control.rate_model import plan_duty
+from gateway.control.work_state import WorkState
 from protocol import isobus
 from simulator.can_pid import TractorSimulator
 from simulator.machine import SimulatedMachine
@@ -91,7 +91,7 @@ async def test_paper_b_drill_without_any_rs485_bus(tmp_path: Path) -> None:
             async with running(tmp_path, machine, **overrides) as rig:
 
                 def seed() -> dict[str, object]:
-                    snap = rig.daemon.components["metering"].snapshot()
+                    snap = rig.daemon.parts.metering.snapshot()
                     return snap["channels"]["seed"]  # type: ignore[no-any-return]
 
                 await rig.until(lambda: rig.state() is WorkState.SEEDING, what="seeding")

@@ -71,7 +71,7 @@ async def test_target_rate_follows_the_map_zone_under_the_outlets(tmp_path: Path
             async with running(tmp_path, machine, **_config(can_channel, fmap)) as rig:
 
                 def target() -> float | None:
-                    snap = rig.daemon.components["metering"].snapshot()
+                    snap = rig.daemon.parts.metering.snapshot()
                     return snap["channels"]["seed"]["target_rate_kg_ha"]
 
                 await rig.until(lambda: target() == 150.0, timeout=10.0, what="zone A rate")
@@ -108,7 +108,7 @@ async def test_a_bad_map_alarms_and_the_channels_use_their_default_rate(tmp_path
             await rig.until(lambda: rig.daemon.outputs is not None)
             alarm = [a for a in rig.daemon.alarms.active if a.code == "prescription.invalid"]
             assert alarm and "prescription map not used" in alarm[0].message
-            snap = rig.daemon.components["metering"].snapshot()
+            snap = rig.daemon.parts.metering.snapshot()
             assert snap["channels"]["seed"]["target_rate_kg_ha"] == 225.0
 
 

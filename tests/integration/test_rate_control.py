@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from gateway.daemon import Daemon
-from gateway.rate_model import plan_duty
-from gateway.work_state import WorkState
+from gateway.app.daemon import Daemon
+from gateway.control.rate_model import plan_duty
+from gateway.control.work_state import WorkState
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
 from tests.integration.conftest import metering, running

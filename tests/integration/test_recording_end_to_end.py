@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pymap3d
 
-from gateway.store import RecordStore
+from gateway.recording.store import RecordStore
 from simulator.machine import ORIGIN_LAT, ORIGIN_LON, SimulatedMachine
 from simulator.plant import Drive, Leg
 from simulator.pty_link import PtyPair
@@ -110,8 +110,8 @@ async def test_seeds_sensed_just_before_a_stop_are_all_recorded(tmp_path: Path) 
         machine = SimulatedMachine(drive=standing, with_gnss=True)
         port = {"enabled": True, "source": "serial", "port": sensors.device_path}
         async with running(tmp_path, machine, seed_sensors=port) as rig:
-            gnss = rig.daemon.components["gnss"]
-            sensor_port = rig.daemon.components["seed_sensors"]
+            gnss = rig.daemon.parts.gnss
+            sensor_port = rig.daemon.parts.seed_sensors
             await rig.until(lambda: gnss.available and sensor_port.available, 15.0, "ports")
             os.write(sensors.master_fd, b"".join(b"D,%d\r\n" % (k % 6 + 1) for k in range(lines)))
             await rig.stop()
@@ -161,7 +161,7 @@ async def _spawn(config: Path, state: Path) -> asyncio.subprocess.Process:
     return await asyncio.create_subprocess_exec(
         sys.executable,
         "-m",
-        "gateway.cli",
+        "gateway.app.cli",
         "run",
         "--config",
         str(config),

@@ -126,7 +126,7 @@ async def test_hostile_commands_are_refused_and_the_farm_link_stays_up(tmp_path:
             machine = SimulatedMachine(drive=steady_drive(), crop="wheat")
             async with running(tmp_path, machine, **overrides) as rig:
                 await rig.until(lambda: sub.on("status") == [b"online"], what="online")
-                link = rig.daemon.components["mqtt"]
+                link = rig.daemon.parts.mqtt
                 for name, payload, expected_error in hostile:
                     count = len(sub.on(f"cmd/{name}/ack")) + 1
                     await _send(broker.port, name, payload)

@@ -22,7 +22,7 @@ import pytest
 from drivers.gnss_reader import GnssEpoch, GnssReader
 from drivers.seed_sensors import SeedEdgeEvent, SerialSeedSensors
 from gateway.config.recording import PositioningSection
-from gateway.positioning import Landing, LocalFrame, SeedPositioner
+from gateway.recording.positioning import Landing, LocalFrame, SeedPositioner
 from simulator.plant import Drive, Leg
 from simulator.seed_tubes import PlanterModel, SeedTubeEmulator
 from simulator.um982 import Um982Emulator

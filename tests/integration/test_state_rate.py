@@ -6,7 +6,7 @@ import asyncio
 import json
 from pathlib import Path
 
-from gateway.payloads import STATE_DECIMALS
+from gateway.link.payloads import STATE_DECIMALS
 from simulator.machine import SimulatedMachine
 from tests.integration.conftest import metering, steady_drive
 from tests.mosquitto import Mosquitto, subscriber

@@ -11,7 +11,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-from gateway.store import RecordStore
+from gateway.recording.store import RecordStore
 from tests.mosquitto import Mosquitto
 from tests.reliability.harness import (
     MACHINE_ID,

@@ -1,7 +1,7 @@
 """The pieces every fault row is built from: the real daemon as a child process, a trace of
 the PWM module's motor output, and the simulated machine the daemon is pointed at.
 
-The daemon is ``python -m gateway.cli run --config …``, exactly what systemd starts; its
+The daemon is ``python -m gateway.app.cli run --config …``, exactly what systemd starts; its
 standard error (the journal on the box) goes to a file, which the rows read for uncaught
 exceptions (``Traceback``) and for how much it logged. What the daemon did is judged from the
 outside only: the simulated devices (what the PWM module was told), the record store on disk
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gateway.store import RecordStore
+from gateway.recording.store import RecordStore
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
 from simulator.seed_tubes import SeedTubeEmulator
@@ -76,7 +76,7 @@ class DaemonProcess:
             raise RuntimeError("daemon already running")
         with self.log_path.open("ab") as log:
             self.proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "gateway.cli", "run", "--config", str(self.config),
+                sys.executable, "-m", "gateway.app.cli", "run", "--config", str(self.config),
                 env=self.env, stdin=asyncio.subprocess.DEVNULL,
                 stdout=asyncio.subprocess.DEVNULL, stderr=log,
             )

@@ -212,7 +212,7 @@ def config_cases() -> list[ConfigCase]:
 
 
 def _check_config_in_process(path: Path) -> tuple[int, str]:
-    from gateway.cli import main
+    from gateway.app.cli import main
 
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
@@ -236,7 +236,7 @@ async def _run_process(
     err_path = config.with_suffix(".stderr")
     with err_path.open("wb") as err:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "gateway.cli", "run", "--config", str(config),
+            sys.executable, "-m", "gateway.app.cli", "run", "--config", str(config),
             env={**os.environ, **(env or {})}, stdin=asyncio.subprocess.DEVNULL,
             stdout=asyncio.subprocess.DEVNULL, stderr=err,
         )

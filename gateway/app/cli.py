@@ -1,0 +1,275 @@
+"""``sowgate``: the daemon, config checking, the simulated demo and field tools."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import sys
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any
+
+from gateway.config import (
+    EXIT_CONFIG,
+    ConfigError,
+    Settings,
+    input_file_problems,
+    load_config,
+    output_location_problems,
+    parts_summary,
+    prepare_state_dir,
+)
+
+log = logging.getLogger("sowgate")
+
+# ``sowgate run`` stopped but could not set motor and fan to 0 (the PWM module did not answer)
+EXIT_NOT_SAFE = 1
+
+DESCRIPTION = """\
+sowgate: the seeder daemon, config checking, a demo on a simulated machine,
+and field tools (export, calibration, GNSS decoding)."""
+EPILOG = """\
+Try it:       sowgate demo                  (Ctrl-C to stop)
+On a tractor: sowgate check-config FILE, then sowgate run --config FILE
+              (installing it as a service: systemd/README.md)"""
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("sowgate")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
+def setup_logging(verbose: bool, quiet: bool = False) -> None:
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    logging.basicConfig(
+        level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
+    )
+    # pymodbus logs every server start ("Server listening."), its repeat marker
+    # ("Repeating....") and frame dumps at INFO/DEBUG: noise next to sowgate's own device
+    # messages (which name the device that failed). Only -v lets it through.
+    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.WARNING)
+
+
+def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
+    """What the schema cannot see: files the config names, the prescription map's content,
+    unused tables.
+
+    Returns (problems, warnings). A missing or unreadable file, or a store the daemon could not
+    create, stops the daemon at start (exit 78) as well; it survives the rest (a bad map means
+    default rates and an alarm), but a fitter checking a config wants to hear about them now.
+    """
+    problems: list[str] = input_file_problems(settings)
+    problems += output_location_problems(settings, create=False)
+    warnings: list[str] = settings.deprecation_notes()
+    p = settings.prescription
+    channels = settings.channel
+    can_pid = [c.name for c in channels if c.drive == "can_pid"]
+    if can_pid and not settings.can.enabled:
+        warnings.append(
+            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but can is off (no [can] "
+            "table, or [can] enabled = false); they will not be driven"
+        )
+    attrs = [c.prescription_attribute for c in channels if c.prescription_attribute]
+    if p.enabled:
+        from gateway.metering.prescription import PrescriptionError, PrescriptionMap
+
+        if p.path is None:
+            problems.append("prescription.path: required when prescription.enabled")
+        elif any(line.startswith("prescription.path:") for line in problems):
+            pass  # the file itself is missing or unreadable: said above
+        elif not attrs:
+            problems.append(
+                "prescription.enabled: no [[channel]] has a prescription_attribute to read"
+            )
+        else:
+            try:
+                rx = PrescriptionMap.load(p.path, attrs)
+            except PrescriptionError as exc:
+                problems.append(f"prescription.path: {exc}")
+            else:
+                zones = len(rx.zones)
+                warnings.append(f"prescription map {p.path}: {zones} zones, rates {attrs} ok")
+    elif attrs:
+        warnings.append("channel: prescription_attribute set but prescription.enabled = false")
+    return problems, warnings
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    try:
+        settings = load_config(args.file)
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    problems, warnings = check_settings(settings)
+    for line in warnings:
+        print(f"note: {line}", file=sys.stderr)
+    if problems:
+        for line in problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    print(f"{args.file}: ok (machine {settings.machine.id}, {settings.machine.rows} rows)")
+    print(parts_summary(settings))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    try:
+        settings = load_config(args.config)
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    try:
+        state = prepare_state_dir()
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    setup_logging(args.verbose)
+    from gateway.app.daemon import Daemon, settle_gc
+    from gateway.ui.terminal import run_with_live_view
+
+    async def main() -> str | None:
+        daemon = Daemon(settings, state)
+        settle_gc()
+        if args.tui:
+            await run_with_live_view(daemon.snapshot, daemon.run())
+        else:
+            await daemon.run()
+        return daemon.safe_off_failure
+
+    try:
+        not_safe = asyncio.run(main())
+    except ConfigError as exc:
+        # found while building the daemon (a check only possible with its parts): still a
+        # config problem, so 78, which systemd does not restart in a loop
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_CONFIG
+    if not_safe is not None:
+        # logged already; the last line again, after a live view that may have hidden it
+        print(f"sowgate: {not_safe}", file=sys.stderr)
+        return EXIT_NOT_SAFE
+    return 0
+
+
+# Subcommands that live outside gateway/: the simulator's ``demo`` registers itself here by entry
+# point (pyproject.toml), so the product never imports the simulated machine.
+PLUGIN_COMMANDS = "sowgate.commands"
+
+
+def _add_plugin_commands(sub: Any) -> None:
+    """Each entry point of ``PLUGIN_COMMANDS`` is ``add(subparsers)``: it adds its parser and
+    sets ``func`` (and ``verbose`` comes from the main parser)."""
+    for ep in sorted(entry_points(group=PLUGIN_COMMANDS), key=lambda e: e.name):
+        ep.load()(sub)
+
+
+def cmd_decode_gnss(args: argparse.Namespace) -> int:
+    from gateway.recording.gnss_diagnostics import main_decode_gnss
+
+    return main_decode_gnss(args.file, sys.stdout)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from gateway.app.export import main_export
+
+    return int(main_export(args) or 0)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from gateway.calibration.cli import run_calibration
+
+    return run_calibration(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="sowgate",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("--version", action="version", version=f"sowgate {_version()}")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run the daemon")
+    r.add_argument("--config", required=True, type=Path, help="TOML config file")
+    r.add_argument("--tui", action="store_true", help="show the live terminal view")
+    r.set_defaults(func=cmd_run)
+
+    c = sub.add_parser("check-config", help="validate a config file (exit 78 if invalid)")
+    c.add_argument("file", type=Path)
+    c.set_defaults(func=cmd_check_config)
+
+    _add_plugin_commands(sub)
+
+    g = sub.add_parser("decode-gnss", help="decode receiver output, one JSON object per line")
+    g.add_argument("file", help="capture file, or - for standard input")
+    g.set_defaults(func=cmd_decode_gnss)
+
+    e = sub.add_parser("export", help="export seed records (or the as-applied log)")
+    e.add_argument(
+        "--what",
+        choices=["seeds", "as-applied"],
+        default="seeds",
+        help="seed records with spacing quality (default) or the metering as-applied log",
+    )
+    e.add_argument(
+        "--format",
+        choices=["geojson", "csv"],
+        default=None,
+        help="default: from the --output extension (.csv -> csv; .geojson or .json -> "
+        "geojson; geojson for -)",
+    )
+    e.add_argument(
+        "--output",
+        required=True,
+        help="file to write, or - for standard output; a seeds CSV also writes the per-row "
+        "spacing quality to FILE.quality.csv",
+    )
+    e.add_argument("--since", default=None, help="ISO 8601 UTC start time")
+    e.add_argument("--until", default=None, help="ISO 8601 UTC end time")
+    e.add_argument("--rows", default=None, help="comma-separated row numbers")
+    e.add_argument("--config", type=Path, default=None, help="config file (for the store path)")
+    e.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        help="read the store here (e.g. sowgate-demo), not in $SOWGATE_STATE_DIR",
+    )
+    e.set_defaults(func=cmd_export)
+
+    try:
+        from gateway.calibration.cli import add_calibration_commands
+    except ImportError:  # pragma: no cover - calibration module is part of the package
+        pass
+    else:
+        add_calibration_commands(sub).set_defaults(func=cmd_calibrate)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        # output piped into `head` and closed early: not an error of ours
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

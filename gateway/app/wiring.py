@@ -1,0 +1,444 @@
+"""Wiring of the subsystems a machine may or may not have: systemd notification, the GNSS
+receiver and seed recording, the record store and MQTT, CAN metering channels. Each is attached
+only when it is on (its table is in the config and does not say ``enabled = false``, see
+``gateway.config._base.OptionalPart``), so a paper-A-only drill runs with the RS485 bus and the
+screen.
+
+Every part talks to the control loop through callbacks that only store a value or enqueue
+work; none of them is awaited by the control loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+from gateway.app.parts import Parts
+from gateway.config import Settings, as_applied_path, store_path
+from gateway.control.controller import Controller, ControlOutputs
+from gateway.core import commands as cmd
+from gateway.core.alarms import AlarmBoard
+from gateway.core.records import AlarmSeverity
+from gateway.ui.touchscreen import HmiAdapter
+
+if TYPE_CHECKING:
+    from drivers.gnss_reader import GnssEpoch
+    from gateway.link.payloads import StatePayload
+
+log = logging.getLogger(__name__)
+
+# The graceful stop, in order (``Daemon.add_task(stop_stage=...)``). First, at once and beside
+# the RS485 control loop's own stop: the CAN metering channels (their shafts commanded off, so
+# the safe state never waits for recording) and the seed sensors, which hand over the lines
+# already sent while the receiver still runs (those seeds can still get their bracketing
+# epoch). Then the receiver hands over its open epoch, then the recorder positions (or
+# extrapolates and flags) and stores every seed, then the store commits; MQTT and the rest go
+# after that, so the last records are durable before the status goes offline.
+STOP_FIRST, STOP_GNSS, STOP_RECORDER, STOP_STORE = range(4)
+
+
+class Daemon(Protocol):
+    """What the wiring needs of the daemon it attaches parts to (``gateway.app.daemon.Daemon``
+    is one): its config and clock, the controller and alarms, the hooks a part registers on,
+    and the place the parts are kept. A protocol, so the wiring does not import the daemon."""
+
+    settings: Settings
+    state_dir: Path
+    alarms: AlarmBoard
+    controller: Controller
+    parts: Parts
+    hmi: HmiAdapter | None
+    outputs: ControlOutputs | None
+    tick_hooks: list[Callable[[ControlOutputs], None]]
+    closers: list[Callable[[], None]]
+    epoch_listeners: list[Callable[[Any], None]]
+
+    def clock(self) -> float: ...
+
+    def add_task(
+        self,
+        name: str,
+        factory: Callable[[], Coroutine[Any, Any, None]],
+        *,
+        stop_stage: int | None = None,
+    ) -> None: ...
+
+    def snapshot(self) -> dict[str, Any]: ...
+
+    def execute(self, command: cmd.Command, source: str) -> str: ...
+
+
+async def _forever() -> None:
+    await asyncio.Event().wait()
+
+
+def state_payload(daemon: Daemon) -> StatePayload:
+    from gateway.link.payloads import ActiveAlarmInfo, RejectedInput, StatePayload
+
+    snap = daemon.snapshot()
+    store = snap.get("store") or {}
+    recorder = snap.get("seeds") or {}
+    return StatePayload(
+        machine_id=snap["machine_id"],
+        utc=snap["utc"],
+        work_state=snap["work_state"],
+        speed_kmh=snap["speed_kmh"],
+        speed_source=snap["speed_source"] or "none",
+        tilt_deg=snap["tilt_deg"],
+        raised=snap["raised"],
+        crop=snap["crop"],
+        target_rate_kg_ha=snap["target_rate_kg_ha"],
+        commanded_rate_kg_ha=snap["commanded_rate_kg_ha"],
+        motor_duty_pct=snap["motor_duty_pct"],
+        fan_duty_pct=snap["fan_duty_pct"],
+        devices=snap["devices"],
+        gnss_fix=snap["gnss_fix"],
+        alarms=[ActiveAlarmInfo(**a) for a in snap["alarms"]],
+        area_ha=snap["area_ha"],
+        seed_mass_kg=snap["seed_mass_kg"],
+        records_held=store.get("records_held", 0),
+        records_lost=store.get("records_lost", 0) + recorder.get("records_lost", 0),
+        rejected=RejectedInput(**snap.get("rejected", {})),
+    )
+
+
+def attach(daemon: Daemon) -> None:
+    """Create the enabled optional components and register their tasks on ``daemon``."""
+    s = daemon.settings
+    _attach_systemd(daemon)
+    store = None
+    recording = s.gnss.enabled and s.seed_sensors.enabled
+    if recording or s.mqtt.enabled:
+        from gateway.recording.store import RecordStore
+
+        store = RecordStore(
+            store_path(daemon.settings, daemon.state_dir),
+            s.machine.id,
+            commit_interval_s=s.store.commit_interval_s,
+            retention_days=s.store.retention_days,
+            backlog_alarm_records=s.store.backlog_alarm_records,
+        )
+        daemon.parts.store = store
+        daemon.add_task("store", store.run, stop_stage=STOP_STORE)
+        daemon.closers.append(store.close)
+    if s.gnss.enabled:
+        _attach_gnss(daemon)
+    if recording and store is not None:
+        _attach_seed_recording(daemon, store)
+    if s.gnss.enabled:
+        _attach_recording_health(daemon, store if recording else None)
+    if s.mqtt.enabled and store is not None:
+        _attach_mqtt(daemon, store)
+    _attach_channels(daemon)
+    if s.isobus.enabled:
+        _attach_isobus(daemon)
+    _attach_rejected_inputs(daemon)
+
+
+def _attach_rejected_inputs(daemon: Daemon) -> None:
+    """``state.rejected`` and the periodic INFO summary of rejected input (only with a device
+    that can reject input: screen, receiver or seed sensors)."""
+    from gateway.app.rejected_input import RejectedInputs
+
+    parts = daemon.parts
+    hmi = daemon.hmi.link if daemon.hmi is not None else None
+    if hmi is None and parts.gnss is None and parts.seed_sensors is None:
+        return
+    rejected = RejectedInputs(
+        gnss=parts.gnss, hmi=hmi, seed_sensors=parts.seed_sensors, recorder=parts.seeds
+    )
+    parts.rejected = rejected
+    daemon.add_task("rejected-input-summary", rejected.run)
+
+
+def _attach_systemd(daemon: Daemon) -> None:
+    from gateway.link.sdnotify import Notifier, Watchdog
+
+    notifier = Notifier()
+    if not notifier.enabled:
+        return
+    watchdog = Watchdog.from_environment(notifier)
+    ready = False
+
+    def on_tick(_: ControlOutputs) -> None:
+        nonlocal ready
+        watchdog.kick()
+        if not ready:
+            ready = notifier.ready("control loop running")
+
+    daemon.tick_hooks.append(on_tick)
+    daemon.add_task("watchdog", watchdog.run)
+
+    def stopping() -> None:
+        notifier.stopping()
+        notifier.close()
+
+    daemon.closers.append(stopping)
+
+
+def _attach_gnss(daemon: Daemon) -> None:
+    from drivers.gnss_reader import GnssReader
+
+    g = daemon.settings.gnss
+    epoch_listeners = daemon.epoch_listeners
+
+    def on_epoch(epoch: GnssEpoch) -> None:
+        if epoch.fix != "none" and epoch.speed_kmh is not None:
+            daemon.controller.on_speed("gnss", epoch.speed_kmh, epoch.t_mono)
+        for listener in epoch_listeners:
+            listener(epoch)
+
+    reader = GnssReader(
+        g.port,
+        g.baudrate,
+        on_epoch=on_epoch,
+        stale_after_s=g.stale_after_s,
+        required=g.epoch_sentences,
+        silence_reconnect_s=g.silence_reconnect_s,
+        heading_offset_deg=g.heading_offset_deg,
+    )
+    daemon.parts.gnss = reader
+
+    async def run() -> None:
+        async with reader:
+            await _forever()
+
+    daemon.add_task("gnss", run, stop_stage=STOP_GNSS)
+
+
+def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
+    from gateway.recording.recorder import SeedRecorder
+
+    recorder = SeedRecorder(daemon.settings, store)
+    daemon.parts.seeds = recorder
+    sensors = _seed_sensor_source(daemon, recorder.on_edge)
+    if hasattr(sensors, "read_pending"):
+        # GPIO: the edges the kernel queued go to the recorder ahead of each epoch, in the
+        # wake-up the epoch brought, so they need none of their own (drivers.seed_sensors)
+        daemon.epoch_listeners.append(lambda _epoch: sensors.read_pending())
+    daemon.epoch_listeners.append(recorder.on_epoch)
+    daemon.parts.seed_sensors = sensors
+    daemon.add_task("seed-sensors", sensors.run, stop_stage=STOP_FIRST)
+    daemon.add_task("seed-recorder", recorder.run, stop_stage=STOP_RECORDER)
+
+
+def _attach_recording_health(daemon: Daemon, store: Any) -> None:
+    """Alarms for a lost receiver, a degraded fix, lost seed sensors and a failing store."""
+    from gateway.recording.health import RecordingHealth
+
+    health = RecordingHealth(
+        daemon.alarms,
+        gnss=daemon.parts.gnss,
+        sensors=daemon.parts.seed_sensors,
+        recorder=daemon.parts.seeds,
+        store=store,
+        clock=daemon.clock,
+    )
+    daemon.parts.recording_health = health
+    daemon.tick_hooks.append(lambda _: health.check())
+
+
+def _seed_sensor_source(daemon: Daemon, on_edge: Any) -> Any:
+    ss = daemon.settings.seed_sensors
+    if ss.source == "gpio":
+        from drivers.seed_sensors import GpioSeedSensors
+
+        return GpioSeedSensors(
+            ss.gpio_chip, ss.gpio_lines, ss.debounce_ms, on_edge, bias=ss.gpio_bias
+        )
+    from drivers.seed_sensors import SerialSeedSensors
+
+    return SerialSeedSensors(ss.port, ss.baudrate, daemon.settings.machine.rows, on_edge)
+
+
+def _attach_mqtt(daemon: Daemon, store: Any) -> None:
+    from gateway.link.mqtt import MqttLink
+
+    link = MqttLink(daemon.settings, store, daemon, lambda: state_payload(daemon), daemon.alarms)
+    daemon.parts.mqtt = link
+
+    def on_tick(out: ControlOutputs) -> None:
+        link.notify_state_changed()  # a tick is when speed, duty and work state change
+
+    daemon.tick_hooks.append(on_tick)
+    daemon.add_task("mqtt", link.run)
+
+
+def _gnss_pose(daemon: Daemon) -> Any:
+    """Position for prescription look-ups: the latest fresh GNSS epoch, else None."""
+    from gateway.metering.prescription import Pose
+
+    reader = daemon.parts.gnss
+    if reader is None or not reader.available or reader.latest is None:
+        return None
+    e = reader.latest
+    heading = e.heading_deg if e.heading_valid else e.course_deg
+    return Pose(lon=e.lon, lat=e.lat, heading_deg=heading or 0.0, speed_kmh=e.speed_kmh or 0.0)
+
+
+def _load_prescription(daemon: Daemon) -> Any:
+    """The prescription map, or None when disabled or unusable (alarm says why: a bad map
+    must not keep the drill from sowing at the default rates)."""
+    from gateway.metering.prescription import PrescriptionError, PrescriptionMap
+
+    p = daemon.settings.prescription
+    if not p.enabled:
+        return None
+    attrs = [c.prescription_attribute for c in daemon.settings.channel if c.prescription_attribute]
+    try:
+        if p.path is None:
+            raise PrescriptionError("prescription.path: required when prescription.enabled")
+        return PrescriptionMap.load(p.path, attrs)
+    except PrescriptionError as exc:
+        log.error("prescription map not used: %s", exc)
+        daemon.alarms.raise_(
+            "prescription.invalid", f"prescription map not used: {exc}", "critical"
+        )
+        return None
+
+
+def _attach_channels(daemon: Daemon) -> None:
+    """Metering channels: ``can_pid`` ones on the CAN bus, the ``pwm_modbus`` one through the
+    RS485 control loop; one prescription map and one as-applied log for all of them."""
+    from gateway.control.controller import pwm_channel
+    from gateway.metering.prescription import AsAppliedLog
+    from gateway.metering.pwm_channel import PwmChannelPart
+
+    s = daemon.settings
+    can_pid = [c for c in s.channel if c.drive == "can_pid"]
+    pwm = pwm_channel(s)
+    if can_pid and not s.can.enabled:
+        names = ", ".join(c.name for c in can_pid)
+        log.error("can_pid channels %s configured but [can] is not enabled", names)
+        daemon.alarms.raise_(
+            "channel.can_disabled",
+            f"channel(s) {names} not driven: can is off (no [can] table, or [can] "
+            "enabled = false)",
+            "critical",
+        )
+        can_pid = []
+    if not can_pid and pwm is None:
+        if s.prescription.enabled:
+            daemon.alarms.raise_(
+                "prescription.unused", "prescription map enabled but no metering channel uses it"
+            )
+        return
+
+    def on_write_error(error: str | None) -> None:
+        daemon.alarms.set(
+            "as_applied.write_failed", error is not None, f"as-applied log not written: {error}"
+        )
+
+    as_applied = AsAppliedLog(
+        as_applied_path(daemon.settings, daemon.state_dir),
+        on_error=on_write_error,
+    )
+    prescription = _load_prescription(daemon)
+    if can_pid:
+        _attach_metering(daemon, prescription, as_applied)
+    if pwm is not None:
+        part = PwmChannelPart(
+            pwm,
+            prescription,
+            as_applied,
+            pose=lambda: _gnss_pose(daemon),
+            operator_rate=lambda: daemon.controller.rate_kg_ha,
+            lookahead_s=s.prescription.lookahead_s,
+            active_alarms=lambda: {a.code for a in daemon.alarms.active},
+            clock=daemon.clock,
+        )
+        daemon.parts.pwm_channel = part
+        daemon.controller.rate_provider = part.prescribed_rate
+        daemon.tick_hooks.append(
+            lambda out: part.on_tick(
+                out.state.value == "seeding", out.target_rate_kg_ha,
+                out.commanded_rate_kg_ha, out.motor_pct,
+            )
+        )
+
+
+def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None:
+    from gateway.metering.channels import ChannelAlarm, MeteringComponent
+
+    def speed() -> float | None:
+        out = daemon.outputs
+        return None if out is None else out.speed_kmh
+
+    def working() -> bool:
+        out = daemon.outputs
+        return out is not None and out.state.value == "seeding"
+
+    def on_alarm(alarm: ChannelAlarm) -> None:
+        severity: AlarmSeverity = (
+            "critical" if alarm.kind in ("feedback_lost", "controller_fault") else "warning"
+        )
+        daemon.alarms.set(
+            f"channel.{alarm.channel}.{alarm.kind}", alarm.active, alarm.message, severity
+        )
+
+    if prescription is None:
+        # do not let the component load the (absent or rejected) map a second time
+        daemon.settings.prescription.enabled = False
+    component = MeteringComponent(
+        daemon.settings,
+        speed,
+        working,
+        lambda: _gnss_pose(daemon),
+        on_alarm,
+        prescription=prescription,
+        as_applied=as_applied,
+    )
+    daemon.parts.metering = component
+    daemon.add_task("metering", component.run, stop_stage=STOP_FIRST)
+
+
+ISOBUS_PUMP_S = 0.05  # half the tractor's 100 ms, so a value reaches the controller young
+
+
+def isobus_pump_step(daemon: Daemon, listener: Any, fed: dict[str, float]) -> None:
+    """Hand the controller each new ISOBUS speed and hitch value once, stamped with the time
+    its frame arrived, so the controller's own staleness check (``isobus.stale_after_s``,
+    300 ms) runs from the frame and not from this pump."""
+    now = daemon.clock()
+    speed = listener.speed(now)
+    if speed is not None:
+        at = now - speed.age_s
+        if at > fed.get("speed", float("-inf")):
+            fed["speed"] = at
+            daemon.controller.on_speed("isobus", speed.speed_kmh, at)
+    working = listener.working(now)
+    at_hitch = listener.hitch_received_at()
+    if working is not None and at_hitch is not None and at_hitch > fed.get("hitch", float("-inf")):
+        fed["hitch"] = at_hitch
+        daemon.controller.on_hitch(working, at_hitch)
+
+
+def _attach_isobus(daemon: Daemon) -> None:
+    from drivers.can_bus import CanBus, IsobusListener
+
+    cfg = daemon.settings.isobus
+    listener = IsobusListener(
+        priority=cfg.speed_priority,
+        stale_after_s=cfg.stale_after_s,
+        hitch_in_work_below_pct=cfg.hitch_in_work_below_pct,
+        clock=daemon.clock,
+    )
+    daemon.parts.isobus = listener
+
+    async def pump() -> None:
+        fed: dict[str, float] = {}
+        while True:
+            await asyncio.sleep(ISOBUS_PUMP_S)
+            isobus_pump_step(daemon, listener, fed)
+
+    async def run() -> None:
+        async with CanBus(cfg.interface, cfg.channel) as bus:
+            listener.bus = bus
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(listener.run(), name="isobus-listen")
+                tg.create_task(pump(), name="isobus-pump")
+
+    daemon.add_task("isobus", run)

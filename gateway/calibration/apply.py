@@ -1,0 +1,99 @@
+"""Field calibrations override the config file at start-up.
+
+``sowgate calibrate`` (and the HMI "zero" button) write ``calibration.json`` in the state
+directory; the fitter's config keeps the factory values. At start the daemon lays the
+calibrations over the config so a refitted machine sows with its own curves, and the
+``undo`` of a bad calibration is a restart away.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from gateway.calibration.fits import CalibrationError, CalibrationStore
+from gateway.config import Settings
+
+log = logging.getLogger(__name__)
+
+
+def apply_calibrations(settings: Settings, state_dir: Path) -> list[str]:
+    """Apply what ``calibration.json`` holds to ``settings`` in place; returns what changed.
+
+    An unreadable file or an entry that no longer fits the config is reported and skipped:
+    the daemon starts on the config's values rather than not at all.
+    """
+    try:
+        current = CalibrationStore(state_dir).current()
+    except CalibrationError as exc:
+        log.error("calibrations not applied: %s", exc)
+        return [f"calibration file ignored: {exc}"]
+    applied: list[str] = []
+    for key, entry in sorted(current.items()):
+        try:
+            note = _apply_one(settings, key, entry.get("result", {}), entry)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.error("calibration %s not applied: %s", key, exc)
+            applied.append(f"{key}: not applied ({exc})")
+            continue
+        if note:
+            applied.append(note)
+            log.info("calibration applied: %s", note)
+    return applied
+
+
+def _paper_a_crop(settings: Settings, name: str) -> str | None:
+    """A paper-A rotation test is stored per crop, or per pwm_modbus channel (its product)."""
+    if name in settings.control.crops:
+        return name
+    for ch in settings.channel:
+        if ch.name == name and ch.drive == "pwm_modbus":
+            return ch.product
+    return None
+
+
+def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict[str, Any]) -> str:
+    kind, _, name = key.partition(".")
+    if kind == "speed":
+        factor = float(result["factor"])
+        settings.speed.correction = {**settings.speed.correction, name: factor}
+        return f"{name} speed x{factor:.4f}"
+    if kind == "tilt" and name == "inclinometer":
+        parts = []
+        if result.get("zero_offset_deg") is not None:
+            settings.inclinometer.zero_offset_deg = float(result["zero_offset_deg"])
+            parts.append(f"zero {settings.inclinometer.zero_offset_deg:+.2f} deg")
+        if result.get("critical_angle_deg") is not None:
+            crit = float(result["critical_angle_deg"]) - settings.inclinometer.zero_offset_deg
+            settings.inclinometer.critical_angle_deg = crit
+            parts.append(f"critical {crit:+.2f} deg")
+        return "tilt " + ", ".join(parts)
+    if kind == "rotation":
+        model = entry.get("model")
+        crop = _paper_a_crop(settings, name) if model == "paper_a" else None
+        if crop is not None:
+            old = settings.control.crops[crop]
+            lo, hi = result["omega_range"]
+            new = old.model_validate(
+                {
+                    **old.model_dump(),
+                    "motor_slope": result["motor"]["slope"],
+                    "motor_intercept": result["motor"]["intercept"],
+                    "meter_a": result["meter"]["a"],
+                    "meter_b": result["meter"]["b"],
+                    "meter_c": result["meter"]["c"],
+                    "omega_min_rpm": lo,
+                    "omega_max_rpm": hi,
+                }
+            )
+            settings.control.crops = {**settings.control.crops, crop: new}
+            via = "" if crop == name else f" (channel {name})"
+            return f"{crop} metering model refitted{via}"
+        if model == "grams_per_rev":
+            for channel in settings.channel:
+                if channel.name == name:
+                    channel.grams_per_rev = float(result["grams_per_rev"])
+                    return f"{name} {channel.grams_per_rev:.2f} g/rev"
+        raise ValueError(f"no crop or channel named {name!r} in the config")
+    raise ValueError(f"unknown calibration {key!r}")

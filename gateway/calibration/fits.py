@@ -1,0 +1,385 @@
+"""Field calibration maths and the calibration file (pure functions + atomic persistence).
+
+Every seeder controller on the market has a "rotation test" and a speed calibration, because
+the catalogue g/rev and the radar's mounting angle are never quite those of the machine in
+the field. These are the fits the operator runs with ``sowgate calibrate``:
+
+- paper A: duty -> shaft speed line ``R = slope*K + intercept`` and shaft speed -> metering
+  rate quadratic ``Q = a*w^2 + b*w + c`` (g/min), both refused unless increasing over the
+  working range (an inverse of a non-monotonic model picks the wrong root);
+- paper B: grams per revolution ``m = M / (n*t/60)`` (``2M/n`` for 30 s runs), runs below
+  20 r/min excluded as unstable, averaged;
+- speed: a measured distance over the distance integrated from a speed source -> factor;
+- inclinometer: paper A's level-ground zero; paper B's critical angle = mean of 3 readings
+  with the implement lowered to the ground.
+
+Results live in ``<state_dir>/calibration.json``; each save keeps the value it replaced so
+``undo`` can restore it. Writes are atomic (temp file + fsync + rename) so a power cut in the
+cab leaves either the old or the new file, never half of one.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gateway.core.errors import GatewayError
+
+CALIBRATION_FILE = "calibration.json"
+FILE_VERSION = 1
+HISTORY_MAX = 50  # undo depth kept in the file
+PAPER_B_MIN_STABLE_RPM = 20.0
+MIN_POINTS_LINE = 2
+MIN_POINTS_QUAD = 3
+SPEED_FACTOR_RANGE = (0.5, 1.5)
+MIN_CAL_DISTANCE_M = 10.0
+LOWERED_READINGS = 3
+MAX_READING_SPREAD_DEG = 2.0  # readings further apart: the machine was moving
+
+
+class CalibrationError(GatewayError):
+    """A calibration cannot be accepted; the message tells the operator why."""
+
+
+@dataclass(frozen=True)
+class LineFit:
+    slope: float
+    intercept: float
+    r2: float
+    residuals: tuple[float, ...]
+
+    def predict(self, x: float) -> float:
+        return self.slope * x + self.intercept
+
+
+@dataclass(frozen=True)
+class QuadFit:
+    a: float
+    b: float
+    c: float
+    r2: float
+    residuals: tuple[float, ...]
+
+    def predict(self, x: float) -> float:
+        return self.a * x * x + self.b * x + self.c
+
+
+def _r2(y: np.ndarray[Any, Any], fitted: np.ndarray[Any, Any]) -> float:
+    ss_res = float(np.sum((y - fitted) ** 2))
+    ss_tot = float(np.sum((y - np.mean(y)) ** 2))
+    return 1.0 if ss_tot == 0 else 1.0 - ss_res / ss_tot
+
+
+def _arrays(xs: Sequence[float], ys: Sequence[float], need: int,
+            what: str) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    if len(xs) != len(ys):
+        raise CalibrationError(f"{what}: {len(xs)} x values but {len(ys)} y values")
+    x, y = np.asarray(xs, dtype=float), np.asarray(ys, dtype=float)
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise CalibrationError(f"{what}: values must be finite numbers")
+    if len(set(x.tolist())) < need:
+        raise CalibrationError(f"{what}: need at least {need} distinct set points")
+    return x, y
+
+
+def fit_line(xs: Sequence[float], ys: Sequence[float]) -> LineFit:
+    x, y = _arrays(xs, ys, MIN_POINTS_LINE, "line fit")
+    slope, intercept = np.polyfit(x, y, 1)
+    fitted = slope * x + intercept
+    return LineFit(float(slope), float(intercept), _r2(y, fitted), tuple((y - fitted).tolist()))
+
+
+def fit_quadratic(xs: Sequence[float], ys: Sequence[float]) -> QuadFit:
+    x, y = _arrays(xs, ys, MIN_POINTS_QUAD, "quadratic fit")
+    a, b, c = np.polyfit(x, y, 2)
+    fitted = a * x * x + b * x + c
+    return QuadFit(float(a), float(b), float(c), _r2(y, fitted), tuple((y - fitted).tolist()))
+
+
+def fit_motor_line(duty_pct: Sequence[float], rpm: Sequence[float],
+                   working_range: tuple[float, float] | None = None) -> LineFit:
+    """Paper A eq. (5): shaft r/min against PWM duty %; must rise with duty."""
+    fit = fit_line(duty_pct, rpm)
+    if fit.slope <= 0:
+        lo, hi = working_range or (min(duty_pct), max(duty_pct))
+        raise CalibrationError(
+            f"motor speed does not rise with duty over {lo:g}..{hi:g} % "
+            f"(slope {fit.slope:.4f} r/min per %); check the motor wiring and the readings"
+        )
+    return fit
+
+
+def fit_meter_quadratic(rpm: Sequence[float], rate_g_min: Sequence[float],
+                        working_range: tuple[float, float] | None = None) -> QuadFit:
+    """Paper A eq. (6): metering rate g/min against shaft r/min; must rise over the range."""
+    fit = fit_quadratic(rpm, rate_g_min)
+    lo, hi = working_range or (min(rpm), max(rpm))
+    if lo >= hi:
+        raise CalibrationError(f"working range {lo:g}..{hi:g} r/min is empty")
+    slopes = [2 * fit.a * w + fit.b for w in (lo, hi)]  # derivative is linear: ends suffice
+    if min(slopes) <= 0:
+        raise CalibrationError(
+            f"metering rate is not increasing over {lo:g}..{hi:g} r/min (dQ/dw "
+            f"{slopes[0]:.2f} .. {slopes[1]:.2f}); narrow the range or repeat the weighings"
+        )
+    return fit
+
+
+@dataclass(frozen=True)
+class RotationRun:
+    """One timed run of the rotation test: shaft speed, duration, weighed mass."""
+
+    rpm: float  # effective shaft speed over the run (turns per minute of run time)
+    seconds: float
+    mass_g: float
+    set_rpm: float | None = None  # the commanded speed, when it differs (measured turns)
+
+    @property
+    def stability_rpm(self) -> float:
+        """The speed the paper's "below 20 r/min is unstable" rule is about: the set speed."""
+        return self.rpm if self.set_rpm is None else self.set_rpm
+
+    @property
+    def grams_per_rev(self) -> float:
+        return self.mass_g / (self.rpm * self.seconds / 60.0)
+
+
+@dataclass(frozen=True)
+class GramsPerRevFit:
+    grams_per_rev: float
+    used: tuple[RotationRun, ...]
+    excluded: tuple[RotationRun, ...]
+    per_run: tuple[float, ...]
+    cv_pct: float
+    r2: float  # of delivered g/min against r/min through the origin (paper B: linear)
+    residuals_g_min: tuple[float, ...]
+
+
+def grams_per_rev(runs: Sequence[RotationRun],
+                  min_stable_rpm: float = PAPER_B_MIN_STABLE_RPM) -> GramsPerRevFit:
+    """Paper B's per-revolution displacement from weighed runs."""
+    for r in runs:
+        if not (r.rpm > 0 and r.seconds > 0 and r.mass_g >= 0) or not all(
+            math.isfinite(v) for v in (r.rpm, r.seconds, r.mass_g)
+        ):
+            raise CalibrationError(f"run {r}: speed and time must be > 0, mass >= 0")
+    used = tuple(r for r in runs if r.stability_rpm >= min_stable_rpm)
+    excluded = tuple(r for r in runs if r.stability_rpm < min_stable_rpm)
+    if len(used) < 2:
+        raise CalibrationError(
+            f"need at least 2 runs at or above {min_stable_rpm:g} r/min (slower runs are "
+            f"unstable); got {len(used)}"
+        )
+    per_run = np.array([r.grams_per_rev for r in used])
+    mean = float(np.mean(per_run))
+    if mean <= 0:
+        raise CalibrationError("the weighed masses give no discharge; was the hopper empty?")
+    n = np.array([r.rpm for r in used])
+    q = np.array([r.mass_g / (r.seconds / 60.0) for r in used])
+    fitted = mean * n
+    cv = float(np.std(per_run, ddof=1) / mean * 100)
+    return GramsPerRevFit(mean, used, excluded, tuple(per_run.tolist()), cv, _r2(q, fitted),
+                          tuple((q - fitted).tolist()))
+
+
+@dataclass(frozen=True)
+class SpeedCalibration:
+    source: str
+    measured_m: float
+    integrated_m: float
+    factor: float  # multiply the source's speed by this
+
+
+def integrate_distance(samples: Sequence[tuple[float, float]], *,
+                       between_marks: bool = False) -> float:
+    """Trapezoidal distance (m) from (time s, speed km/h) samples.
+
+    ``between_marks``: the samples are a log taken at a steady interval between the start and
+    the finish mark, so the first sample comes on average half an interval after the start
+    and the last half an interval before the finish. The trapezoid alone misses that travel
+    (a 3 Hz log over a 50 m run came out ~0.6 % short, so the factor ~0.6 % too high); half
+    the median interval is added at each end, at the end samples' speeds.
+    """
+    if len(samples) < 2:
+        raise CalibrationError("need at least 2 speed samples to integrate a distance")
+    dist = 0.0
+    for (t0, v0), (t1, v1) in itertools.pairwise(samples):
+        if t1 < t0:
+            raise CalibrationError("speed samples must be in time order")
+        dist += (t1 - t0) * (v0 + v1) / 2 / 3.6
+    if between_marks:
+        gaps = sorted(t1 - t0 for (t0, _), (t1, _) in itertools.pairwise(samples))
+        half = gaps[len(gaps) // 2] / 2
+        dist += half * (samples[0][1] + samples[-1][1]) / 3.6
+    return dist
+
+
+def speed_correction(source: str, measured_m: float, integrated_m: float) -> SpeedCalibration:
+    """Paper A drives 50 m against a tape; the factor corrects the source for slip/angle."""
+    if measured_m < MIN_CAL_DISTANCE_M:
+        raise CalibrationError(f"drive at least {MIN_CAL_DISTANCE_M:g} m (got {measured_m:g})")
+    if integrated_m <= 0:
+        raise CalibrationError(f"{source} reported no distance; was the source working?")
+    factor = measured_m / integrated_m
+    lo, hi = SPEED_FACTOR_RANGE
+    if not lo <= factor <= hi:
+        raise CalibrationError(
+            f"{source}: correction {factor:.3f} is outside {lo}..{hi}; the source or the "
+            "measured distance is wrong"
+        )
+    return SpeedCalibration(source, measured_m, integrated_m, factor)
+
+
+@dataclass(frozen=True)
+class TiltCalibration:
+    mode: str  # "level_zero" (paper A) or "lowered_critical" (paper B)
+    readings: tuple[float, ...]
+    zero_offset_deg: float | None  # zeroed = raw - zero_offset_deg
+    critical_angle_deg: float | None  # working below, raised above
+
+
+def _readings(readings: Sequence[float], need: int) -> tuple[float, ...]:
+    r = tuple(float(x) for x in readings)
+    if len(r) < need:
+        raise CalibrationError(f"need at least {need} readings, got {len(r)}")
+    if not all(math.isfinite(x) and -180 <= x <= 180 for x in r):
+        raise CalibrationError("readings must be angles in -180..180 degrees")
+    if max(r) - min(r) > MAX_READING_SPREAD_DEG:
+        raise CalibrationError(
+            f"readings spread {max(r) - min(r):.2f}° > {MAX_READING_SPREAD_DEG}°: keep the "
+            "machine still and repeat"
+        )
+    return r
+
+
+def tilt_level_zero(readings: Sequence[float]) -> TiltCalibration:
+    """Paper A: the machine stands on level ground; the mean reading becomes 0°."""
+    r = _readings(readings, 1)
+    return TiltCalibration("level_zero", r, sum(r) / len(r), None)
+
+
+def tilt_lowered_critical(readings: Sequence[float]) -> TiltCalibration:
+    """Paper B: implement lowered to the ground; mean of 3 readings is the critical angle."""
+    r = _readings(readings, LOWERED_READINGS)
+    return TiltCalibration("lowered_critical", r, None, sum(r) / len(r))
+
+
+TILT_FIELDS = ("zero_offset_deg", "critical_angle_deg")
+
+
+def save_tilt(store: CalibrationStore, key: str, result: TiltCalibration,
+              **extra: Any) -> dict[str, Any]:
+    """Save a zero or a critical angle without losing the other half of the sensor's record.
+
+    Both live under one key (``tilt.<sensor>``); a level-ground zero after a lowered
+    critical angle (or the HMI "zero" button) must not silently drop the critical angle back
+    to the config value, nor the reverse. The saved entry carries both; ``undo`` restores the
+    entry as it was before. Returns the entry saved.
+    """
+    entry = to_entry(result, **extra)
+    prev = store.get(key)
+    old = prev.get("result") if isinstance(prev, dict) else None
+    if isinstance(old, dict):
+        for name in TILT_FIELDS:
+            if entry["result"].get(name) is None and old.get(name) is not None:
+                entry["result"][name] = old[name]
+    store.save(key, entry)
+    return entry
+
+
+# ---- persistence ---------------------------------------------------------------------------
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def to_entry(result: Any, **extra: Any) -> dict[str, Any]:
+    """A JSON-ready record of a fit (dataclass) plus context such as channel or crop."""
+    data = asdict(result) if hasattr(result, "__dataclass_fields__") else dict(result)
+    return {"saved_at": _now(), **extra, "result": data}
+
+
+def atomic_write_json(path: Path, doc: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(doc, fh, indent=2, sort_keys=True)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)  # make the rename itself durable
+    finally:
+        os.close(dir_fd)
+
+
+class CalibrationStore:
+    """``calibration.json``: current values by key plus an undo history."""
+
+    def __init__(self, state_dir: str | os.PathLike[str]) -> None:
+        self.path = Path(state_dir) / CALIBRATION_FILE
+
+    def load(self) -> dict[str, Any]:
+        if not self.path.exists():
+            return {"version": FILE_VERSION, "current": {}, "history": []}
+        try:
+            doc = json.loads(self.path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise CalibrationError(
+                f"{self.path}: unreadable ({exc}); move it aside to start afresh"
+            ) from None
+        if not isinstance(doc, dict) or not isinstance(doc.get("current"), dict) or (
+            not isinstance(doc.get("history"), list)
+        ):
+            raise CalibrationError(f"{self.path}: not a sowgate calibration file")
+        return doc
+
+    def current(self) -> dict[str, Any]:
+        cur: dict[str, Any] = self.load()["current"]
+        return cur
+
+    def get(self, key: str) -> dict[str, Any] | None:
+        value: dict[str, Any] | None = self.current().get(key)
+        return value
+
+    def save(self, key: str, entry: dict[str, Any]) -> None:
+        doc = self.load()
+        doc["history"].append({"key": key, "previous": doc["current"].get(key),
+                               "replaced_at": _now()})
+        doc["history"] = doc["history"][-HISTORY_MAX:]
+        doc["current"][key] = entry
+        atomic_write_json(self.path, doc)
+
+    def undo(self, key: str | None = None) -> tuple[str, dict[str, Any] | None]:
+        """Restore the value replaced by the last save (of ``key`` if given)."""
+        doc = self.load()
+        hist = doc["history"]
+        idx = next((i for i in range(len(hist) - 1, -1, -1)
+                    if key is None or hist[i]["key"] == key), None)
+        if idx is None:
+            raise CalibrationError(f"nothing to undo{' for ' + key if key else ''}")
+        item = hist.pop(idx)
+        k, prev = item["key"], item["previous"]
+        if prev is None:
+            doc["current"].pop(k, None)
+        else:
+            doc["current"][k] = prev
+        atomic_write_json(self.path, doc)
+        return k, prev

@@ -1,0 +1,365 @@
+"""Multi-channel metering (paper B): rate -> shaft speed per channel, supervision, the loop.
+
+Each channel (shallow fertiliser, deep fertiliser, seed, ...) has its own target rate, shaft
+command, feedback and alarms; all follow the one work state: raised -> every target 0.
+
+Rate relation: a shaft turning n r/min with m_total g/rev (g/rev per outlet x outlets) delivers
+n*m_total g/min over B*V/600 ha/min (B m, V km/h), so ``n = G*B*V / (0.6*m_total)``.
+Paper B prints ``G = 100*n/(9*v)`` (v m/s) for "2.55 m, 10 rows x 15 g/rev"; our relation gives
+that constant for B = 2.25 m (10 rows at 225 mm), and 9.80*n/v for 2.55 m, so the paper's
+constant evidently uses the sown width, not the frame width. Configure the sown width.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any, Literal
+
+from drivers.can_bus import CanBus, MeteringCanLink
+from drivers.errors import DriverError
+from gateway.config import ChannelSection, Settings
+from gateway.core.errors import CommandError, ConfigError, RateError
+from gateway.metering.prescription import AsAppliedLog, Pose, PrescriptionMap
+from protocol.can_metering import MeterStatus
+
+log = logging.getLogger(__name__)
+
+HA_FACTOR = 0.6  # kg/ha = 0.6 * g/min / (m * km/h)
+AS_APPLIED_PERIOD_S = 1.0
+MAX_RATE_KG_HA = 2000.0  # as [[channel]] target_rate_kg_ha
+STOP_SEND_TIMEOUT_S = 0.2
+AlarmKind = Literal["feedback_lost", "off_target", "controller_fault", "too_fast"]
+
+
+def target_shaft_rpm(rate_kg_ha: float, speed_kmh: float, width_m: float,
+                     grams_per_rev_total: float) -> float:
+    """Shaft speed that lays ``rate_kg_ha`` at ``speed_kmh`` over ``width_m``."""
+    if grams_per_rev_total <= 0 or width_m <= 0:
+        raise RateError("grams per revolution and width must be positive")
+    if rate_kg_ha < 0 or speed_kmh < 0:
+        raise RateError("rate and speed must not be negative")
+    return rate_kg_ha * width_m * speed_kmh / (HA_FACTOR * grams_per_rev_total)
+
+
+def rate_from_shaft(rpm: float, speed_kmh: float, width_m: float,
+                    grams_per_rev_total: float) -> float | None:
+    """Rate a shaft speed lays down; None when standing (no area covered)."""
+    if speed_kmh <= 0 or width_m <= 0:
+        return None
+    return HA_FACTOR * rpm * grams_per_rev_total / (width_m * speed_kmh)
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelAlarm:
+    channel: str
+    kind: AlarmKind
+    active: bool  # False: the condition cleared
+    message: str
+    since: float
+
+
+@dataclass
+class _Watch:
+    target_rpm: float = 0.0
+    target_since: float = 0.0
+    measured_rpm: float | None = None
+    feedback_at: float | None = None
+    fault: str | None = None
+    off_since: float | None = None
+    active: dict[str, ChannelAlarm] = field(default_factory=dict)
+
+
+class ChannelSupervisor:
+    """Alarm logic for every channel, fed timestamps (pure: no clock, no I/O).
+
+    - feedback lost: no status for more than ``feedback_timeout_s`` (since start or last frame)
+    - off target: |measured - target| > ``off_target_pct`` % of target for > ``off_target_s``
+      (timer restarts on a target change, so a step is not blamed while the PID settles)
+    - controller fault: the controller reports a fault code
+    - too fast: the shaft speed needed exceeds the channel's maximum (set by the caller)
+    """
+
+    def __init__(self, channels: Sequence[str], *, feedback_timeout_s: float = 1.0,
+                 off_target_pct: float = 5.0, off_target_s: float = 3.0,
+                 min_target_rpm: float = 1.0, start: float = 0.0) -> None:
+        self.feedback_timeout_s = feedback_timeout_s
+        self.off_target_pct = off_target_pct
+        self.off_target_s = off_target_s
+        self.min_target_rpm = min_target_rpm
+        self._w = {name: _Watch(target_since=start) for name in channels}
+        self._start = start
+        self._too_fast: dict[str, str | None] = dict.fromkeys(channels)
+
+    def command(self, channel: str, target_rpm: float, t: float) -> None:
+        w = self._w[channel]
+        if abs(target_rpm - w.target_rpm) > 1e-9:
+            w.target_rpm, w.target_since, w.off_since = target_rpm, t, None
+
+    def feedback(self, channel: str, measured_rpm: float, t: float,
+                 fault: str | None = None) -> None:
+        w = self._w[channel]
+        w.measured_rpm, w.feedback_at, w.fault = measured_rpm, t, fault
+
+    def too_fast(self, channel: str, message: str | None) -> None:
+        self._too_fast[channel] = message
+
+    def _conditions(self, name: str, w: _Watch, t: float) -> dict[AlarmKind, str]:
+        out: dict[AlarmKind, str] = {}
+        last = w.feedback_at if w.feedback_at is not None else self._start
+        if t - last > self.feedback_timeout_s:
+            out["feedback_lost"] = f"{name}: no shaft feedback for {t - last:.1f} s"
+        elif w.fault:
+            out["controller_fault"] = f"{name}: controller fault {w.fault}"
+        fresh = w.feedback_at is not None and t - w.feedback_at <= self.feedback_timeout_s
+        if fresh and w.measured_rpm is not None:
+            target = w.target_rpm
+            off = (
+                abs(w.measured_rpm - target) > self.off_target_pct / 100 * target
+                if target >= self.min_target_rpm
+                else w.measured_rpm > max(self.min_target_rpm, 1.0)  # turning when told to stop
+            )
+            if off:
+                w.off_since = t if w.off_since is None else w.off_since
+                since = max(w.off_since, w.target_since)
+                if t - since > self.off_target_s:
+                    out["off_target"] = (
+                        f"{name}: shaft {w.measured_rpm:.1f} r/min vs target {target:.1f} "
+                        f"for {t - since:.1f} s"
+                    )
+            else:
+                w.off_since = None
+        msg = self._too_fast.get(name)
+        if msg:
+            out["too_fast"] = msg
+        return out
+
+    def evaluate(self, t: float) -> list[ChannelAlarm]:
+        """Alarms that changed (raised or cleared) since the last call."""
+        changes: list[ChannelAlarm] = []
+        for name, w in self._w.items():
+            now = self._conditions(name, w, t)
+            for kind, msg in now.items():
+                if kind not in w.active:
+                    w.active[kind] = ChannelAlarm(name, kind, True, msg, t)
+                    changes.append(w.active[kind])
+            for old in list(w.active.values()):
+                if old.kind not in now:
+                    del w.active[old.kind]
+                    changes.append(
+                        ChannelAlarm(name, old.kind, False, f"{name}: {old.kind} cleared", t)
+                    )
+        return changes
+
+    def active(self, channel: str | None = None) -> list[ChannelAlarm]:
+        names = [channel] if channel else list(self._w)
+        return [a for n in names for a in self._w[n].active.values()]
+
+
+@dataclass
+class ChannelState:
+    """What the component last decided and saw for one channel (telemetry)."""
+
+    name: str
+    product: str
+    node_id: int
+    target_rate_kg_ha: float = 0.0
+    target_rpm: float = 0.0
+    measured_rpm: float | None = None
+    applied_rate_kg_ha: float | None = None
+    fault: str | None = None
+
+
+def can_channels(settings: Settings) -> list[ChannelSection]:
+    chans = [c for c in settings.channel if c.drive == "can_pid"]
+    nodes = [c.node_id for c in chans]
+    if len(nodes) != len(set(nodes)):
+        raise ConfigError(["channel: two can_pid channels share a node_id"])
+    return chans
+
+
+class MeteringComponent:
+    """Drives every ``can_pid`` channel from speed, work state and position.
+
+    ``pwm_modbus`` channels keep paper A's existing path and are ignored here.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        get_speed_kmh: Callable[[], float | None],
+        get_working: Callable[[], bool],
+        get_position: Callable[[], Pose | None],
+        on_alarm: Callable[[ChannelAlarm], None],
+        *,
+        link: MeteringCanLink | None = None,
+        prescription: PrescriptionMap | None = None,
+        as_applied: AsAppliedLog | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.settings = settings
+        self.channels = can_channels(settings)
+        self._speed = get_speed_kmh
+        self._working = get_working
+        self._position = get_position
+        self._on_alarm = on_alarm
+        self._link = link
+        self._clock = clock
+        can = settings.can
+        self.supervisor = ChannelSupervisor(
+            [c.name for c in self.channels],
+            feedback_timeout_s=can.feedback_timeout_s, off_target_pct=can.off_target_pct,
+            off_target_s=can.off_target_s, min_target_rpm=can.min_target_rpm, start=clock(),
+        )
+        self.prescription = prescription
+        if prescription is None and settings.prescription.enabled:
+            attrs = [c.prescription_attribute for c in self.channels if c.prescription_attribute]
+            if settings.prescription.path is None:
+                raise ConfigError(["prescription.path: required when prescription.enabled"])
+            self.prescription = PrescriptionMap.load(settings.prescription.path, attrs)
+        self.as_applied = as_applied
+        self.state = {
+            c.name: ChannelState(c.name, c.product, c.node_id) for c in self.channels
+        }
+        self._by_node = {c.node_id: c for c in self.channels}
+        self.rates = {c.name: c.target_rate_kg_ha for c in self.channels}  # operator's rates
+        self._last_as_applied = -1e9
+        self.working = False
+        self.speed_kmh: float | None = None
+
+    def set_rate(self, channel: str, rate_kg_ha: float) -> str:
+        """The operator's rate for ``channel`` (used outside the map / without one)."""
+        if channel not in self.rates:
+            raise CommandError(f"{channel!r} is not a can_pid channel")
+        if not (math.isfinite(rate_kg_ha) and 0 < rate_kg_ha <= MAX_RATE_KG_HA):
+            raise CommandError(f"rate must be in 0..{MAX_RATE_KG_HA:g} kg/ha (got {rate_kg_ha})")
+        self.rates[channel] = rate_kg_ha
+        return f"{channel} {rate_kg_ha:g} kg/ha"
+
+    def target_rate(self, ch: ChannelSection, pose: Pose | None) -> float:
+        default = self.rates.get(ch.name, ch.target_rate_kg_ha)
+        p = self.prescription
+        if p is None or ch.prescription_attribute is None or pose is None:
+            return default
+        return p.rate_ahead(pose, ch.prescription_attribute, default,
+                            self.settings.prescription.lookahead_s, ch.outlet_behind_m,
+                            ch.outlet_lateral_m)
+
+    def on_status(self, status: MeterStatus, t: float) -> None:
+        ch = self._by_node.get(status.node_id)
+        if ch is None:
+            return
+        fault = status.fault.name.lower() if status.faulted else None
+        self.supervisor.feedback(ch.name, status.measured_rpm, t, fault)
+        st = self.state[ch.name]
+        st.measured_rpm, st.fault = status.measured_rpm, fault
+
+    def tick(self, now: float) -> dict[str, float]:
+        """One control step: new shaft targets per channel (also sent to the link)."""
+        width = self.settings.machine.working_width_m
+        speed = self._speed()
+        working = bool(self._working())
+        pose = self._position()
+        self.working, self.speed_kmh = working, speed
+        targets: dict[str, float] = {}
+        for ch in self.channels:
+            st = self.state[ch.name]
+            rate = self.target_rate(ch, pose)
+            st.target_rate_kg_ha = rate
+            m_total = ch.grams_per_rev * ch.outlets
+            rpm = 0.0
+            too_fast = None
+            if working and speed is not None and speed > 0:
+                rpm = target_shaft_rpm(rate, speed, width, m_total)
+                if rpm > ch.max_shaft_rpm:
+                    max_kmh = 0.6 * ch.max_shaft_rpm * m_total / (rate * width)
+                    too_fast = f"{ch.name}: too fast for {rate:g} kg/ha, max {max_kmh:.1f} km/h"
+                    rpm = ch.max_shaft_rpm
+                if rpm < self.settings.can.min_target_rpm:
+                    rpm = 0.0
+            self.supervisor.too_fast(ch.name, too_fast)
+            self.supervisor.command(ch.name, rpm, now)
+            st.target_rpm = rpm
+            st.applied_rate_kg_ha = (
+                rate_from_shaft(st.measured_rpm, speed, width, m_total)
+                if st.measured_rpm is not None and speed is not None else None
+            )
+            if self._link is not None:
+                self._link.set_target(ch.node_id, rpm, enable=rpm > 0)
+            targets[ch.name] = rpm
+        for alarm in self.supervisor.evaluate(now):
+            (log.warning if alarm.active else log.info)("%s", alarm.message)
+            self._on_alarm(alarm)
+        if self.as_applied is not None and working and pose is not None and (
+            now - self._last_as_applied >= AS_APPLIED_PERIOD_S
+        ):
+            self._last_as_applied = now
+            stamp = datetime.now(UTC).isoformat(timespec="milliseconds")
+            for ch in self.channels:
+                st = self.state[ch.name]
+                self.as_applied.record_channel(
+                    pose, ch, st.target_rate_kg_ha, st.applied_rate_kg_ha, time=stamp
+                )
+        return targets
+
+    async def _control_loop(self) -> None:
+        period = 1.0 / self.settings.can.command_hz
+        while True:
+            self.tick(self._clock())
+            await asyncio.sleep(period)
+
+    async def run(self) -> None:
+        """Run until cancelled; opens the CAN bus from ``settings.can`` unless given a link."""
+        if not self.channels:
+            log.info("no can_pid channels configured; metering component idle")
+            await asyncio.Event().wait()
+        if self._link is not None:
+            await self._run_with(self._link)
+            return
+        can = self.settings.can
+        async with CanBus(can.interface, can.channel, can.bitrate) as bus:
+            self._link = MeteringCanLink(bus, [c.node_id for c in self.channels],
+                                         command_hz=can.command_hz, clock=self._clock)
+            try:
+                await self._run_with(self._link)
+            finally:
+                self._link = None
+
+    async def _run_with(self, link: MeteringCanLink) -> None:
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(link.run(self.on_status), name="metering-link")
+                tg.create_task(self._control_loop(), name="metering-control")
+        finally:
+            # leave every shaft commanded off; the controllers' own command timeout is the
+            # backstop if this last frame cannot be sent
+            link.stop_all()
+            with contextlib.suppress(DriverError, TimeoutError):
+                await asyncio.wait_for(link.send_commands(), STOP_SEND_TIMEOUT_S)
+
+    def snapshot(self) -> dict[str, Any]:
+        return {
+            "working": self.working,
+            "speed_kmh": self.speed_kmh,
+            "channels": {
+                name: {
+                    "product": st.product,
+                    "node_id": st.node_id,
+                    "target_rate_kg_ha": round(st.target_rate_kg_ha, 3),
+                    "target_rpm": round(st.target_rpm, 2),
+                    "measured_rpm": st.measured_rpm,
+                    "applied_rate_kg_ha": (
+                        None if st.applied_rate_kg_ha is None else round(st.applied_rate_kg_ha, 2)
+                    ),
+                    "fault": st.fault,
+                    "alarms": [a.kind for a in self.supervisor.active(name)],
+                }
+                for name, st in self.state.items()
+            },
+        }

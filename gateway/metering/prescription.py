@@ -1,0 +1,393 @@
+"""Prescription maps: which rate each product gets where, and the as-applied record.
+
+A map is a set of polygons (GeoJSON or ESRI Shapefile) in WGS84 lon/lat, each carrying one
+numeric attribute per product (e.g. ``seed_kg_ha``, ``deep_kg_ha``). Outside every polygon the
+channel's configured default rate applies, so leaving the field edge never stops the drill.
+
+Border rule: a point on a polygon's edge (outer ring or a hole's ring) belongs to that
+polygon (shapely ``covers``). Where zones touch, the zone listed first in the file wins,
+so a fitter can predict the result from the file alone. A point strictly inside a hole is
+outside that polygon.
+
+Look-ahead: the metering chain needs time (controller response, seed travel) before a rate
+change reaches the ground, so the rate is looked up where the outlets *will be* after
+``lookahead_s`` at the current speed along the current heading.
+
+Bad maps fail at load with ``PrescriptionError`` naming the feature and the problem: missing
+rate attribute, non-numeric or negative rate, invalid or non-polygon geometry, a CRS other
+than WGS84, or coordinates that look projected (metres instead of degrees).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import os
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import shapefile
+from shapely.geometry import MultiPolygon, Point, Polygon, shape
+from shapely.strtree import STRtree
+from shapely.validation import explain_validity
+
+from gateway.core.errors import GatewayError
+
+log = logging.getLogger(__name__)
+
+METRES_PER_DEG_LAT = 111_320.0
+MAX_FEATURES = 100_000
+AS_APPLIED_MAX_ROWS = 100_000  # in-memory as-applied rows before the oldest are dropped
+WGS84_NAMES = (
+    "EPSG:4326",
+    "EPSG::4326",
+    "urn:ogc:def:crs:OGC:1.3:CRS84",
+    "urn:ogc:def:crs:OGC::CRS84",
+    "urn:ogc:def:crs:EPSG::4326",
+    "CRS84",
+    "WGS84",
+)
+
+
+class PrescriptionError(GatewayError):
+    """The prescription map cannot be used; the message names file, feature and problem."""
+
+
+@dataclass(frozen=True, slots=True)
+class Pose:
+    """Where the machine is and where it is going (GNSS antenna)."""
+
+    lon: float
+    lat: float
+    heading_deg: float = 0.0  # clockwise from north
+    speed_kmh: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Zone:
+    index: int
+    polygon: Polygon | MultiPolygon
+    rates: Mapping[str, float]
+
+
+def offset_position(
+    lon: float, lat: float, heading_deg: float, forward_m: float, right_m: float = 0.0
+) -> tuple[float, float]:
+    """Move a lon/lat by metres ahead/right of a heading (flat earth; fine over < 1 km)."""
+    h = math.radians(heading_deg)
+    north = forward_m * math.cos(h) - right_m * math.sin(h)
+    east = forward_m * math.sin(h) + right_m * math.cos(h)
+    dlat = north / METRES_PER_DEG_LAT
+    dlon = east / (METRES_PER_DEG_LAT * max(math.cos(math.radians(lat)), 1e-6))
+    return lon + dlon, lat + dlat
+
+
+def _check_crs(crs: Any, source: str) -> None:
+    if crs is None:
+        return
+    name = None
+    if isinstance(crs, dict):
+        props = crs.get("properties", {})
+        name = props.get("name") if isinstance(props, dict) else None
+    if not isinstance(name, str) or name.strip() not in WGS84_NAMES:
+        raise PrescriptionError(
+            f"{source}: CRS {name or crs!r} is not WGS84 lon/lat; re-export the map as "
+            "EPSG:4326 (GeoJSON's default)"
+        )
+
+
+def _check_degrees(geom: Polygon | MultiPolygon, source: str, index: int) -> None:
+    minx, miny, maxx, maxy = geom.bounds
+    if not (-180 <= minx <= maxx <= 180 and -90 <= miny <= maxy <= 90):
+        raise PrescriptionError(
+            f"{source}: feature {index}: coordinates {geom.bounds} are not lon/lat degrees "
+            "(projected map?); re-export in WGS84 (EPSG:4326)"
+        )
+
+
+def _rate(value: Any, attr: str, source: str, index: int) -> float:
+    if isinstance(value, bool) or value is None:
+        raise PrescriptionError(f"{source}: feature {index}: rate attribute {attr!r} is empty")
+    try:
+        rate = float(value)
+    except (TypeError, ValueError):
+        raise PrescriptionError(
+            f"{source}: feature {index}: rate attribute {attr!r} is not a number ({value!r})"
+        ) from None
+    if not math.isfinite(rate) or rate < 0:
+        raise PrescriptionError(
+            f"{source}: feature {index}: rate attribute {attr!r} must be >= 0 (got {value!r})"
+        )
+    return rate
+
+
+def _polygon(geometry: Any, source: str, index: int) -> Polygon | MultiPolygon:
+    try:
+        geom = shape(geometry)
+    except Exception as exc:  # shapely raises several types for malformed input
+        raise PrescriptionError(f"{source}: feature {index}: unreadable geometry ({exc})") from None
+    if not isinstance(geom, Polygon | MultiPolygon):
+        raise PrescriptionError(
+            f"{source}: feature {index}: geometry is {geom.geom_type}, need Polygon/MultiPolygon"
+        )
+    if geom.is_empty or not geom.is_valid:
+        reason = explain_validity(geom) if not geom.is_empty else "empty"
+        raise PrescriptionError(f"{source}: feature {index}: invalid geometry ({reason})")
+    _check_degrees(geom, source, index)
+    return geom
+
+
+class PrescriptionMap:
+    """Rate zones with an STRtree index; look-ups are pure and cheap (called at 10 Hz)."""
+
+    def __init__(self, zones: Sequence[Zone], source: str = "<map>") -> None:
+        if not zones:
+            raise PrescriptionError(f"{source}: the map has no polygons")
+        self.source = source
+        self.zones = list(zones)
+        self._tree = STRtree([z.polygon for z in self.zones])
+        self.attributes = set.intersection(*(set(z.rates) for z in self.zones))
+
+    @classmethod
+    def from_features(
+        cls,
+        features: Iterable[tuple[Any, Mapping[str, Any]]],
+        attributes: Sequence[str],
+        source: str = "<map>",
+    ) -> PrescriptionMap:
+        """Build from (geometry mapping, properties) pairs; every attribute must be present."""
+        if not attributes:
+            raise PrescriptionError(f"{source}: no rate attribute requested")
+        zones = []
+        for index, (geometry, props) in enumerate(features):
+            if index >= MAX_FEATURES:
+                raise PrescriptionError(f"{source}: more than {MAX_FEATURES} features")
+            geom = _polygon(geometry, source, index)
+            rates = {}
+            for attr in attributes:
+                if attr not in props:
+                    have = ", ".join(sorted(props)) or "none"
+                    raise PrescriptionError(
+                        f"{source}: feature {index}: no rate attribute {attr!r} (has: {have})"
+                    )
+                rates[attr] = _rate(props[attr], attr, source, index)
+            zones.append(Zone(index, geom, rates))
+        return cls(zones, source)
+
+    @classmethod
+    def from_geojson(
+        cls, doc: Mapping[str, Any], attributes: Sequence[str], source: str = "<geojson>"
+    ) -> PrescriptionMap:
+        if not isinstance(doc, Mapping) or doc.get("type") not in ("FeatureCollection", "Feature"):
+            raise PrescriptionError(f"{source}: not a GeoJSON FeatureCollection")
+        _check_crs(doc.get("crs"), source)
+        feats = doc.get("features", []) if doc["type"] == "FeatureCollection" else [doc]
+        if not isinstance(feats, list):
+            raise PrescriptionError(f"{source}: 'features' must be a list")
+        pairs = []
+        for i, f in enumerate(feats):
+            if not isinstance(f, Mapping) or f.get("geometry") is None:
+                raise PrescriptionError(f"{source}: feature {i}: missing geometry")
+            props = f.get("properties") or {}
+            pairs.append((f["geometry"], props))
+        return cls.from_features(pairs, attributes, source)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], attributes: Sequence[str]) -> PrescriptionMap:
+        """Load ``.geojson``/``.json`` or ``.shp`` (with its .dbf/.shx, optional .prj)."""
+        p = Path(path)
+        if not p.exists():
+            raise PrescriptionError(f"{p}: prescription map not found")
+        suffix = p.suffix.lower()
+        if suffix in (".geojson", ".json"):
+            try:
+                doc = json.loads(p.read_text(encoding="utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise PrescriptionError(f"{p}: not valid GeoJSON: {exc}") from None
+            return cls.from_geojson(doc, attributes, str(p))
+        if suffix == ".shp":
+            return cls._load_shapefile(p, attributes)
+        raise PrescriptionError(f"{p}: unsupported map format {suffix!r} (use .geojson or .shp)")
+
+    @classmethod
+    def _load_shapefile(cls, p: Path, attributes: Sequence[str]) -> PrescriptionMap:
+        prj = p.with_suffix(".prj")
+        if prj.exists():
+            wkt = prj.read_text(errors="replace").upper()
+            if "PROJCS" in wkt or "PROJCRS" in wkt or "WGS" not in wkt:
+                raise PrescriptionError(
+                    f"{p}: .prj is not WGS84 lon/lat ({wkt[:60]}...); re-export as EPSG:4326"
+                )
+        try:
+            reader = shapefile.Reader(str(p))
+        except (shapefile.ShapefileException, OSError) as exc:
+            raise PrescriptionError(f"{p}: cannot read shapefile: {exc}") from None
+        with reader:
+            pairs = [
+                (sr.shape.__geo_interface__, sr.record.as_dict())
+                for sr in reader.iterShapeRecords()
+            ]
+        return cls.from_features(pairs, attributes, str(p))
+
+    def zone_at(self, lon: float, lat: float) -> Zone | None:
+        pt = Point(lon, lat)
+        hits = self._tree.query(pt, predicate="covered_by")  # pt covered_by polygon
+        if len(hits) == 0:
+            return None
+        return self.zones[int(min(hits))]  # first in file order wins on shared borders
+
+    def rate_at(self, lon: float, lat: float, attribute: str, default: float) -> float:
+        if attribute not in self.attributes:
+            raise PrescriptionError(f"{self.source}: map has no rate attribute {attribute!r}")
+        zone = self.zone_at(lon, lat)
+        return default if zone is None else zone.rates[attribute]
+
+    def rate_ahead(
+        self,
+        pose: Pose,
+        attribute: str,
+        default: float,
+        lookahead_s: float,
+        outlet_behind_m: float = 0.0,
+        outlet_right_m: float = 0.0,
+    ) -> float:
+        """Rate where the outlets will be ``lookahead_s`` from now."""
+        ahead = pose.speed_kmh / 3.6 * lookahead_s - outlet_behind_m
+        lon, lat = offset_position(pose.lon, pose.lat, pose.heading_deg, ahead, outlet_right_m)
+        return self.rate_at(lon, lat, attribute, default)
+
+
+@dataclass(frozen=True, slots=True)
+class AsAppliedRow:
+    time: str  # ISO 8601 UTC
+    lon: float
+    lat: float
+    channel: str
+    product: str
+    target_kg_ha: float
+    applied_kg_ha: float | None
+
+
+AS_APPLIED_FIELDS = tuple(AsAppliedRow.__dataclass_fields__)
+
+
+def rows_to_csv(rows: Iterable[AsAppliedRow]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=AS_APPLIED_FIELDS, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow(asdict(r))
+    return buf.getvalue()
+
+
+def read_as_applied_csv(path: str | os.PathLike[str]) -> list[AsAppliedRow]:
+    """The as-applied log written by ``AsAppliedLog`` (raises OSError / PrescriptionError)."""
+    rows: list[AsAppliedRow] = []
+    with Path(path).open(encoding="utf-8", newline="") as fh:
+        for n, rec in enumerate(csv.DictReader(fh), start=2):
+            try:
+                applied = rec["applied_kg_ha"]
+                rows.append(
+                    AsAppliedRow(
+                        time=rec["time"],
+                        lon=float(rec["lon"]),
+                        lat=float(rec["lat"]),
+                        channel=rec["channel"],
+                        product=rec["product"],
+                        target_kg_ha=float(rec["target_kg_ha"]),
+                        applied_kg_ha=float(applied) if applied not in ("", None) else None,
+                    )
+                )
+            except (KeyError, TypeError, ValueError) as exc:
+                raise PrescriptionError(f"{path}:{n}: not an as-applied row ({exc})") from None
+    return rows
+
+
+def rows_to_geojson(rows: Iterable[AsAppliedRow]) -> dict[str, Any]:
+    feats = []
+    for r in rows:
+        props = asdict(r)
+        lon, lat = props.pop("lon"), props.pop("lat")
+        feats.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "Point", "coordinates": [lon, lat]},
+                "properties": props,
+            }
+        )
+    return {"type": "FeatureCollection", "features": feats}
+
+
+class AsAppliedLog:
+    """Keeps the last rows in memory and appends each to a CSV file when one is given.
+
+    A failing write (disk full, read-only mount, card pulled) must not stop the metering: the
+    row stays in memory, ``write_error`` says why and ``on_error`` is told (None once writing
+    works again), so the daemon can raise an alarm and keep sowing.
+    """
+
+    def __init__(
+        self,
+        csv_path: str | os.PathLike[str] | None = None,
+        max_rows: int = AS_APPLIED_MAX_ROWS,
+        on_error: Callable[[str | None], None] | None = None,
+    ) -> None:
+        self.rows: deque[AsAppliedRow] = deque(maxlen=max_rows)
+        self.csv_path = Path(csv_path) if csv_path is not None else None
+        self.on_error = on_error
+        self.write_error: str | None = None
+
+    def record(self, row: AsAppliedRow) -> None:
+        self.rows.append(row)
+        if self.csv_path is None:
+            return
+        try:
+            new = not self.csv_path.exists()
+            with self.csv_path.open("a", encoding="utf-8", newline="") as fh:
+                w = csv.DictWriter(fh, fieldnames=AS_APPLIED_FIELDS, lineterminator="\n")
+                if new:
+                    w.writeheader()
+                w.writerow(asdict(row))
+        except OSError as exc:
+            error = f"{self.csv_path}: {exc.strerror or exc}"
+            if error != self.write_error:
+                log.error("as-applied log not written: %s", error)
+                self.write_error = error
+                if self.on_error is not None:
+                    self.on_error(error)
+            return
+        if self.write_error is not None:
+            log.info("as-applied log written again: %s", self.csv_path)
+            self.write_error = None
+            if self.on_error is not None:
+                self.on_error(None)
+
+    def record_channel(
+        self, pose: Pose, channel: Any, target_kg_ha: float, applied_kg_ha: float | None,
+        time: str | None = None,
+    ) -> AsAppliedRow:
+        """Log one channel's rates where its outlets are (``channel``: a ``[[channel]]``
+        section with ``outlet_behind_m``/``outlet_lateral_m`` from the GNSS antenna)."""
+        lon, lat = offset_position(
+            pose.lon, pose.lat, pose.heading_deg, -channel.outlet_behind_m,
+            channel.outlet_lateral_m,
+        )
+        row = AsAppliedRow(
+            time or datetime.now(UTC).isoformat(timespec="milliseconds"), lon, lat,
+            channel.name, channel.product, target_kg_ha, applied_kg_ha,
+        )
+        self.record(row)
+        return row
+
+    def to_csv(self) -> str:
+        return rows_to_csv(self.rows)
+
+    def to_geojson(self) -> dict[str, Any]:
+        return rows_to_geojson(self.rows)

@@ -1,0 +1,135 @@
+"""The touchscreen as the operator sees it: HMI frames become commands, state becomes text.
+
+Translation lives here, not in the driver: the driver knows frames and instructions, this
+module knows that crop code 2 is wheat in this machine's config and that a refused rate must
+be explained on the screen in words the operator can act on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from drivers.hmi_link import LOG_EVERY_S, HmiLink
+from drivers.log_limit import RateLimitedLog
+from gateway.config import CropModel, HmiSection
+from gateway.core import commands as cmd
+from protocol import hmi
+
+log = logging.getLogger(__name__)
+
+# The screen has one alarm line: the most severe active alarm takes it (the oldest of those),
+# so "record store cannot write" is not hidden behind an older warning about the GNSS fix.
+_SEVERITY_ORDER = {"critical": 0, "warning": 1, "info": 2}
+
+DEFAULT_STATE_LABELS = {
+    "stopped": "STOPPED",
+    "pre_seed": "PRE-SEED",
+    "seeding": "SEEDING",
+    "turning": "TURNING",
+    "paused": "PAUSED",
+    "emptying": "EMPTYING",
+}
+
+
+class HmiAdapter:
+    """The screen, given what it needs from the daemon and nothing more: the crop table (codes),
+    the one command path (``execute`` -> ok, reply text) and the machine's state."""
+
+    def __init__(
+        self,
+        section: HmiSection,
+        *,
+        crops: Mapping[str, CropModel],
+        execute: Callable[[cmd.Command, str], tuple[bool, str]],
+        snapshot: Callable[[], dict[str, Any]],
+    ) -> None:
+        self.section = section
+        self.crops = crops
+        self.execute = execute
+        self.snapshot = snapshot
+        self.link = HmiLink(
+            section.port,
+            section.baudrate,
+            section.encoding,
+            on_event=self.on_event,
+            write_timeout_s=section.write_timeout_s,
+            reconnect_max_s=section.reconnect_max_s,
+        )
+        self.last_message: str = ""
+        self._dirty = asyncio.Event()
+        self._log = RateLimitedLog(log, LOG_EVERY_S)
+
+    def crop_for_code(self, code: int) -> str | None:
+        for name, model in self.crops.items():
+            if model.code == code:
+                return name
+        return None
+
+    def to_command(self, event: hmi.HmiEvent) -> cmd.Command | str:
+        """The command for an HMI event, or the reason it is refused."""
+        match event:
+            case hmi.StartWork():
+                return cmd.Start()
+            case hmi.StopWork():
+                return cmd.Stop()
+            case hmi.SelectCrop(crop_code=code, rate_kg_ha=rate):
+                crop = self.crop_for_code(code)
+                if crop is None:
+                    return f"unknown crop code {code}"
+                return cmd.SetRate(crop, rate)
+            case hmi.EmptySeed():
+                return cmd.EmptySeed()
+            case hmi.SeedLevelMonitoring(enabled=on):
+                return cmd.SeedLevelMonitoring(on)
+            case hmi.ZeroTilt():
+                return cmd.ZeroTilt()
+            case hmi.Rejected(reason=reason):
+                return f"bad frame: {reason}"
+        return f"unsupported input {event!r}"
+
+    def on_event(self, event: hmi.HmiEvent) -> None:
+        command = self.to_command(event)
+        if isinstance(command, str):
+            # a bad frame is the link's to log (rate-limited, per kind) and count; a refused
+            # good frame (unknown crop code) is logged here, rate-limited too
+            if not isinstance(event, hmi.Rejected):
+                key = f"refused:{type(event).__name__}"
+                self._log.warning(key, "HMI input refused: %s", command)
+            self.last_message = command
+        else:
+            ok, text = self.execute(command, "hmi")
+            self.last_message = text if ok else f"refused: {text}"
+        self._dirty.set()
+
+    def screen_texts(self) -> dict[str, str]:
+        o = self.section.objects
+        snap = self.snapshot()
+        labels = {**DEFAULT_STATE_LABELS, **self.section.state_labels}
+        crop = snap["crop"]
+        speed = snap["speed_kmh"]
+        tilt = snap["tilt_deg"]
+        alarms = snap["alarms"]  # oldest first
+        top = min(alarms, key=lambda a: _SEVERITY_ORDER.get(a["severity"], 3), default=None)
+        return {
+            o.speed: "--" if speed is None else f"{speed:.1f} km/h",
+            o.tilt: "--" if tilt is None else f"{tilt:+.1f} deg",
+            o.state: labels.get(snap["work_state"], snap["work_state"]),
+            o.crop: self.section.crop_labels.get(crop, crop),
+            o.rate: f"{snap['target_rate_kg_ha']:g} kg/ha",
+            o.alarm: top["message"] if top is not None else "",
+            o.message: self.last_message,
+        }
+
+    async def refresh_loop(self) -> None:
+        period = 1.0 / self.section.update_hz
+        while True:
+            await self.link.show_many(self.screen_texts())
+            self._dirty.clear()
+            try:
+                async with asyncio.timeout(period):
+                    await self._dirty.wait()
+            except TimeoutError:
+                pass

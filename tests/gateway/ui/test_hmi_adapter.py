@@ -1,0 +1,85 @@
+"""The screen as the daemon builds it from ``[hmi]``: the config keys must reach the link."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from pathlib import Path
+
+import pytest
+
+from drivers.tasks import cancel_and_wait
+from gateway.app.daemon import Daemon
+from gateway.config import parse_config
+from simulator.pty_link import PtyPair
+
+
+async def test_hmi_write_timeout_from_the_config_is_what_the_link_waits(tmp_path: Path) -> None:
+    """``hmi.write_timeout_s`` was accepted but the link kept its built-in 0.5 s."""
+    with PtyPair() as pair:  # nobody reads the screen's end: every write waits it out
+        settings = parse_config(
+            {"hmi": {"port": pair.device_path, "write_timeout_s": 2.0, "reconnect_max_s": 1.0}}
+        )
+        daemon = Daemon(settings, tmp_path / "state")
+        assert daemon.hmi is not None
+        link = daemon.hmi.link
+        task = asyncio.create_task(link.run())
+        try:
+            deadline = time.monotonic() + 5.0
+            while not link.available:
+                assert time.monotonic() < deadline, "HMI port never opened"
+                await asyncio.sleep(0.02)
+            page = {f"t{i}": "x" * 250 for i in range(3000)}  # far more than a pty buffers
+            started = time.monotonic()
+            await link.show_many(page)
+            waited = time.monotonic() - started
+        finally:
+            await cancel_and_wait(task)
+    assert 1.8 <= waited < 4.0
+
+
+def test_the_alarm_line_shows_the_most_severe_alarm_not_the_oldest(tmp_path: Path) -> None:
+    """A full disk (critical) must not hide behind an older warning on the one alarm line."""
+    with PtyPair() as pair:
+        daemon = Daemon(parse_config({"hmi": {"port": pair.device_path}}), tmp_path / "state")
+        assert daemon.hmi is not None
+        line = daemon.settings.hmi.objects.alarm
+        daemon.alarms.raise_("gnss.not_rtk_fixed", "GNSS fix is rtk_float", "warning")
+        assert daemon.hmi.screen_texts()[line] == "GNSS fix is rtk_float"
+        daemon.alarms.raise_("records.store_failed", "record store cannot write", "critical")
+        daemon.alarms.raise_("gnss.heading_invalid", "no dual-antenna heading", "info")
+        assert daemon.hmi.screen_texts()[line] == "record store cannot write"
+        daemon.alarms.clear("records.store_failed")
+        assert daemon.hmi.screen_texts()[line] == "GNSS fix is rtk_float"
+
+
+async def test_a_storm_of_bad_frames_costs_a_few_log_lines_and_is_counted_per_reason(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Garbage on the touchscreen line logged one warning per frame (8 239 in 150 s)."""
+    from simulator.hmi_peer import HmiPeer
+
+    caplog.set_level(logging.INFO)
+    async with HmiPeer() as screen:
+        settings = parse_config({"hmi": {"port": screen.device_path}})
+        daemon = Daemon(settings, tmp_path / "state")
+        assert daemon.hmi is not None
+        link = daemon.hmi.link
+        task = asyncio.create_task(link.run())
+        try:
+            deadline = time.monotonic() + 5.0
+            while not link.available:
+                assert time.monotonic() < deadline, "HMI port never opened"
+                await asyncio.sleep(0.02)
+            bad_frames = 500
+            screen.send_raw(b"\x55\x55\x09\x00\x00\x00\x0d\x0a" * bad_frames)
+            screen.send_raw(b"\x55\x55\x05\x07\x00\x00\x0d\x0a" * 3)  # seed-level flag 7
+            while link.stats.rejected < bad_frames + 3:
+                assert time.monotonic() < deadline + 5.0, "bad frames never all arrived"
+                await asyncio.sleep(0.02)
+        finally:
+            await cancel_and_wait(task)
+    assert link.stats.rejected_by_reason == {"unknown_function": bad_frames, "bad_field": 3}
+    warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert 1 <= len(warnings) <= 4, [r.getMessage() for r in warnings]

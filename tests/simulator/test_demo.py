@@ -1,0 +1,163 @@
+"""What ``sowgate demo`` tells the user: what runs, the applied rate from the simulator's truth,
+and what to do next."""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from gateway.app.cli import main as cli_main
+from simulator.demo import status_line, summary, truth_report
+from simulator.machine import STARTUP_TRANSIENT_S, Truth
+
+ROOT = Path(__file__).resolve().parents[2]
+WIDTH_M = 2.0
+STEP_S = 0.1
+SPEED_MS = 1.0  # 3.6 km/h
+
+
+def _sow(truth: Truth, seconds: float, kg_ha: float) -> None:
+    """Sow ``seconds`` at 1 m/s, discharging exactly ``kg_ha``."""
+    for _ in range(round(seconds / STEP_S)):
+        moved = SPEED_MS * STEP_S
+        grams = kg_ha * 1000 * moved * WIDTH_M / 1e4
+        truth.record(grams, moved, STEP_S, sowing=True, width_m=WIDTH_M)
+
+
+def _stand(truth: Truth, seconds: float) -> None:
+    for _ in range(round(seconds / STEP_S)):
+        truth.record(0.0, 0.0, STEP_S, sowing=False, width_m=WIDTH_M)
+
+
+def test_start_of_every_pass_is_kept_apart_from_settled_sowing() -> None:
+    truth = Truth()
+    for _ in range(2):  # two passes, each starting under-dosed while catching up
+        _sow(truth, STARTUP_TRANSIENT_S, 3.0)
+        _sow(truth, 20.0, 6.0)
+        _stand(truth, 2.0)
+    assert truth.sown_m == pytest.approx(2 * (STARTUP_TRANSIENT_S + 20.0))
+    assert truth.settled_m == pytest.approx(40.0)
+    assert truth.settled_kg_ha() == pytest.approx(6.0)
+    assert truth.applied_kg_ha() == pytest.approx((5 * 3.0 + 20 * 6.0) / 25)
+    report = truth_report(truth, 6.0)
+    assert report["settled_rate_error_pct"] == pytest.approx(0.0, abs=1e-9)
+    assert report["rate_error_pct"] == pytest.approx(-10.0)
+    line = summary(report, 6.0)
+    assert line.startswith("demo finished: 50.0 m sown, applied 5.40 kg/ha")
+    assert "(target 6, error -10.00 %)" in line
+    assert f"after the first {STARTUP_TRANSIENT_S:g} s of each pass 6.00 kg/ha" in line
+    assert "error +0.00 % over 40.0 m" in line
+
+
+def test_nothing_sown_is_said_not_reported_as_zero_error() -> None:
+    truth = Truth()
+    _stand(truth, 4.0)
+    line = summary(truth_report(truth, 6.0), 6.0)
+    assert "nothing sown yet" in line
+    assert "%" not in line  # the old line read "applied 0.00 kg/ha ..., error +0.00 %"
+
+
+def test_a_run_that_never_left_the_start_up_is_flagged_not_representative() -> None:
+    truth = Truth()
+    _stand(truth, 4.0)
+    _sow(truth, 2.0, 1.0)
+    report = truth_report(truth, 6.0)
+    assert report["settled_kg_ha"] is None
+    line = summary(report, 6.0)
+    assert "2.0 m sown" in line and "error -83.33 %" in line
+    assert "not representative" in line and "--duration 60" in line
+
+
+# ---------------------------------------------------------------- the demo as a newcomer runs it
+
+
+def _run_demo(cwd: Path, *args: str, env: dict[str, str] | None = None) -> tuple[str, str]:
+    """``sowgate demo --no-tui ARGS`` in its own process, in ``cwd``: (stdout, stderr)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "gateway.app.cli", "demo", "--no-tui", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=90,
+        env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
+    )
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout, proc.stderr
+
+
+def test_the_demo_says_what_runs_keeps_its_store_and_says_what_to_do_next(
+    tmp_path: Path,
+) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SOWGATE_")}
+    proc = subprocess.run(
+        [sys.executable, "-m", "gateway.app.cli", "demo", "--no-tui", "--duration", "7"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=90,
+        env={**env, "PYTHONPATH": str(ROOT)},
+    )
+    assert proc.returncode == 0, proc.stderr
+    out, err = proc.stdout, proc.stderr
+    state = tmp_path / "sowgate-demo"
+    # at start: the simulated devices and their ptys, the config, the store, MQTT, how to stop
+    for device in ("RS485", "touchscreen", "GNSS", "seed-tube sensors"):
+        assert re.search(rf"{device}.* on /\S+", out), out
+    assert "config: sowgate-demo/demo.toml" in out, out
+    assert (state / "demo.toml").is_file()
+    assert "record store: " in out and "records.sqlite3" in out, out
+    assert "MQTT: off" in out and "SOWGATE_MQTT__ENABLED=true" in out, out
+    assert "Ctrl-C" in out, out
+    # at the end: what was done, and the export to try on the store that was kept
+    assert "demo finished: " in out and "motor and fan set to 0" in out, out
+    assert "sowgate export --state-dir sowgate-demo --output demo-seeds.csv" in out, out
+    assert (state / "records.sqlite3").is_file()
+    # --no-tui: a status line every few seconds, and none of pymodbus's chatter
+    assert re.search(r"simulator\.demo: (pre_seed|seeding|paused|turning), ", err), err
+    assert "Server listening" not in err and "Repeating...." not in err, err
+
+    # the next step it printed works on what it kept
+    code = cli_main(["export", "--state-dir", str(state), "--output",
+                     str(tmp_path / "demo-seeds.csv")])
+    assert code == 0
+    assert (tmp_path / "demo-seeds.csv").read_text().startswith("id,")
+
+
+def test_the_demo_uses_the_state_dir_it_is_given_and_names_it_in_the_export_command(
+    tmp_path: Path,
+) -> None:
+    chosen = tmp_path / "my-demo"
+    out, _err = _run_demo(tmp_path, "--duration", "3", "--state-dir", str(chosen))
+    assert (chosen / "records.sqlite3").is_file()
+    assert not (tmp_path / "sowgate-demo").exists()
+    assert f"sowgate export --state-dir {chosen} --output demo-seeds.csv" in out, out
+
+
+def test_the_status_line_says_state_speed_outputs_and_what_was_sown() -> None:
+    snapshot = {
+        "work_state": "seeding", "speed_kmh": 5.234, "speed_source": "radar",
+        "motor_duty_pct": 38.6, "fan_duty_pct": 80.0, "area_ha": 0.0123,
+        "alarms": [{"code": "gnss.not_rtk_fixed", "severity": "warning", "message": "no RTK"}],
+        "seeds": {"records_stored": 456},
+    }
+    line = status_line(snapshot)
+    assert line == (
+        "seeding, 5.23 km/h [radar], motor 38.6 % fan 80.0 %, 0.0123 ha, "
+        "456 seeds recorded, alarms: gnss.not_rtk_fixed"
+    )
+    quiet = status_line({**snapshot, "speed_kmh": None, "alarms": [], "seeds": None})
+    assert "no speed" in quiet and "alarms: none" in quiet and "seeds" not in quiet
+
+
+def test_pymodbus_logging_stays_at_warning_unless_verbose() -> None:
+    from gateway.app.cli import setup_logging
+
+    pymodbus = logging.getLogger("pymodbus")
+    before = pymodbus.level
+    try:
+        setup_logging(verbose=False)
+        assert pymodbus.getEffectiveLevel() == logging.WARNING
+        setup_logging(verbose=True)
+        assert pymodbus.getEffectiveLevel() == logging.DEBUG
+    finally:
+        pymodbus.setLevel(before)
