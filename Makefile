@@ -35,6 +35,7 @@ demo: $(STAMP)
 test: $(STAMP) mosquitto
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
+	$(BIN)/lint-imports
 	$(BIN)/pytest -q
 
 # The fault matrix alone (also part of `make test`, which writes its table to
