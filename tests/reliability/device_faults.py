@@ -197,6 +197,7 @@ async def group_serial(tmp: Path) -> dict[str, RowResult]:
                     windows[name] = (t0, t1)
                     await asyncio.sleep(3.0)
                     logged = daemon.log_lines() - log0
+                    new_lines = daemon.log_text().splitlines()[log0:]
                     grown = daemon.rss_mb() - rss0
                     during = max(machine.duty_between(t0, time.monotonic()), default=0.0)
                     res.duty = f"{during:.1f} (steady {steady})"
@@ -209,7 +210,8 @@ async def group_serial(tmp: Path) -> dict[str, RowResult]:
                     res.check(daemon.running, "daemon exited")
                     res.check(logged <= LOG_LINES_PER_FUZZ_MAX,
                               f"{logged} log lines in {FUZZ_S + 3:g} s (max "
-                              f"{LOG_LINES_PER_FUZZ_MAX}: not rate-limited)")
+                              f"{LOG_LINES_PER_FUZZ_MAX}: not rate-limited); the first: "
+                              + " | ".join(line[24:160] for line in new_lines[:6]))
                     res.check(grown <= RSS_GROWTH_MAX_MB, f"RSS grew {grown:.1f} MB")
                     res.notes.append(f"{logged} log lines; RSS {grown:+.1f} MB")
                     finish_row(res, daemon, tb0)
