@@ -15,7 +15,7 @@ loaded the box is:
   polling jitter; ground truth is the outlet's true position when the seed reaches the furrow.
 
 Events are fed to three ``SeedPositioner``s in host-arrival order, exactly as the daemon would
-see them. The oracle is ``gateway.recording.positioning.oracle_landing``: true trajectory and true
+see them. The oracle is ``benchmarks.positioning_oracle.oracle_landing``: true trajectory and true
 landing instant, plus precisely the receiver's error — the floor for any method using this
 receiver. Targets: interpolated ≤ 0.4 × paper and ≤ 1.3 × oracle (mean error).
 """
@@ -30,16 +30,10 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
+from benchmarks.positioning_oracle import MeasuredEpoch, oracle_landing
 from drivers.gnss_reader import EpochAssembler, GnssEpoch
 from gateway.config.recording import PositioningSection
-from gateway.recording.positioning import (
-    Landing,
-    LocalFrame,
-    MeasuredEpoch,
-    RowOffset,
-    SeedPositioner,
-    oracle_landing,
-)
+from gateway.recording.positioning import Landing, LocalFrame, RowOffset, SeedPositioner
 from protocol.gnss import GnssLineDecoder, Rejected
 from simulator.plant import Drive, field_passes
 from simulator.seed_tubes import PlanterModel, SeedTruth, plan_seeds

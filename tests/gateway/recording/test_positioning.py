@@ -27,19 +27,17 @@ from gateway.recording.positioning import (
     ClockMap,
     Landing,
     LocalFrame,
-    MeasuredEpoch,
     RowOffset,
     SeedPositioner,
-    _new_drop,
     fall_time_s,
     heading_diff,
     interpolate_heading,
-    oracle_landing,
     paper_lag_m,
     paper_landing,
     rotate_offset,
     row_offset,
 )
+from gateway.recording.positioning.landing import _new_drop
 from simulator.plant import Drive, Leg, Pose
 
 UTC0 = datetime(2026, 5, 1, 8, 0, 0, tzinfo=UTC)
@@ -473,35 +471,6 @@ def test_paper_method_moves_the_outlet_forward_by_the_constant_lag() -> None:
     assert pos.frame is not None
     north_antenna = pos.frame.to_enu(fix.lat, fix.lon)[1]
     assert landing.north - north_antenna == pytest.approx(paper_lag_m(10.0, s) - 1.2, abs=0.01)
-
-
-# ---------------------------------------------------------------- oracle
-
-
-def test_oracle_without_receiver_error_is_the_truth() -> None:
-    drive = straight(60.0)
-    epochs = [
-        MeasuredEpoch(t, p.east, p.north, p.heading_deg)
-        for t in (0.9, 1.0, 1.1, 1.2)
-        for p in [drive.pose_at(t)]
-    ]
-    off = RowOffset(1.2, -0.3)
-    got = oracle_landing(off, 1.05, drive.pose_at, epochs)
-    p = drive.pose_at(1.05)
-    de, dn = rotate_offset(off, p.heading_deg)
-    assert got == pytest.approx((p.east + de, p.north + dn), abs=1e-9)
-
-
-def test_oracle_adds_exactly_the_receivers_interpolated_error() -> None:
-    drive = straight(0.0)
-    p0, p1 = drive.pose_at(1.0), drive.pose_at(1.1)
-    epochs = [
-        MeasuredEpoch(1.0, p0.east + 0.02, p0.north, 0.0),
-        MeasuredEpoch(1.1, p1.east, p1.north - 0.02, 0.0),
-    ]
-    got = oracle_landing(RowOffset(0.0, 0.0), 1.05, drive.pose_at, epochs)
-    p = drive.pose_at(1.05)
-    assert got == pytest.approx((p.east + 0.01, p.north - 0.01), abs=1e-9)
 
 
 def test_a_receiver_time_step_restarts_the_history_instead_of_ignoring_every_epoch() -> None:

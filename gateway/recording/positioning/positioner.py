@@ -1,34 +1,14 @@
-"""Where each seed landed: outlet geometry, fall time, timing, and the two prediction methods.
+"""The seed positioner: GNSS epochs and seed-tube edges in, positioned seeds out, in order.
 
-Conventions used throughout (and by the simulator's ground truth):
+Owns :class:`SeedPositioner` and its :class:`PositionerStats`: the epoch history, the
+clock map, the queue of seeds waiting for the epoch after their landing instant, the
+timeouts and overflow that extrapolate them instead, the per-row spacing, and the fast
+paths (per-pair scalar loop, numpy vector path for long runs) that make ~2 000 seeds/s
+cheap. The input it needs from a GNSS epoch is the :class:`AntennaEpoch` protocol.
 
-- local ENU metres (east, north) around a fixed origin, WGS84 via pymap3d;
-- heading clockwise from north, so the machine's forward unit vector is (sin ψ, cos ψ) and its
-  right-hand unit vector is (cos ψ, −sin ψ). A single rotation replaces paper C's four
-  quadrant sign tables;
-- a row outlet sits ``behind_m`` behind and ``right_m`` right of the main antenna
-  (``positioning.outlet_behind_antenna_m`` and ``positioning.row_lateral_m[row-1]``);
-- all times are host ``time.monotonic()`` seconds unless named ``utc``.
-
-Methods:
-
-``paper`` — paper C exactly, the baseline: at the sensor edge take the latest fix, assume the
-fix is ``t2 + t3`` old and the seed falls for ``t1``, move the outlet forward by
-``S_lag = v·(t1+t2+t3)/3600`` and convert millimetres to degrees with 1.112e8 mm/°. Its error
-grows with speed because the true fix age is uniform in 0…T, not T/2.
-
-``interpolated`` (default) — put the antenna epochs on the host clock (see :class:`ClockMap`),
-compute the instant the seed reaches the furrow (edge + fall time at the current speed), and
-interpolate the antenna position and heading at that instant between the two epochs that
-bracket it. Because the bracketing epoch usually arrives *after* the edge, the seed waits in a
-short pending queue; only when the next epoch does not come in time is it extrapolated, at most
-one epoch period ahead, and flagged.
-
-``oracle`` (benchmarks only, :func:`oracle_landing`) — the best any method could do with the
-same receiver: it knows the true trajectory and the true landing instant, and adds exactly the
-GNSS error the receiver made (position and heading noise of the bracketing epochs, linearly
-interpolated to the landing instant). Its error is the receiver's noise through the lever arm,
-nothing else.
+Separate from the model (:mod:`.geometry`, :mod:`.clock`, :mod:`.methods`) because this is
+the stateful, performance-tuned part: what it computes is defined there, when and how fast
+it is computed is decided here.
 """
 
 from __future__ import annotations
@@ -39,40 +19,48 @@ import logging
 import math
 import statistics
 from collections import deque
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
-from typing import Any, Literal, NamedTuple, Protocol, overload
+from typing import Literal, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
-import pymap3d
 
 from gateway.config.recording import PositioningSection
-from gateway.core.records import (
-    FixQuality,
-    HeadingSource,
-    PositionMethod,
-    SeedDrop,
-    SeedRow,
-    drop_row,
-    us_to_utc,
+from gateway.core.records import FixQuality, HeadingSource
+from gateway.recording.positioning.clock import ClockMap
+from gateway.recording.positioning.geometry import (
+    FloatArray,
+    LocalFrame,
+    heading_diff,
+    rotate_offset,
+    row_offset,
+    wrap_deg,
+)
+from gateway.recording.positioning.landing import (
+    _DROP_MAX_ROW,
+    _FIX_NAMES,
+    Landing,
+    _new_drop,
+)
+from gateway.recording.positioning.methods import (
+    KMH_PER_MS,
+    AntennaSample,
+    AntennaState,
+    choose_heading,
+    extrapolate_state,
+    fall_time_s,
+    interpolate_state,
+    paper_landing,
+    worst_fix,
+    worst_heading_source,
 )
 
 log = logging.getLogger(__name__)
 
-# Paper C's metres↔degrees constant: 1° of latitude taken as 1.112e8 mm everywhere.
-PAPER_MM_PER_DEG = 1.112e8
-KMH_PER_MS = 3.6
-# Below this speed the course over ground is noise, so it cannot stand in for the heading.
-MIN_COURSE_SPEED_KMH = 1.0
 # Epochs kept: enough to bracket any pending seed (pending timeout / 10 Hz) several times over.
 EPOCH_HISTORY = 64
-# Epochs over which the UTC↔monotonic offset is estimated (10 s at 10 Hz; drift ≪ 1 ms).
-CLOCK_WINDOW_EPOCHS = 100
-# A change of (arrival − UTC) this large is not jitter but a time step (receiver restart, a
-# wrong date): the clock mapping and the epoch history start again.
-CLOCK_STEP_S = 2.0
 # Seeds waiting for their bracketing epoch; beyond this the oldest is extrapolated at once.
 # Every seed waits its fall time (~0.1 s), up to an epoch period for the next epoch, and the
 # receiver's output latency: ~0.25 s, so a 48-row planter at 16 km/h (2 100 seeds/s) keeps
@@ -87,14 +75,8 @@ HISTORY_EVICTION_MARGIN_S = 1.0
 # Extrapolation never reaches further past the last epoch than this many epoch periods.
 MAX_EXTRAPOLATION_EPOCHS = 1.0
 DEFAULT_EPOCH_PERIOD_S = 0.1
-FIX_RANK: dict[FixQuality, int] = {
-    "none": 0, "single": 1, "dgps": 2, "rtk_float": 3, "rtk_fixed": 4,
-}
-HEADING_RANK: dict[HeadingSource, int] = {"none": 0, "course": 1, "dual_antenna": 2}
 
 Method = Literal["interpolated", "paper"]
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp] | npt.NDArray[np.int64]
 # Runs of ready seeds at least this long are positioned with numpy (_interpolate_vector);
 # break-even measured at ~30 seeds (vector: ~150 us a call + ~1.3 us a seed, scalar ~7 us);
@@ -127,464 +109,6 @@ class AntennaEpoch(Protocol):
     def heading_valid(self) -> bool: ...
 
 
-class PoseLike(Protocol):
-    """A true antenna pose in local ENU (``simulator.plant.Pose``)."""
-
-    @property
-    def east(self) -> float: ...
-    @property
-    def north(self) -> float: ...
-    @property
-    def heading_deg(self) -> float: ...
-
-
-# ---------------------------------------------------------------- geometry
-
-
-@dataclass(frozen=True)
-class RowOffset:
-    """A row outlet relative to the main antenna, in the machine frame."""
-
-    behind_m: float
-    right_m: float
-
-
-def row_offset(settings: PositioningSection, row: int) -> RowOffset:
-    lateral = settings.lateral_offsets()
-    if not 1 <= row <= len(lateral):
-        raise ValueError(f"row {row} outside 1..{len(lateral)} (positioning.row_lateral_m)")
-    return RowOffset(settings.outlet_behind_antenna_m, lateral[row - 1])
-
-
-def rotate_offset(offset: RowOffset, heading_deg: float) -> tuple[float, float]:
-    """(east, north) displacement from the antenna to the outlet for a machine heading."""
-    h = math.radians(heading_deg)
-    fwd_e, fwd_n = math.sin(h), math.cos(h)
-    right_e, right_n = math.cos(h), -math.sin(h)
-    return (
-        -offset.behind_m * fwd_e + offset.right_m * right_e,
-        -offset.behind_m * fwd_n + offset.right_m * right_n,
-    )
-
-
-def fall_time_s(speed_kmh: float, table: Sequence[tuple[float, float]]) -> float:
-    """Sensor-to-furrow fall time: linear in the (km/h, ms) table, clamped at its ends."""
-    if not table:
-        raise ValueError("fall time table is empty")
-    speeds = [s for s, _ in table]
-    if speed_kmh <= speeds[0]:
-        return table[0][1] / 1000.0
-    if speed_kmh >= speeds[-1]:
-        return table[-1][1] / 1000.0
-    i = bisect.bisect_right(speeds, speed_kmh)
-    (s0, t0), (s1, t1) = table[i - 1], table[i]
-    a = (speed_kmh - s0) / (s1 - s0)
-    return (t0 + a * (t1 - t0)) / 1000.0
-
-
-def wrap_deg(angle: float) -> float:
-    """Angle in [0, 360); guards the float case where ``x % 360`` returns 360.0."""
-    a = angle % 360.0
-    return 0.0 if a >= 360.0 else a
-
-
-def heading_diff(h0: float, h1: float) -> float:
-    """Signed shortest turn from h0 to h1, in (−180, 180]."""
-    d = (h1 - h0) % 360.0
-    return d - 360.0 if d > 180.0 else d
-
-
-def interpolate_heading(h0: float, h1: float, a: float) -> float:
-    """Heading a fraction ``a`` of the way from h0 to h1 along the short arc (359 → 1 via 0)."""
-    return wrap_deg(h0 + a * heading_diff(h0, h1))
-
-
-# WGS84, as pymap3d's Ellipsoid.from_name("wgs84") defines it.
-_WGS84_A = 6378137.0
-_WGS84_B = 6356752.31424518
-_WGS84_E2 = _WGS84_A**2 - _WGS84_B**2  # E² of You (2000)
-# Below this |u| or distance from the polar axis (m) You's formula divides by ~0: use pymap3d.
-_GEODETIC_FAST_MIN_M = 1000.0
-
-
-@dataclass(frozen=True)
-class LocalFrame:
-    """A WGS84 ↔ local ENU tangent frame (pymap3d) around a fixed origin."""
-
-    lat0: float
-    lon0: float
-    alt0: float = 0.0
-    # origin in ECEF and the ENU→ECEF rotation, computed once (see to_geodetic)
-    _origin: tuple[float, ...] = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self) -> None:
-        x0, y0, z0 = pymap3d.geodetic2ecef(self.lat0, self.lon0, self.alt0)
-        la, lo = math.radians(self.lat0), math.radians(self.lon0)
-        origin = (float(x0), float(y0), float(z0),
-                  math.sin(la), math.cos(la), math.sin(lo), math.cos(lo))
-        object.__setattr__(self, "_origin", origin)
-
-    def to_enu(
-        self, lat: float, lon: float, alt: float | None = None
-    ) -> tuple[float, float, float]:
-        e, n, u = pymap3d.geodetic2enu(
-            lat, lon, self.alt0 if alt is None else alt, self.lat0, self.lon0, self.alt0
-        )
-        return float(e), float(n), float(u)
-
-    @overload
-    def _ecef(self, east: float, north: float, up: float) -> tuple[float, float, float]: ...
-    @overload
-    def _ecef(
-        self, east: FloatArray, north: FloatArray, up: FloatArray
-    ) -> tuple[FloatArray, FloatArray, FloatArray]: ...
-
-    def _ecef(self, east: Any, north: Any, up: Any) -> tuple[Any, Any, Any]:
-        """Local ENU → ECEF: the rotation both geodesy paths share (floats or arrays)."""
-        x0, y0, z0, sin_la, cos_la, sin_lo, cos_lo = self._origin
-        t = cos_la * up - sin_la * north
-        z = z0 + sin_la * up + cos_la * north
-        x = x0 + cos_lo * t - sin_lo * east
-        y = y0 + sin_lo * t + cos_lo * east
-        return x, y, z
-
-    def to_geodetic(self, east: float, north: float, up: float = 0.0) -> tuple[float, float]:
-        """pymap3d's ``enu2geodetic`` (You 2000, non-iterative) in scalar ``math``.
-
-        Called once per seed: pymap3d on scalars goes through numpy (~150 µs a call, most
-        of the daemon's CPU at 2 000 seeds/s); these are the same formulas on plain floats
-        (~3 µs) and agree with pymap3d to ~1e-12° (tested). Near the poles, where the
-        formula's special cases apply, pymap3d itself answers.
-        """
-        x, y, z = self._ecef(east, north, up)
-        r2 = x * x + y * y + z * z
-        e2 = _WGS84_E2
-        u = math.sqrt(0.5 * (r2 - e2) + 0.5 * math.hypot(r2 - e2, 2.0 * math.sqrt(e2) * z))
-        hxy = math.hypot(x, y)
-        if u < _GEODETIC_FAST_MIN_M or hxy < _GEODETIC_FAST_MIN_M:
-            lat, lon, _h = pymap3d.enu2geodetic(
-                east, north, up, self.lat0, self.lon0, self.alt0
-            )
-            return float(lat), float(lon)
-        hue = math.hypot(u, math.sqrt(e2))
-        beta = math.atan(hue / u * z / hxy)
-        beta += ((_WGS84_B * u - _WGS84_A * hue + e2) * math.sin(beta)) / (
-            _WGS84_A * hue * 1 / math.cos(beta) - e2 * math.cos(beta)
-        )
-        lat = math.atan(_WGS84_A / _WGS84_B * math.tan(beta))
-        return math.degrees(lat), math.degrees(math.atan2(y, x))
-
-    def to_geodetic_many(
-        self, east: FloatArray, north: FloatArray, up: FloatArray
-    ) -> tuple[FloatArray, FloatArray, BoolArray]:
-        """``to_geodetic`` over arrays, in numpy: (lat, lon, ok).
-
-        The same formulas, operation for operation, so results agree with the scalar path to
-        an ulp or two of numpy's libm (≪ 1e-12°). Where ``ok`` is False (near the poles or
-        the Earth's centre) the values are meaningless: use the scalar ``to_geodetic``.
-        """
-        x, y, z = self._ecef(east, north, up)
-        r2 = x * x + y * y + z * z
-        e2 = _WGS84_E2
-        u = np.sqrt(0.5 * (r2 - e2) + 0.5 * np.hypot(r2 - e2, 2.0 * math.sqrt(e2) * z))
-        hxy = np.hypot(x, y)
-        ok = (u >= _GEODETIC_FAST_MIN_M) & (hxy >= _GEODETIC_FAST_MIN_M)
-        if not ok.all():
-            u = np.where(ok, u, _GEODETIC_FAST_MIN_M)
-            hxy = np.where(ok, hxy, _GEODETIC_FAST_MIN_M)
-        hue = np.hypot(u, math.sqrt(e2))
-        beta = np.arctan(hue / u * z / hxy)
-        beta += ((_WGS84_B * u - _WGS84_A * hue + e2) * np.sin(beta)) / (
-            _WGS84_A * hue * 1 / np.cos(beta) - e2 * np.cos(beta)
-        )
-        lat = np.arctan(_WGS84_A / _WGS84_B * np.tan(beta))
-        return np.degrees(lat), np.degrees(np.arctan2(y, x)), ok
-
-
-# ---------------------------------------------------------------- paper C
-
-
-def paper_lag_m(speed_kmh: float, settings: PositioningSection) -> float:
-    """``S_lag = v·(t1 + t2 + t3)/3600`` in metres (v in km/h, t in ms)."""
-    total_ms = settings.paper_fall_ms + settings.paper_fix_age_ms + settings.paper_transmission_ms
-    return speed_kmh * total_ms / 3600.0
-
-
-def paper_landing(
-    lat: float,
-    lon: float,
-    heading_deg: float,
-    speed_kmh: float,
-    offset: RowOffset,
-    settings: PositioningSection,
-) -> tuple[float, float]:
-    """Paper C's landing point from the latest fix: lag-shortened lever arm, 1.112e8 mm/°."""
-    shortened = RowOffset(offset.behind_m - paper_lag_m(speed_kmh, settings), offset.right_m)
-    de_m, dn_m = rotate_offset(shortened, heading_deg)
-    d_lat = dn_m * 1000.0 / PAPER_MM_PER_DEG
-    d_lon = de_m * 1000.0 / (PAPER_MM_PER_DEG * math.cos(math.radians(lat)))
-    return lat + d_lat, lon + d_lon
-
-
-# ---------------------------------------------------------------- timing
-
-
-class ClockMap:
-    """Maps receiver UTC to the host monotonic clock: ``t_mono = utc + offset``.
-
-    Each epoch's first sentence reaches the host at ``instant + L + J``: ``L`` is the receiver's
-    fixed output latency (solution computation plus the serial transmission of the first
-    sentence, from config — it cannot be observed from the host side alone) and ``J ≥ 0`` is
-    jitter (UART/USB polling, scheduler wake-ups, the occasional burst). The arrival time of
-    any single epoch is therefore late by an unknown J, up to tens of ms, which at 12 km/h is
-    tens of mm. The UTC stamp, on the other hand, is exact to the receiver's PPS.
-
-    So the offset is estimated as ``min over recent epochs of (t_mono − utc) − L``. Because J
-    is one-sided, the minimum is the right statistic: it converges to ``offset + min J`` within
-    a few epochs, ignores heavy tails, whereas a mean would be biased by E[J] and dragged
-    around by bursts. The window (:data:`CLOCK_WINDOW_EPOCHS`) is short enough that crystal
-    drift between host and receiver (≤ 50 ppm → 0.5 ms per 10 s) does not accumulate, and long
-    enough to contain some near-zero-jitter epochs. The result is timing good to about 1 ms
-    instead of the whole fix-age uncertainty that paper C has to absorb as a constant T/2.
-    """
-
-    def __init__(self, latency_s: float, window: int = CLOCK_WINDOW_EPOCHS) -> None:
-        self.latency_s = latency_s
-        self._samples: deque[float] = deque(maxlen=window)
-        # min(self._samples), kept up to date by observe(): every seed maps several times
-        # and the window only changes once per epoch
-        self._min_raw = 0.0
-
-    def observe(self, t_mono: float, utc_s: float) -> None:
-        raw = t_mono - utc_s
-        if self._samples and abs(raw - self._min_raw) > CLOCK_STEP_S:
-            self._samples.clear()  # a time step: the old offsets describe another clock
-        self._samples.append(raw)
-        self._min_raw = min(self._samples)
-
-    def would_change(self, t_mono: float, utc_s: float) -> bool:
-        """Would ``observe(t_mono, utc_s)`` move the offset (a new minimum, the minimum
-        leaving the window, or a step)?"""
-        samples = self._samples
-        if not samples:
-            return True
-        raw = t_mono - utc_s
-        if raw < self._min_raw or abs(raw - self._min_raw) > CLOCK_STEP_S:
-            return True
-        if len(samples) == samples.maxlen and samples[0] == self._min_raw:
-            return min(min(itertools.islice(samples, 1, None)), raw) != self._min_raw
-        return False
-
-    def is_step(self, t_mono: float, utc_s: float) -> bool:
-        """Would this epoch be a time step rather than jitter?"""
-        return bool(self._samples) and abs(t_mono - utc_s - self._min_raw) > CLOCK_STEP_S
-
-    @property
-    def ready(self) -> bool:
-        return bool(self._samples)
-
-    @property
-    def offset_s(self) -> float:
-        if not self._samples:
-            raise ValueError("no epoch observed yet")
-        return self._min_raw - self.latency_s
-
-    def mono_of_utc(self, utc_s: float) -> float:
-        return utc_s + self.offset_s
-
-    def utc_of_mono(self, t_mono: float) -> float:
-        return t_mono - self.offset_s
-
-
-# ---------------------------------------------------------------- antenna samples
-
-
-@dataclass(frozen=True)
-class AntennaSample:
-    """One epoch in the local frame, with the heading already chosen (dual antenna/course)."""
-
-    utc_s: float
-    t_arrival: float
-    lat: float
-    lon: float
-    east: float
-    north: float
-    up: float
-    speed_kmh: float
-    heading_deg: float | None
-    heading_source: HeadingSource
-    course_deg: float | None
-    fix: FixQuality
-
-
-def choose_heading(
-    heading_valid: bool,
-    heading_deg: float | None,
-    course_deg: float | None,
-    speed_kmh: float,
-) -> tuple[float | None, HeadingSource]:
-    """Dual-antenna heading when valid; else course over ground while moving; else none."""
-    if heading_valid and heading_deg is not None:
-        return wrap_deg(heading_deg), "dual_antenna"
-    if course_deg is not None and speed_kmh >= MIN_COURSE_SPEED_KMH:
-        return wrap_deg(course_deg), "course"
-    return None, "none"
-
-
-@dataclass(frozen=True)
-class AntennaState:
-    """The antenna at one instant, interpolated or extrapolated from samples."""
-
-    east: float
-    north: float
-    up: float
-    speed_kmh: float
-    heading_deg: float | None
-    heading_source: HeadingSource
-    fix: FixQuality
-    extrapolated: bool
-
-
-def worst_fix(a: FixQuality, b: FixQuality) -> FixQuality:
-    return a if FIX_RANK[a] <= FIX_RANK[b] else b
-
-
-def worst_heading_source(a: HeadingSource, b: HeadingSource) -> HeadingSource:
-    return a if HEADING_RANK[a] <= HEADING_RANK[b] else b
-
-
-def interpolate_state(
-    s0: AntennaSample, t0: float, s1: AntennaSample, t1: float, t: float
-) -> AntennaState:
-    """Linear in position and speed, short-arc in heading, between two epochs (t0 ≤ t ≤ t1)."""
-    a = 0.0 if t1 <= t0 else min(1.0, max(0.0, (t - t0) / (t1 - t0)))
-    if s0.heading_deg is not None and s1.heading_deg is not None:
-        heading: float | None = interpolate_heading(s0.heading_deg, s1.heading_deg, a)
-        source = worst_heading_source(s0.heading_source, s1.heading_source)
-    else:
-        # one side lacks a heading: use the other one's, flagged as no better than "none"
-        heading = s0.heading_deg if s0.heading_deg is not None else s1.heading_deg
-        source = "none"
-    return AntennaState(
-        east=s0.east + a * (s1.east - s0.east),
-        north=s0.north + a * (s1.north - s0.north),
-        up=s0.up + a * (s1.up - s0.up),
-        speed_kmh=s0.speed_kmh + a * (s1.speed_kmh - s0.speed_kmh),
-        heading_deg=heading,
-        heading_source=source,
-        fix=worst_fix(s0.fix, s1.fix),
-        extrapolated=False,
-    )
-
-
-def extrapolate_state(
-    prev: AntennaSample | None,
-    prev_t: float,
-    last: AntennaSample,
-    last_t: float,
-    t: float,
-    horizon_s: float,
-) -> tuple[AntennaState, bool]:
-    """Dead-reckon from the last epoch to ``t``, capped at ``horizon_s`` past it.
-
-    Velocity comes from the Doppler speed along the course (or heading): the receiver's speed
-    is far less noisy than a difference of two 10 mm-noise positions 0.1 s apart. The heading
-    turns at the rate seen between the last two epochs. Returns the state and whether the cap
-    was hit (the seed landed further ahead than the model allows to guess).
-    """
-    dt = t - last_t
-    capped = dt > horizon_s
-    dt = min(dt, horizon_s)
-    direction = last.course_deg if last.course_deg is not None else last.heading_deg
-    v = last.speed_kmh / KMH_PER_MS
-    if direction is None and prev is not None and last_t > prev_t:
-        de, dn = last.east - prev.east, last.north - prev.north
-        ve, vn = de / (last_t - prev_t), dn / (last_t - prev_t)
-    elif direction is None:
-        ve = vn = 0.0
-    else:
-        ve, vn = v * math.sin(math.radians(direction)), v * math.cos(math.radians(direction))
-    heading = last.heading_deg
-    if (
-        heading is not None
-        and prev is not None
-        and prev.heading_deg is not None
-        and last_t > prev_t
-    ):
-        rate = heading_diff(prev.heading_deg, heading) / (last_t - prev_t)
-        heading = wrap_deg(heading + rate * dt)
-    state = AntennaState(
-        east=last.east + ve * dt,
-        north=last.north + vn * dt,
-        up=last.up,
-        speed_kmh=last.speed_kmh,
-        heading_deg=heading,
-        heading_source=last.heading_source,
-        fix=last.fix,
-        extrapolated=True,
-    )
-    return state, capped
-
-
-# ---------------------------------------------------------------- oracle
-
-
-@dataclass(frozen=True)
-class MeasuredEpoch:
-    """A receiver epoch at its TRUE instant, in the same local ENU as the ground truth."""
-
-    t_true: float
-    east: float
-    north: float
-    heading_deg: float
-
-
-def oracle_landing(
-    offset: RowOffset,
-    t_land: float,
-    true_pose_at: Callable[[float], PoseLike],
-    epochs: Sequence[MeasuredEpoch],
-) -> tuple[float, float]:
-    """The landing point the best possible method would report with this receiver.
-
-    Definition: for each epoch k the receiver's error is ``measured_k − true(t_k)`` in east,
-    north and heading (wrapped). The oracle takes the TRUE antenna pose at the TRUE landing
-    instant, adds the error linearly interpolated between the epochs bracketing ``t_land``
-    (the nearest epoch's error outside the range), and applies the row's lever arm with the
-    erroneous heading. It has no timing error and no trajectory-model error; what remains is
-    the GNSS noise as an interpolating method would see it. ``epochs`` must be sorted by time.
-    """
-    if not epochs:
-        raise ValueError("oracle needs at least one measured epoch")
-    times = [ep.t_true for ep in epochs]
-    i = bisect.bisect_right(times, t_land)
-    if i == 0:
-        ks, a = (0, 0), 0.0
-    elif i >= len(epochs):
-        ks, a = (len(epochs) - 1, len(epochs) - 1), 0.0
-    else:
-        t0, t1 = times[i - 1], times[i]
-        ks, a = (i - 1, i), (0.0 if t1 <= t0 else (t_land - t0) / (t1 - t0))
-
-    def error(k: int) -> tuple[float, float, float]:
-        ep = epochs[k]
-        truth = true_pose_at(ep.t_true)
-        return (
-            ep.east - truth.east,
-            ep.north - truth.north,
-            heading_diff(truth.heading_deg, ep.heading_deg),
-        )
-
-    e0, e1 = error(ks[0]), error(ks[1])
-    err = [x0 + a * (x1 - x0) for x0, x1 in zip(e0, e1, strict=True)]
-    truth = true_pose_at(t_land)
-    de, dn = rotate_offset(offset, wrap_deg(truth.heading_deg + err[2]))
-    return truth.east + err[0] + de, truth.north + err[1] + dn
-
-
-# ---------------------------------------------------------------- the positioner
-
-
 @dataclass
 class PositionerStats:
     epochs: int = 0
@@ -600,9 +124,6 @@ class PositionerStats:
 
 # A seed waiting for its bracketing epoch: (row, t_land). A plain tuple: one is made per seed.
 _Pending = tuple[int, float]
-_DROP_FIELDS = frozenset(SeedDrop.model_fields)
-_object_new = object.__new__
-_setattr = object.__setattr__
 
 
 class _Pair(NamedTuple):
@@ -627,124 +148,9 @@ class _Pair(NamedTuple):
     fix: FixQuality
 
 
-_FIX_NAMES = frozenset(FIX_RANK)
+
 # (east, north, t) of "no previous seed in this row": infinitely long ago
 _NO_PREVIOUS = (0.0, 0.0, -math.inf)
-# SeedDrop's own bounds (gateway/core/records.py), checked before skipping its validation.
-_DROP_MAX_ROW = 128
-
-
-def _new_drop(
-    row: int,
-    utc: datetime,
-    lat: float,
-    lon: float,
-    fix: FixQuality,
-    speed_kmh: float,
-    heading_deg: float | None,
-    heading_source: HeadingSource,
-    extrapolated: bool,
-    method: PositionMethod,
-    spacing_m: float | None,
-) -> SeedDrop:
-    """A ``SeedDrop`` without pydantic validation when the values already satisfy it.
-
-    Validation is ~6 µs of the ~20 µs a seed costs, and every value here is valid by
-    construction (wrapped headings, clamped speeds, hypot spacings, a geodetic conversion).
-    The bounds and types are still checked, cheaply; anything odd (a NaN from a broken epoch,
-    an int subclass) goes through the real validator and fails or coerces exactly as before.
-    A test checks the result equals a validated drop.
-    """
-    if (
-        type(row) is int and 1 <= row <= _DROP_MAX_ROW
-        and type(lat) is float and -90.0 <= lat <= 90.0
-        and type(lon) is float and -180.0 <= lon <= 180.0
-        and type(speed_kmh) is float and speed_kmh >= 0.0
-        and (heading_deg is None or (type(heading_deg) is float and 0.0 <= heading_deg < 360.0))
-        and (spacing_m is None or (type(spacing_m) is float and spacing_m >= 0.0))
-        and type(fix) is str and fix in _FIX_NAMES
-    ):
-        drop = _object_new(SeedDrop)
-        _setattr(drop, "__dict__", {
-            "row": row, "utc": utc, "lat": lat, "lon": lon, "fix": fix,
-            "speed_kmh": speed_kmh, "heading_deg": heading_deg,
-            "heading_source": heading_source, "extrapolated": extrapolated,
-            "method": method, "spacing_m": spacing_m,
-        })
-        _setattr(drop, "__pydantic_fields_set__", set(_DROP_FIELDS))
-        _setattr(drop, "__pydantic_extra__", None)
-        _setattr(drop, "__pydantic_private__", None)
-        return drop
-    return SeedDrop(
-        row=row, utc=utc, lat=lat, lon=lon, fix=fix, speed_kmh=speed_kmh,
-        heading_deg=heading_deg, heading_source=heading_source, extrapolated=extrapolated,
-        method=method, spacing_m=spacing_m,
-    )
-
-
-def utc_us_of(ts: float) -> int:
-    """``datetime.fromtimestamp(ts, UTC)`` as integer microseconds, rounded as CPython does."""
-    frac, whole = math.modf(ts)
-    us = round(frac * 1e6)  # half to even, like _PyTime_ROUND_HALF_EVEN
-    return int(whole) * 1_000_000 + us
-
-
-class Landing:
-    """A positioned seed in the local frame, alongside the record it became.
-
-    ``stored`` holds the record as the store writes it (a ``SeedRow``); ``drop`` (the
-    ``SeedDrop``) is built from it on first access, so the daemon, which only stores rows,
-    never builds one. Rows
-    given to :meth:`_lazy` must already satisfy ``SeedDrop``'s schema (the positioner checks).
-    """
-
-    __slots__ = ("_drop", "east", "north", "stored", "t_land")
-
-    def __init__(self, drop: SeedDrop, east: float, north: float, t_land: float) -> None:
-        self._drop: SeedDrop | None = drop
-        self.stored: SeedRow = drop_row(drop)
-        self.east = east
-        self.north = north
-        self.t_land = t_land
-
-    @classmethod
-    def _lazy(cls, row: SeedRow, east: float, north: float, t_land: float) -> Landing:
-        la = _object_new(cls)
-        la._drop = None
-        la.stored = row
-        la.east = east
-        la.north = north
-        la.t_land = t_land
-        return la
-
-    @property
-    def drop(self) -> SeedDrop:
-        drop = self._drop
-        if drop is None:
-            us, row, lat, lon, fix, speed, heading, source, extrap, method, spacing = self.stored
-            drop = _new_drop(
-                row, us_to_utc(us), lat, lon, fix, speed, heading,
-                source, extrap, method, spacing,
-            )
-            self._drop = drop
-        return drop
-
-    def _key(self) -> tuple[SeedRow, float, float, float]:
-        return (self.stored, self.east, self.north, self.t_land)
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, Landing):
-            return NotImplemented
-        return self._key() == other._key()
-
-    def __hash__(self) -> int:
-        return hash(self._key())
-
-    def __repr__(self) -> str:
-        return (
-            f"Landing(drop={self.drop!r}, east={self.east!r}, north={self.north!r}, "
-            f"t_land={self.t_land!r})"
-        )
 
 
 class SeedPositioner:

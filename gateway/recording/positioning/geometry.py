@@ -1,0 +1,174 @@
+"""Where a row outlet is relative to the antenna, and where that is on the Earth.
+
+Owns the pure geometry every positioning method shares: the row outlets' lever arms
+(:class:`RowOffset`, :func:`row_offset`), their rotation by the machine heading
+(:func:`rotate_offset`), heading arithmetic on the circle (:func:`wrap_deg`,
+:func:`heading_diff`, :func:`interpolate_heading`) and the WGS84 <-> local ENU frame
+(:class:`LocalFrame`, including its fast scalar and numpy paths for ENU -> geodetic).
+
+Separate because it knows nothing of time, GNSS epochs or seeds: it is the part the paper's
+model, the interpolated method, the simulator's ground truth and the benchmarks' oracle all
+agree on, and it is tested against pymap3d on its own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, overload
+
+import numpy as np
+import numpy.typing as npt
+import pymap3d
+
+from gateway.config.recording import PositioningSection
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class RowOffset:
+    """A row outlet relative to the main antenna, in the machine frame."""
+
+    behind_m: float
+    right_m: float
+
+
+def row_offset(settings: PositioningSection, row: int) -> RowOffset:
+    lateral = settings.lateral_offsets()
+    if not 1 <= row <= len(lateral):
+        raise ValueError(f"row {row} outside 1..{len(lateral)} (positioning.row_lateral_m)")
+    return RowOffset(settings.outlet_behind_antenna_m, lateral[row - 1])
+
+
+def rotate_offset(offset: RowOffset, heading_deg: float) -> tuple[float, float]:
+    """(east, north) displacement from the antenna to the outlet for a machine heading."""
+    h = math.radians(heading_deg)
+    fwd_e, fwd_n = math.sin(h), math.cos(h)
+    right_e, right_n = math.cos(h), -math.sin(h)
+    return (
+        -offset.behind_m * fwd_e + offset.right_m * right_e,
+        -offset.behind_m * fwd_n + offset.right_m * right_n,
+    )
+
+
+
+def wrap_deg(angle: float) -> float:
+    """Angle in [0, 360); guards the float case where ``x % 360`` returns 360.0."""
+    a = angle % 360.0
+    return 0.0 if a >= 360.0 else a
+
+
+def heading_diff(h0: float, h1: float) -> float:
+    """Signed shortest turn from h0 to h1, in (−180, 180]."""
+    d = (h1 - h0) % 360.0
+    return d - 360.0 if d > 180.0 else d
+
+
+def interpolate_heading(h0: float, h1: float, a: float) -> float:
+    """Heading a fraction ``a`` of the way from h0 to h1 along the short arc (359 → 1 via 0)."""
+    return wrap_deg(h0 + a * heading_diff(h0, h1))
+
+
+# WGS84, as pymap3d's Ellipsoid.from_name("wgs84") defines it.
+_WGS84_A = 6378137.0
+_WGS84_B = 6356752.31424518
+_WGS84_E2 = _WGS84_A**2 - _WGS84_B**2  # E² of You (2000)
+# Below this |u| or distance from the polar axis (m) You's formula divides by ~0: use pymap3d.
+_GEODETIC_FAST_MIN_M = 1000.0
+
+
+@dataclass(frozen=True)
+class LocalFrame:
+    """A WGS84 ↔ local ENU tangent frame (pymap3d) around a fixed origin."""
+
+    lat0: float
+    lon0: float
+    alt0: float = 0.0
+    # origin in ECEF and the ENU→ECEF rotation, computed once (see to_geodetic)
+    _origin: tuple[float, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        x0, y0, z0 = pymap3d.geodetic2ecef(self.lat0, self.lon0, self.alt0)
+        la, lo = math.radians(self.lat0), math.radians(self.lon0)
+        origin = (float(x0), float(y0), float(z0),
+                  math.sin(la), math.cos(la), math.sin(lo), math.cos(lo))
+        object.__setattr__(self, "_origin", origin)
+
+    def to_enu(
+        self, lat: float, lon: float, alt: float | None = None
+    ) -> tuple[float, float, float]:
+        e, n, u = pymap3d.geodetic2enu(
+            lat, lon, self.alt0 if alt is None else alt, self.lat0, self.lon0, self.alt0
+        )
+        return float(e), float(n), float(u)
+
+    @overload
+    def _ecef(self, east: float, north: float, up: float) -> tuple[float, float, float]: ...
+    @overload
+    def _ecef(
+        self, east: FloatArray, north: FloatArray, up: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]: ...
+
+    def _ecef(self, east: Any, north: Any, up: Any) -> tuple[Any, Any, Any]:
+        """Local ENU → ECEF: the rotation both geodesy paths share (floats or arrays)."""
+        x0, y0, z0, sin_la, cos_la, sin_lo, cos_lo = self._origin
+        t = cos_la * up - sin_la * north
+        z = z0 + sin_la * up + cos_la * north
+        x = x0 + cos_lo * t - sin_lo * east
+        y = y0 + sin_lo * t + cos_lo * east
+        return x, y, z
+
+    def to_geodetic(self, east: float, north: float, up: float = 0.0) -> tuple[float, float]:
+        """pymap3d's ``enu2geodetic`` (You 2000, non-iterative) in scalar ``math``.
+
+        Called once per seed: pymap3d on scalars goes through numpy (~150 µs a call, most
+        of the daemon's CPU at 2 000 seeds/s); these are the same formulas on plain floats
+        (~3 µs) and agree with pymap3d to ~1e-12° (tested). Near the poles, where the
+        formula's special cases apply, pymap3d itself answers.
+        """
+        x, y, z = self._ecef(east, north, up)
+        r2 = x * x + y * y + z * z
+        e2 = _WGS84_E2
+        u = math.sqrt(0.5 * (r2 - e2) + 0.5 * math.hypot(r2 - e2, 2.0 * math.sqrt(e2) * z))
+        hxy = math.hypot(x, y)
+        if u < _GEODETIC_FAST_MIN_M or hxy < _GEODETIC_FAST_MIN_M:
+            lat, lon, _h = pymap3d.enu2geodetic(
+                east, north, up, self.lat0, self.lon0, self.alt0
+            )
+            return float(lat), float(lon)
+        hue = math.hypot(u, math.sqrt(e2))
+        beta = math.atan(hue / u * z / hxy)
+        beta += ((_WGS84_B * u - _WGS84_A * hue + e2) * math.sin(beta)) / (
+            _WGS84_A * hue * 1 / math.cos(beta) - e2 * math.cos(beta)
+        )
+        lat = math.atan(_WGS84_A / _WGS84_B * math.tan(beta))
+        return math.degrees(lat), math.degrees(math.atan2(y, x))
+
+    def to_geodetic_many(
+        self, east: FloatArray, north: FloatArray, up: FloatArray
+    ) -> tuple[FloatArray, FloatArray, BoolArray]:
+        """``to_geodetic`` over arrays, in numpy: (lat, lon, ok).
+
+        The same formulas, operation for operation, so results agree with the scalar path to
+        an ulp or two of numpy's libm (≪ 1e-12°). Where ``ok`` is False (near the poles or
+        the Earth's centre) the values are meaningless: use the scalar ``to_geodetic``.
+        """
+        x, y, z = self._ecef(east, north, up)
+        r2 = x * x + y * y + z * z
+        e2 = _WGS84_E2
+        u = np.sqrt(0.5 * (r2 - e2) + 0.5 * np.hypot(r2 - e2, 2.0 * math.sqrt(e2) * z))
+        hxy = np.hypot(x, y)
+        ok = (u >= _GEODETIC_FAST_MIN_M) & (hxy >= _GEODETIC_FAST_MIN_M)
+        if not ok.all():
+            u = np.where(ok, u, _GEODETIC_FAST_MIN_M)
+            hxy = np.where(ok, hxy, _GEODETIC_FAST_MIN_M)
+        hue = np.hypot(u, math.sqrt(e2))
+        beta = np.arctan(hue / u * z / hxy)
+        beta += ((_WGS84_B * u - _WGS84_A * hue + e2) * np.sin(beta)) / (
+            _WGS84_A * hue * 1 / np.cos(beta) - e2 * np.cos(beta)
+        )
+        lat = np.arctan(_WGS84_A / _WGS84_B * np.tan(beta))
+        return np.degrees(lat), np.degrees(np.arctan2(y, x)), ok
+
