@@ -490,14 +490,16 @@ class Controller:
         if self.mode is Mode.EMPTYING and self._emptying_since is None:
             self._emptying_since = now
         if motion is not Motion.STANDING:
-            if self._change_mode(ModeEvent.NOT_STANDING):
-                self._message = "emptying ended: machine moving"
+            event, message = ModeEvent.NOT_STANDING, "emptying ended: machine moving"
         elif (
             self._emptying_since is not None
             and now - self._emptying_since >= self.settings.control.emptying_timeout_s
         ):
-            if self._change_mode(ModeEvent.EMPTYING_TIMED_OUT):
-                self._message = "emptying finished (timeout)"
+            event, message = ModeEvent.EMPTYING_TIMED_OUT, "emptying finished (timeout)"
+        else:
+            return
+        if self._change_mode(event):
+            self._message = message
 
     def _outside_calibration(self, now: float, message: str) -> None:
         """Raise ``rate.outside_calibration`` once the spell has lasted

@@ -136,7 +136,8 @@ TABLE: dict[tuple[Mode, Motion, Attitude], Outputs] = {
     (_W, _UNK, _RAI): Outputs(WorkState.PAUSED, Fan.HIGH, Motor.STOP),
     (_W, _UNK, _LOW): Outputs(WorkState.PRE_SEED, Fan.HIGH, Motor.STOP),
     # emptying the hopper is a standing job; rolling off ends it (MODE_TABLE, NOT_STANDING,
-    # before ``decide`` on the same tick), so these last four rows are a safe default only
+    # applied before ``decide`` on the same tick), so the four rows off standstill are never
+    # met by the controller: they say what would be safe
     (_E, _STD, _RAI): Outputs(WorkState.EMPTYING, Fan.HIGH, Motor.EMPTY),
     (_E, _STD, _LOW): Outputs(WorkState.EMPTYING, Fan.HIGH, Motor.EMPTY),
     (_E, _MOV, _RAI): Outputs(WorkState.STOPPED, Fan.OFF, Motor.STOP),
