@@ -2,7 +2,8 @@
 
 - ``speed``: Doppler speed and the speed filters (paper A's mean, the trend filter);
 - ``attitude``: raised/lowered from the inclinometer with hysteresis;
-- ``work_state``: the work-state table (operator mode x speed x attitude -> fan, motor);
+- ``work_state``: the work-state tables (operator mode x event -> mode; operator mode x
+  speed x attitude -> fan, motor);
 - ``rate_model``: kg/ha -> g/min -> shaft speed -> duty (paper A eq. 4-6) and back;
 - ``controller``: one tick: readings in, duties and alarms out.
 

@@ -18,7 +18,17 @@ from gateway.control.attitude import Attitude as AttitudeBand
 from gateway.control.attitude import zeroed_tilt
 from gateway.control.rate_model import flow_at, omega_for_duty, plan_duty, rate_for_flow
 from gateway.control.speed import Hysteresis, MovingAverage, TrendFilter
-from gateway.control.work_state import Attitude, Fan, Mode, Motion, Motor, WorkState, decide
+from gateway.control.work_state import (
+    Attitude,
+    Fan,
+    Mode,
+    ModeEvent,
+    Motion,
+    Motor,
+    WorkState,
+    decide,
+    next_mode,
+)
 from gateway.core import commands as cmd
 from gateway.core.alarms import AlarmBoard
 from gateway.core.errors import CommandError, OutsideCalibrationError, TooFastError
@@ -151,8 +161,8 @@ class Controller:
         self._last_tick: float | None = None
         self._message: str | None = None
         self.last: ControlOutputs | None = None
-        if s.control.start_working:
-            self.mode = Mode.WORKING
+        if s.control.start_working:  # the operator's start, given at power-up
+            self._change_mode(ModeEvent.START)
 
     # ---- inputs -------------------------------------------------------------------------
     @property
@@ -234,18 +244,14 @@ class Controller:
                 self.crop, self.rate_kg_ha = crop, rate
                 reply = f"{crop} {rate:g} kg/ha"
             case cmd.Start():
-                self.mode = Mode.WORKING
-                self._emptying_since = None
+                self._change_mode(ModeEvent.START)
                 reply = "work started"
             case cmd.Stop():
-                self.mode = Mode.STOPPED
-                self._emptying_since = None
+                self._change_mode(ModeEvent.STOP)
                 reply = "stopped"
             case cmd.EmptySeed():
-                if self._moving.state:
-                    raise CommandError("empty residual seed only while standing")
-                self.mode = Mode.EMPTYING
-                self._emptying_since = None  # stamped at the next tick
+                moving = bool(self._moving.state)  # None (no valid speed) is not moving here
+                self._change_mode(ModeEvent.EMPTY_WHILE_MOVING if moving else ModeEvent.EMPTY)
                 reply = "emptying residual seed"
             case cmd.SeedLevelMonitoring(enabled=on):
                 self.seed_level_monitoring = on
@@ -413,15 +419,7 @@ class Controller:
         )
         attitude, tilt = self._attitude_now(now)
 
-        if self.mode is Mode.EMPTYING:
-            if self._emptying_since is None:
-                self._emptying_since = now
-            if motion is not Motion.STANDING:
-                self.mode = Mode.STOPPED
-                self._message = "emptying ended: machine moving"
-            elif now - self._emptying_since >= self.settings.control.emptying_timeout_s:
-                self.mode = Mode.STOPPED
-                self._message = "emptying finished (timeout)"
+        self._machine_mode_events(motion, now)
 
         out = decide(self.mode, motion, attitude)
         model = self.crop_model
@@ -472,6 +470,36 @@ class Controller:
             target_rate_kg_ha=target_rate,
         )
         return self.last
+
+    def _change_mode(self, event: ModeEvent) -> bool:
+        """Apply ``event`` through the work-state module's mode table; True if the mode changed.
+
+        A refused request raises ``CommandError`` and changes nothing. The emptying clock
+        belongs to one emptying job: every EMPTY starts a new one (its clock starts at the
+        next tick) and outside emptying there is none.
+        """
+        then = next_mode(self.mode, event)
+        changed = then is not self.mode
+        if then is not Mode.EMPTYING or event is ModeEvent.EMPTY:
+            self._emptying_since = None
+        self.mode = then
+        return changed
+
+    def _machine_mode_events(self, motion: Motion, now: float) -> None:
+        """Tell the mode table what the machine did this tick: it may end an emptying."""
+        if self.mode is Mode.EMPTYING and self._emptying_since is None:
+            self._emptying_since = now
+        if motion is not Motion.STANDING:
+            event, message = ModeEvent.NOT_STANDING, "emptying ended: machine moving"
+        elif (
+            self._emptying_since is not None
+            and now - self._emptying_since >= self.settings.control.emptying_timeout_s
+        ):
+            event, message = ModeEvent.EMPTYING_TIMED_OUT, "emptying finished (timeout)"
+        else:
+            return
+        if self._change_mode(event):
+            self._message = message
 
     def _outside_calibration(self, now: float, message: str) -> None:
         """Raise ``rate.outside_calibration`` once the spell has lasted

@@ -10,7 +10,7 @@ from gateway.calibration import fits as cal
 from gateway.calibration.apply import apply_calibrations
 from gateway.config import parse_config
 from gateway.control.controller import Controller
-from gateway.control.work_state import WorkState
+from gateway.control.work_state import Mode, WorkState
 from gateway.core import commands as cmd
 from gateway.core.alarms import AlarmBoard
 from gateway.core.errors import CommandError
@@ -193,6 +193,114 @@ def test_emptying_is_refused_while_moving() -> None:
     c.tick(0.0)
     with pytest.raises(CommandError, match="only while standing"):
         c.execute(cmd.EmptySeed(), "hmi")
+    assert c.mode is Mode.WORKING
+    assert c.tick(0.1).state is WorkState.SEEDING
+
+
+def empty_while_standing(c: Controller, t: float) -> None:
+    """Stand still, tick, then ask to empty the hopper (the command carries no time)."""
+    feed(c, t, kmh=0.0)
+    c.tick(t)
+    assert c.execute(cmd.EmptySeed(), "hmi") == "emptying residual seed"
+    assert c.mode is Mode.EMPTYING
+
+
+def test_emptying_ends_at_the_first_tick_the_machine_moves() -> None:
+    c, _ = make()
+    empty_while_standing(c, 0.0)
+    feed(c, 0.5, kmh=0.0)
+    assert c.tick(0.5).state is WorkState.EMPTYING
+    t, states = 0.5, []
+    while c.mode is Mode.EMPTYING and t < 5.0:
+        t += 0.25
+        feed(c, t, kmh=6.0)
+        states.append(c.tick(t).state)
+    assert states[-1] is WorkState.STOPPED and set(states[:-1]) <= {WorkState.EMPTYING}
+    assert c.mode is Mode.STOPPED
+    assert c.take_message() == "emptying ended: machine moving"
+    feed(c, t + 5.0, kmh=0.0)  # standing again does not bring the emptying back
+    assert c.tick(t + 5.0).state is WorkState.STOPPED
+
+
+def test_emptying_ends_at_the_next_tick_once_the_speed_is_lost() -> None:
+    c, _ = make()
+    empty_while_standing(c, 0.0)
+    c.on_tilt(LOWERED_RAW, 3.0)
+    out = c.tick(3.0)  # the last speed sample is 3 s old: speed unknown
+    assert out.state is WorkState.STOPPED and out.motor_pct == 0.0
+    assert c.mode is Mode.STOPPED
+    assert out.message == "emptying ended: machine moving"
+
+
+def test_emptying_asked_for_with_no_valid_speed_is_accepted_then_ends_at_the_next_tick() -> None:
+    # only a machine known to be moving is refused; an unknown speed ends the job at once
+    c, _ = make()
+    c.tick(0.0)
+    assert c.execute(cmd.EmptySeed(), "hmi") == "emptying residual seed"
+    assert c.mode is Mode.EMPTYING
+    assert c.tick(0.1).state is WorkState.STOPPED
+    assert c.take_message() == "emptying ended: machine moving"
+
+
+def test_the_emptying_clock_starts_at_the_first_tick_after_the_command() -> None:
+    c, _ = make(emptying_timeout_s=10.0)
+    empty_while_standing(c, 0.0)
+    for t in range(5, 15):  # the clock starts at 5 s, not at the command
+        feed(c, float(t), kmh=0.0)
+        assert c.tick(float(t)).state is WorkState.EMPTYING, t
+    feed(c, 15.0, kmh=0.0)
+    out = c.tick(15.0)
+    assert out.state is WorkState.STOPPED and c.mode is Mode.STOPPED
+    assert out.message == "emptying finished (timeout)"
+
+
+def test_asking_to_empty_again_restarts_the_emptying_clock() -> None:
+    c, _ = make(emptying_timeout_s=10.0)
+    empty_while_standing(c, 0.0)
+    for t in range(1, 8):
+        feed(c, float(t), kmh=0.0)
+        c.tick(float(t))
+    c.execute(cmd.EmptySeed(), "hmi")  # clock was started at 1 s; now restarts at 8 s
+    for t in range(8, 18):
+        feed(c, float(t), kmh=0.0)
+        assert c.tick(float(t)).state is WorkState.EMPTYING, t
+    feed(c, 18.0, kmh=0.0)
+    assert c.tick(18.0).state is WorkState.STOPPED
+
+
+@pytest.mark.parametrize(
+    ("command", "mode", "state"),
+    [
+        (cmd.Start(), Mode.WORKING, WorkState.PRE_SEED),
+        (cmd.Stop(), Mode.STOPPED, WorkState.STOPPED),
+    ],
+)
+def test_start_or_stop_ends_emptying_and_a_new_emptying_gets_a_fresh_clock(
+    command: cmd.Command, mode: Mode, state: WorkState
+) -> None:
+    c, _ = make(emptying_timeout_s=10.0)
+    empty_while_standing(c, 0.0)
+    for t in range(1, 6):
+        feed(c, float(t), kmh=0.0)
+        c.tick(float(t))
+    c.execute(command, "mqtt")
+    assert c.mode is mode
+    feed(c, 6.0, kmh=0.0)
+    assert c.tick(6.0).state is state
+    c.execute(cmd.EmptySeed(), "hmi")
+    for t in range(7, 17):  # the old clock (1 s) is forgotten: this one starts at 7 s
+        feed(c, float(t), kmh=0.0)
+        assert c.tick(float(t)).state is WorkState.EMPTYING, t
+    feed(c, 17.0, kmh=0.0)
+    assert c.tick(17.0).state is WorkState.STOPPED
+
+
+def test_start_working_in_the_config_starts_in_work_mode() -> None:
+    assert make()[0].mode is Mode.STOPPED
+    c, _ = make(start_working=True)
+    assert c.mode is Mode.WORKING
+    feed(c, 0.0, kmh=0.0)
+    assert c.tick(0.0).state is WorkState.PRE_SEED
 
 
 def test_zero_tilt_is_persisted_across_restarts(tmp_path: Path) -> None:
