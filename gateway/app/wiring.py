@@ -282,16 +282,10 @@ def _gnss_pose(daemon: Daemon) -> Any:
 def _load_prescription(daemon: Daemon) -> Any:
     """The prescription map, or None when disabled or unusable (alarm says why: a bad map
     must not keep the drill from sowing at the default rates)."""
-    from gateway.metering.prescription import PrescriptionError, PrescriptionMap
+    from gateway.metering.prescription import PrescriptionError, load_prescription
 
-    p = daemon.settings.prescription
-    if not p.enabled:
-        return None
-    attrs = [c.prescription_attribute for c in daemon.settings.channel if c.prescription_attribute]
     try:
-        if p.path is None:
-            raise PrescriptionError("prescription.path: required when prescription.enabled")
-        return PrescriptionMap.load(p.path, attrs)
+        return load_prescription(daemon.settings)
     except PrescriptionError as exc:
         log.error("prescription map not used: %s", exc)
         daemon.alarms.raise_(
@@ -379,9 +373,6 @@ def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None
             f"channel.{alarm.channel}.{alarm.kind}", alarm.active, alarm.message, severity
         )
 
-    if prescription is None:
-        # do not let the component load the (absent or rejected) map a second time
-        daemon.settings.prescription.enabled = False
     component = MeteringComponent(
         daemon.settings,
         speed,
