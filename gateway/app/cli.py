@@ -20,6 +20,7 @@ from gateway.config import (
     output_location_problems,
     parts_summary,
     prepare_state_dir,
+    undriven_channels,
 )
 
 log = logging.getLogger("sowgate")
@@ -68,14 +69,13 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
     problems += output_location_problems(settings, create=False)
     warnings: list[str] = settings.deprecation_notes()
     p = settings.prescription
-    channels = settings.channel
-    can_pid = [c.name for c in channels if c.drive == "can_pid"]
-    if can_pid and not settings.can.enabled:
+    undriven = [c.name for c in undriven_channels(settings)]
+    if undriven:
         warnings.append(
-            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but can is off (no [can] "
+            f"channel: {', '.join(undriven)} use drive = 'can_pid' but can is off (no [can] "
             "table, or [can] enabled = false); they will not be driven"
         )
-    attrs = [c.prescription_attribute for c in channels if c.prescription_attribute]
+    attrs = [c.prescription_attribute for c in settings.channel if c.prescription_attribute]
     if p.enabled:
         from gateway.metering.prescription import PrescriptionError, load_prescription
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from gateway.app.parts import Parts
-from gateway.config import Settings, as_applied_path, store_path
+from gateway.config import Settings, as_applied_path, store_path, undriven_channels
 from gateway.control.controller import Controller, ControlOutputs
 from gateway.core import commands as cmd
 from gateway.core.alarms import AlarmBoard
@@ -302,10 +302,10 @@ def _attach_channels(daemon: Daemon) -> None:
     from gateway.metering.pwm_channel import PwmChannelPart
 
     s = daemon.settings
-    can_pid = [c for c in s.channel if c.drive == "can_pid"]
     pwm = pwm_channel(s)
-    if can_pid and not s.can.enabled:
-        names = ", ".join(c.name for c in can_pid)
+    undriven = undriven_channels(s)
+    if undriven:
+        names = ", ".join(c.name for c in undriven)
         log.error("can_pid channels %s configured but [can] is not enabled", names)
         daemon.alarms.raise_(
             "channel.can_disabled",
@@ -313,7 +313,7 @@ def _attach_channels(daemon: Daemon) -> None:
             "enabled = false)",
             "critical",
         )
-        can_pid = []
+    can_pid = [c for c in s.channel if c.drive == "can_pid" and c not in undriven]
     if not can_pid and pwm is None:
         if s.prescription.enabled:
             daemon.alarms.raise_(

@@ -51,6 +51,7 @@ from gateway.config.startup import (
     prepare_state_dir,
     resolve_state_dir,
     start_problems,
+    undriven_channels,
 )
 from gateway.core.errors import ConfigError
 
@@ -94,6 +95,7 @@ __all__ = [
     "start_problems",
     "state_dir",
     "store_path",
+    "undriven_channels",
 ]
 
 
