@@ -20,6 +20,7 @@ from gateway.config import (
     output_location_problems,
     parts_summary,
     prepare_state_dir,
+    undriven_channels,
 )
 
 log = logging.getLogger("sowgate")
@@ -68,52 +69,51 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
     problems += output_location_problems(settings, create=False)
     warnings: list[str] = settings.deprecation_notes()
     p = settings.prescription
-    channels = settings.channel
-    can_pid = [c.name for c in channels if c.drive == "can_pid"]
-    if can_pid and not settings.can.enabled:
+    undriven = [c.name for c in undriven_channels(settings)]
+    if undriven:
         warnings.append(
-            f"channel: {', '.join(can_pid)} use drive = 'can_pid' but can is off (no [can] "
+            f"channel: {', '.join(undriven)} use drive = 'can_pid' but can is off (no [can] "
             "table, or [can] enabled = false); they will not be driven"
         )
-    attrs = [c.prescription_attribute for c in channels if c.prescription_attribute]
+    attrs = [c.prescription_attribute for c in settings.channel if c.prescription_attribute]
     if p.enabled:
-        from gateway.metering.prescription import PrescriptionError, PrescriptionMap
+        from gateway.metering.prescription import PrescriptionError, load_prescription
 
-        if p.path is None:
-            problems.append("prescription.path: required when prescription.enabled")
-        elif any(line.startswith("prescription.path:") for line in problems):
-            pass  # the file itself is missing or unreadable: said above
-        elif not attrs:
-            problems.append(
-                "prescription.enabled: no [[channel]] has a prescription_attribute to read"
-            )
-        else:
+        # a missing or unreadable file is said above already, once
+        if not any(line.startswith("prescription.path:") for line in problems):
             try:
-                rx = PrescriptionMap.load(p.path, attrs)
+                rx = load_prescription(settings)
             except PrescriptionError as exc:
-                problems.append(f"prescription.path: {exc}")
+                problems.append(str(exc))
             else:
-                zones = len(rx.zones)
+                zones = len(rx.zones) if rx is not None else 0
                 warnings.append(f"prescription map {p.path}: {zones} zones, rates {attrs} ok")
     elif attrs:
         warnings.append("channel: prescription_attribute set but prescription.enabled = false")
     return problems, warnings
 
 
+def config_problems(problems: list[str]) -> int:
+    """Print each config problem on its own line to stderr; the exit status for them.
+
+    78 (EX_CONFIG) wherever the CLI meets a bad config, before or while starting the daemon:
+    systemd's ``RestartPreventExitStatus=78`` then stops instead of restarting in a loop.
+    """
+    for line in problems:
+        print(line, file=sys.stderr)
+    return EXIT_CONFIG
+
+
 def cmd_check_config(args: argparse.Namespace) -> int:
     try:
         settings = load_config(args.file)
     except ConfigError as exc:
-        for line in exc.problems:
-            print(line, file=sys.stderr)
-        return EXIT_CONFIG
+        return config_problems(exc.problems)
     problems, warnings = check_settings(settings)
     for line in warnings:
         print(f"note: {line}", file=sys.stderr)
     if problems:
-        for line in problems:
-            print(line, file=sys.stderr)
-        return EXIT_CONFIG
+        return config_problems(problems)
     print(f"{args.file}: ok (machine {settings.machine.id}, {settings.machine.rows} rows)")
     print(parts_summary(settings))
     return 0
@@ -122,16 +122,9 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     try:
         settings = load_config(args.config)
-    except ConfigError as exc:
-        for line in exc.problems:
-            print(line, file=sys.stderr)
-        return EXIT_CONFIG
-    try:
         state = prepare_state_dir()
     except ConfigError as exc:
-        for line in exc.problems:
-            print(line, file=sys.stderr)
-        return EXIT_CONFIG
+        return config_problems(exc.problems)
     setup_logging(args.verbose)
     from gateway.app.daemon import Daemon, settle_gc
     from gateway.ui.terminal import run_with_live_view
@@ -149,10 +142,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         not_safe = asyncio.run(main())
     except ConfigError as exc:
         # found while building the daemon (a check only possible with its parts): still a
-        # config problem, so 78, which systemd does not restart in a loop
-        for line in exc.problems:
-            print(line, file=sys.stderr)
-        return EXIT_CONFIG
+        # config problem, so 78 as well
+        return config_problems(exc.problems)
     if not_safe is not None:
         # logged already; the last line again, after a live view that may have hidden it
         print(f"sowgate: {not_safe}", file=sys.stderr)

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from gateway.app.parts import Parts
-from gateway.config import Settings, as_applied_path, store_path
+from gateway.config import Settings, as_applied_path, store_path, undriven_channels
 from gateway.control.controller import Controller, ControlOutputs
 from gateway.core import commands as cmd
 from gateway.core.alarms import AlarmBoard
@@ -282,16 +282,10 @@ def _gnss_pose(daemon: Daemon) -> Any:
 def _load_prescription(daemon: Daemon) -> Any:
     """The prescription map, or None when disabled or unusable (alarm says why: a bad map
     must not keep the drill from sowing at the default rates)."""
-    from gateway.metering.prescription import PrescriptionError, PrescriptionMap
+    from gateway.metering.prescription import PrescriptionError, load_prescription
 
-    p = daemon.settings.prescription
-    if not p.enabled:
-        return None
-    attrs = [c.prescription_attribute for c in daemon.settings.channel if c.prescription_attribute]
     try:
-        if p.path is None:
-            raise PrescriptionError("prescription.path: required when prescription.enabled")
-        return PrescriptionMap.load(p.path, attrs)
+        return load_prescription(daemon.settings)
     except PrescriptionError as exc:
         log.error("prescription map not used: %s", exc)
         daemon.alarms.raise_(
@@ -308,10 +302,10 @@ def _attach_channels(daemon: Daemon) -> None:
     from gateway.metering.pwm_channel import PwmChannelPart
 
     s = daemon.settings
-    can_pid = [c for c in s.channel if c.drive == "can_pid"]
     pwm = pwm_channel(s)
-    if can_pid and not s.can.enabled:
-        names = ", ".join(c.name for c in can_pid)
+    undriven = undriven_channels(s)
+    if undriven:
+        names = ", ".join(c.name for c in undriven)
         log.error("can_pid channels %s configured but [can] is not enabled", names)
         daemon.alarms.raise_(
             "channel.can_disabled",
@@ -319,7 +313,7 @@ def _attach_channels(daemon: Daemon) -> None:
             "enabled = false)",
             "critical",
         )
-        can_pid = []
+    can_pid = [c for c in s.channel if c.drive == "can_pid" and c not in undriven]
     if not can_pid and pwm is None:
         if s.prescription.enabled:
             daemon.alarms.raise_(
@@ -379,9 +373,6 @@ def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None
             f"channel.{alarm.channel}.{alarm.kind}", alarm.active, alarm.message, severity
         )
 
-    if prescription is None:
-        # do not let the component load the (absent or rejected) map a second time
-        daemon.settings.prescription.enabled = False
     component = MeteringComponent(
         daemon.settings,
         speed,

@@ -51,6 +51,7 @@ from gateway.config.startup import (
     prepare_state_dir,
     resolve_state_dir,
     start_problems,
+    undriven_channels,
 )
 from gateway.core.errors import ConfigError
 
@@ -94,6 +95,7 @@ __all__ = [
     "start_problems",
     "state_dir",
     "store_path",
+    "undriven_channels",
 ]
 
 
@@ -250,9 +252,21 @@ class Settings(BaseSettings):
                     f"rs485.enabled = false, but {'; '.join(uses)}: those devices are on the "
                     "RS485 bus (use gnss/isobus speed, the hitch work state, can_pid channels)"
                 )
-        nodes = [c.node_id for c in self.channel if c.drive == "can_pid"]
-        if len(nodes) != len(set(nodes)):
-            raise ValueError("channel: two can_pid channels share a node_id")
+        # the one check of CAN node ids: the metering component and the CAN link trust it
+        nodes: dict[int, int] = {}
+        for i, ch in enumerate(self.channel):
+            if ch.drive != "can_pid":
+                continue
+            if ch.node_id in nodes:
+                first = nodes[ch.node_id]
+                raise FieldProblem(
+                    f"channel[{i}].node_id",
+                    f"same as channel[{first}].node_id ({self.channel[first].name}); two "
+                    "can_pid channels cannot share a node_id: each metering controller on the "
+                    "CAN bus needs its own (1..15)",
+                    ch.node_id,
+                )
+            nodes[ch.node_id] = i
         return self
 
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 from gateway.core.errors import ConfigError
 
 if TYPE_CHECKING:
-    from gateway.config import Settings
+    from gateway.config import ChannelSection, Settings
 
 DEFAULT_STATE_DIR = "sowgate-state"
 
@@ -57,14 +57,27 @@ def parts_summary(settings: Settings) -> str:
             words.append(f"{name} on ({detail})" if detail else f"{name} on")
         else:
             words.append(f"{name} off")
+    undriven = undriven_channels(settings)
     for ch in settings.channel:
         if ch.drive == "pwm_modbus":
             words.append(f"channel {ch.name} on (pwm_modbus)")
-        elif settings.can.enabled:
-            words.append(f"channel {ch.name} on (can_pid node {ch.node_id})")
-        else:
+        elif ch in undriven:
             words.append(f"channel {ch.name} off (can_pid, but can is off)")
+        else:
+            words.append(f"channel {ch.name} on (can_pid node {ch.node_id})")
     return "parts: " + ", ".join(words)
+
+
+def undriven_channels(settings: Settings) -> list[ChannelSection]:
+    """The ``can_pid`` channels nothing drives because the CAN bus is off.
+
+    Not a config error (a fitter may switch the bus off for a day), but never silent: the
+    parts line says ``off``, ``check-config`` warns and the daemon raises
+    ``channel.can_disabled``, all from this one list.
+    """
+    if settings.can.enabled:
+        return []
+    return [c for c in settings.channel if c.drive == "can_pid"]
 
 
 # ---- files the config names --------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Paper A's speed-following rate control, as plain state and arithmetic.
 
-- ``speed``: Doppler speed and the speed filters (paper A's mean, the trend filter);
+- ``speed``: the speed filters (paper A's mean, the trend filter);
 - ``attitude``: raised/lowered from the inclinometer with hysteresis;
 - ``work_state``: the work-state tables (operator mode x event -> mode; operator mode x
   speed x attitude -> fan, motor);

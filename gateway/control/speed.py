@@ -1,27 +1,15 @@
-"""Ground speed: paper A's radar Doppler relation and its moving-average filter.
+"""Ground speed: paper A's moving-average filter and the trend filter.
 
 The radar is polled at 3 Hz and averaged over the last 12 samples (paper A); while fewer than
 12 exist the mean is over what there is, so the controller has a speed from the first reply.
 The default ``trend`` filter fits a line instead, bounded by the machine's acceleration
-(:class:`TrendFilter`).
+(:class:`TrendFilter`). Paper A's Doppler relation (eq. 1) turns a radar's shift into km/h
+where the radar's registers are decoded: ``protocol.registers.doppler_to_kmh``.
 """
 
 from __future__ import annotations
 
-import math
 from collections import deque
-
-LIGHT_SPEED_KMH = 1.079e9  # paper A, eq. (1): c in km/h
-RADAR_CARRIER_HZ = 24e9
-
-
-def doppler_to_kmh(doppler_hz: float, mount_angle_deg: float) -> float:
-    """Eq. (1): V = c·f_d / (2·cos θ·f_i)."""
-    return (
-        LIGHT_SPEED_KMH
-        * doppler_hz
-        / (2.0 * math.cos(math.radians(mount_angle_deg)) * RADAR_CARRIER_HZ)
-    )
 
 
 class MovingAverage:

@@ -25,7 +25,7 @@ from typing import Any, Literal
 from drivers.can_bus import CanBus, MeteringCanLink
 from drivers.errors import DriverError
 from gateway.config import ChannelSection, Settings
-from gateway.core.errors import CommandError, ConfigError, RateError
+from gateway.core.errors import CommandError, RateError
 from gateway.metering.prescription import AsAppliedLog, Pose, PrescriptionMap
 from protocol.can_metering import MeterStatus
 
@@ -177,17 +177,16 @@ class ChannelState:
 
 
 def can_channels(settings: Settings) -> list[ChannelSection]:
-    chans = [c for c in settings.channel if c.drive == "can_pid"]
-    nodes = [c.node_id for c in chans]
-    if len(nodes) != len(set(nodes)):
-        raise ConfigError(["channel: two can_pid channels share a node_id"])
-    return chans
+    """The ``can_pid`` channels (their node ids are distinct: the config checks that)."""
+    return [c for c in settings.channel if c.drive == "can_pid"]
 
 
 class MeteringComponent:
     """Drives every ``can_pid`` channel from speed, work state and position.
 
-    ``pwm_modbus`` channels keep paper A's existing path and are ignored here.
+    ``pwm_modbus`` channels keep paper A's existing path and are ignored here. ``prescription``
+    is the map the caller loaded (``prescription.load_prescription``); None: every channel
+    meters its operator rate.
     """
 
     def __init__(
@@ -217,12 +216,7 @@ class MeteringComponent:
             feedback_timeout_s=can.feedback_timeout_s, off_target_pct=can.off_target_pct,
             off_target_s=can.off_target_s, min_target_rpm=can.min_target_rpm, start=clock(),
         )
-        self.prescription = prescription
-        if prescription is None and settings.prescription.enabled:
-            attrs = [c.prescription_attribute for c in self.channels if c.prescription_attribute]
-            if settings.prescription.path is None:
-                raise ConfigError(["prescription.path: required when prescription.enabled"])
-            self.prescription = PrescriptionMap.load(settings.prescription.path, attrs)
+        self.prescription = prescription  # loaded once by the caller (load_prescription)
         self.as_applied = as_applied
         self.state = {
             c.name: ChannelState(c.name, c.product, c.node_id) for c in self.channels

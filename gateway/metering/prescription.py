@@ -31,7 +31,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import shapefile
 from shapely.geometry import MultiPolygon, Point, Polygon, shape
@@ -39,6 +39,9 @@ from shapely.strtree import STRtree
 from shapely.validation import explain_validity
 
 from gateway.core.errors import GatewayError
+
+if TYPE_CHECKING:
+    from gateway.config import Settings
 
 log = logging.getLogger(__name__)
 
@@ -262,6 +265,34 @@ class PrescriptionMap:
         ahead = pose.speed_kmh / 3.6 * lookahead_s - outlet_behind_m
         lon, lat = offset_position(pose.lon, pose.lat, pose.heading_deg, ahead, outlet_right_m)
         return self.rate_at(lon, lat, attribute, default)
+
+
+def load_prescription(settings: Settings) -> PrescriptionMap | None:
+    """The map ``[prescription]`` configures, or None when it is off.
+
+    The one place that turns the config into a map: the daemon's wiring (which alarms and
+    sows at the default rates on an error) and ``sowgate check-config`` (which reports it)
+    both call this, so they cannot disagree on what a usable map is. Every rate attribute a
+    ``[[channel]]`` names must be in every zone.
+
+    Raises ``PrescriptionError`` whose message starts with the key to fix:
+    ``prescription.path: …`` (no path, or the file is not a usable map) or
+    ``prescription.enabled: …`` (no channel reads a rate from the map).
+    """
+    section = settings.prescription
+    if not section.enabled:
+        return None
+    if section.path is None:
+        raise PrescriptionError("prescription.path: required when prescription.enabled")
+    attributes = [c.prescription_attribute for c in settings.channel if c.prescription_attribute]
+    if not attributes:
+        raise PrescriptionError(
+            "prescription.enabled: no [[channel]] has a prescription_attribute to read"
+        )
+    try:
+        return PrescriptionMap.load(section.path, attributes)
+    except PrescriptionError as exc:
+        raise PrescriptionError(f"prescription.path: {exc}") from None
 
 
 @dataclass(frozen=True, slots=True)

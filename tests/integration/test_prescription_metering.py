@@ -108,6 +108,11 @@ async def test_a_bad_map_alarms_and_the_channels_use_their_default_rate(tmp_path
             await rig.until(lambda: rig.daemon.outputs is not None)
             alarm = [a for a in rig.daemon.alarms.active if a.code == "prescription.invalid"]
             assert alarm and "prescription map not used" in alarm[0].message
+            assert "prescription.path: " in alarm[0].message  # the key to fix
+            # loaded once and rejected once: no switch turned off in the config to stop the
+            # metering component from loading the map a second time
+            assert rig.daemon.settings.prescription.enabled
+            assert rig.daemon.parts.metering.prescription is None
             snap = rig.daemon.parts.metering.snapshot()
             assert snap["channels"]["seed"]["target_rate_kg_ha"] == 225.0
 

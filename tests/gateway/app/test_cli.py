@@ -188,6 +188,27 @@ def test_check_config_accepts_a_good_prescription_map(
     assert "ok (machine" in captured.out and "1 zones" in captured.err
 
 
+@pytest.mark.parametrize(
+    ("config", "problem"),
+    [
+        ('[prescription]\nenabled = true\n[[channel]]\nname = "seed"\n'
+         'target_rate_kg_ha = 225\nprescription_attribute = "seed_rate"\n',
+         "prescription.path: required when prescription.enabled"),
+        ('[prescription]\nenabled = true\npath = "{map}"\n',
+         "prescription.enabled: no [[channel]] has a prescription_attribute to read"),
+    ],
+)
+def test_check_config_names_the_prescription_key_to_fix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], config: str, problem: str
+) -> None:
+    """The same loader the daemon uses: what it would alarm about, check-config refuses."""
+    _map_config(tmp_path, "EPSG:4326")  # a good map at rx.geojson
+    f = tmp_path / "rx.toml"
+    f.write_text(config.replace("{map}", str(tmp_path / "rx.geojson")))
+    assert main(["check-config", str(f)]) == 78
+    assert problem in capsys.readouterr().err.splitlines()
+
+
 def test_check_config_notes_an_ignored_loop_hz_and_passes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

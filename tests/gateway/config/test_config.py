@@ -119,6 +119,16 @@ def test_devices_on_one_bus_need_distinct_ids() -> None:
             "channel[0].node_id: a can_pid channel needs node_id 1..15 (0 is not addressable) "
             "(got 0)",
         ),
+        (
+            {"channel": [
+                {"name": "seed", "target_rate_kg_ha": 150, "node_id": 2},
+                {"name": "shallow", "target_rate_kg_ha": 100, "node_id": 3},
+                {"name": "deep", "target_rate_kg_ha": 300, "node_id": 2},
+            ]},
+            "channel[2].node_id: same as channel[0].node_id (seed); two can_pid channels "
+            "cannot share a node_id: each metering controller on the CAN bus needs its own "
+            "(1..15) (got 2)",
+        ),
     ],
 )
 def test_cross_key_problems_name_section_key_and_value(data: dict[str, Any], line: str) -> None:
@@ -201,6 +211,14 @@ def test_pwm_modbus_channel_is_checked_against_the_crop_models(
     with pytest.raises(ConfigError) as info:
         parse_config({"channel": channels})
     assert any(problem in p for p in info.value.problems), info.value.problems
+
+
+def test_a_pwm_modbus_channel_may_keep_the_node_id_of_a_can_channel() -> None:
+    """node_id addresses a CAN metering controller; the RS485 PWM channel has none."""
+    settings = parse_config({"channel": [
+        _pwm(node_id=1), {"name": "deep", "target_rate_kg_ha": 300, "node_id": 1},
+    ]})
+    assert [c.node_id for c in settings.channel] == [1, 1]
 
 
 def test_a_pwm_modbus_channel_sets_paper_a_crop_and_rate() -> None:

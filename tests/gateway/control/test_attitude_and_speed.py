@@ -1,11 +1,11 @@
-"""Speed filter, Doppler relation and the raised/lowered decision."""
+"""Speed filter and the raised/lowered decision (the Doppler relation: tests/protocol)."""
 
 from __future__ import annotations
 
 import pytest
 
 from gateway.control.attitude import Attitude, zeroed_tilt
-from gateway.control.speed import MovingAverage, doppler_to_kmh
+from gateway.control.speed import MovingAverage
 
 
 def test_moving_average_uses_what_it_has_until_full() -> None:
@@ -16,11 +16,6 @@ def test_moving_average_uses_what_it_has_until_full() -> None:
         f.add(10.0)
     assert f.value == 10.0
     assert len(f) == 12
-
-
-def test_doppler_equation_one() -> None:
-    # V = c*fd/(2 cos(theta) fi); at theta = 60 deg, cos = 0.5 -> V = c*fd/fi
-    assert doppler_to_kmh(100.0, 60.0) == pytest.approx(1.079e9 * 100 / 24e9)
 
 
 def test_zeroing_subtracts_the_level_ground_reading_and_wraps() -> None:

@@ -21,7 +21,7 @@ from gateway.metering.channels import (
     rate_from_shaft,
     target_shaft_rpm,
 )
-from gateway.metering.prescription import AsAppliedLog, Pose
+from gateway.metering.prescription import AsAppliedLog, Pose, load_prescription
 from simulator.can_pid import MeteringControllerSim, MeterPlant
 
 PAPER_B = [("shallow", 1, 150.0, 16.97), ("deep", 2, 300.0, 29.31), ("seed", 3, 225.0, 11.20)]
@@ -166,13 +166,6 @@ def test_too_fast_clamps_to_max_shaft_speed_and_raises_an_alarm() -> None:
     assert "max" in too_fast[0].message and "km/h" in too_fast[0].message
 
 
-def test_duplicate_node_ids_are_a_config_error() -> None:
-    s = settings()
-    s.channel[1].node_id = 1
-    with pytest.raises(ConfigError, match="node_id"):
-        component(Inputs(), s)
-
-
 def test_prescription_sets_the_channel_rate_with_look_ahead(tmp_path: Path) -> None:
     """A zone starting 5 m ahead is applied already once it is within the look-ahead."""
     deg = 1 / 111_320
@@ -187,7 +180,7 @@ def test_prescription_sets_the_channel_rate_with_look_ahead(tmp_path: Path) -> N
     s = parse_config(raw)
     inp = Inputs()
     log = AsAppliedLog()
-    c = component(inp, s, as_applied=log)
+    c = component(inp, s, as_applied=log, prescription=load_prescription(s))
     inp.pose = Pose(0.0, 0.0, 0.0, 5.0)  # 2 s at 5 km/h = 2.8 m ahead: still outside
     c.tick(0.0)
     assert c.state["seed"].target_rate_kg_ha == 225.0  # channel default

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 import shapefile
 
+from gateway.config import Settings, parse_config
 from gateway.core.errors import GatewayError
 from gateway.metering.prescription import (
     AsAppliedLog,
@@ -19,6 +20,7 @@ from gateway.metering.prescription import (
     Pose,
     PrescriptionError,
     PrescriptionMap,
+    load_prescription,
     offset_position,
 )
 
@@ -157,6 +159,51 @@ def test_load_geojson_file_and_file_errors(tmp_path: Path) -> None:
     (tmp_path / "rx.kml").write_text("<kml/>")
     with pytest.raises(PrescriptionError, match="unsupported"):
         PrescriptionMap.load(tmp_path / "rx.kml", ["seed"])
+
+
+def _configured(path: str | None, *attrs: str | None) -> Settings:
+    """Settings with ``[prescription]`` on at ``path`` and one channel per rate attribute."""
+    prescription: dict[str, Any] = {"enabled": True}
+    if path is not None:
+        prescription["path"] = path
+    return parse_config({
+        "prescription": prescription,
+        "channel": [
+            {"name": f"c{i}", "node_id": i + 1, "target_rate_kg_ha": 100,
+             "prescription_attribute": attr}
+            for i, attr in enumerate(attrs)
+        ],
+    })
+
+
+def test_the_configured_map_loads_with_every_channels_rate_attribute(tmp_path: Path) -> None:
+    p = tmp_path / "rx.geojson"
+    p.write_text(json.dumps(fc(feature([square(0, 0, 1, 1)], seed=7, deep=9))))
+    m = load_prescription(_configured(str(p), "seed", None, "deep"))
+    assert m is not None and m.attributes == {"seed", "deep"}
+    assert load_prescription(parse_config({})) is None  # [prescription] off: no map
+
+
+@pytest.mark.parametrize(
+    ("path", "attrs", "problem"),
+    [
+        (None, ("seed",), "prescription.path: required when prescription.enabled"),
+        ("rx.geojson", (None,),
+         "prescription.enabled: no [[channel]] has a prescription_attribute to read"),
+        ("rx.geojson", ("other",), "prescription.path: {dir}/rx.geojson: feature 0: no rate "
+         "attribute 'other' (has: seed)"),
+        ("missing.geojson", ("seed",),
+         "prescription.path: {dir}/missing.geojson: prescription map not found"),
+    ],
+)
+def test_an_unusable_configured_map_names_the_key_to_fix(
+    tmp_path: Path, path: str | None, attrs: tuple[str | None, ...], problem: str
+) -> None:
+    (tmp_path / "rx.geojson").write_text(json.dumps(fc(feature([square(0, 0, 1, 1)], seed=7))))
+    settings = _configured(None if path is None else str(tmp_path / path), *attrs)
+    with pytest.raises(PrescriptionError) as info:
+        load_prescription(settings)
+    assert str(info.value) == problem.format(dir=tmp_path)
 
 
 def write_shapefile(base: Path, prj: str | None, coords: list[list[float]]) -> Path:
