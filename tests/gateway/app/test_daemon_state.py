@@ -54,8 +54,8 @@ def test_gpio_seed_sensors_are_read_ahead_of_each_epoch_reaching_the_recorder(
 
 def test_devices_not_configured_are_not_listed(tmp_path: Path) -> None:
     daemon = Daemon(parse_config({"hmi": {"enabled": False}}), tmp_path / "state")
-    assert "hmi" not in daemon.snapshot()["devices"]
-    assert "seed_sensors" not in daemon.snapshot()["devices"]
+    assert "hmi" not in daemon.state().devices
+    assert "seed_sensors" not in daemon.state().devices
 
 
 def test_the_service_process_freezes_start_up_and_collects_young_objects_less_often() -> None:
