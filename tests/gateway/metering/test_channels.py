@@ -228,7 +228,7 @@ async def test_component_runs_channels_against_simulated_controllers() -> None:
             t_sim.cancel()
     for name, v in good.channels.items():
         assert v.measured_rpm == pytest.approx(v.target_rpm, rel=0.03), name
-        assert v["applied_rate_kg_ha"] == pytest.approx(v["target_rate_kg_ha"], rel=0.03)
+        assert v.applied_rate_kg_ha == pytest.approx(v.target_rate_kg_ha, rel=0.03)
     assert not [a for a in inp.alarms if a.kind != "feedback_lost"]
     lost = [a for a in inp.alarms if a.kind == "feedback_lost" and a.active]
     assert [a.channel for a in lost] == ["deep"]
