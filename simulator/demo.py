@@ -31,6 +31,7 @@ from simulator.machine import STARTUP_TRANSIENT_S
 
 if TYPE_CHECKING:
     from gateway.config import Settings
+    from gateway.state import MachineState
     from simulator.machine import SimulatedMachine, Truth
 
 log = logging.getLogger(__name__)
@@ -177,7 +178,7 @@ async def run_demo(
             helpers.append(asyncio.create_task(_log_status(daemon), name="demo-status"))
         try:
             if tui:
-                await run_with_live_view(daemon.snapshot, daemon.run(), truth)
+                await run_with_live_view(daemon.state, daemon.run(), truth)
             else:
                 await daemon.run()
         finally:
@@ -290,21 +291,18 @@ def end_text(machine: SimulatedMachine, state: Path, channels: bool) -> str:
     return "\n".join(lines)
 
 
-def status_line(snapshot: dict[str, Any]) -> str:
+def status_line(state: MachineState) -> str:
     """One line of the daemon's state for ``--no-tui`` (the live view's essentials)."""
-    speed = snapshot.get("speed_kmh")
-    source = snapshot.get("speed_source")
+    speed, source = state.speed_kmh, state.speed_source
     parts = [
-        str(snapshot.get("work_state")),
+        state.work_state,
         "no speed" if speed is None else f"{speed:.2f} km/h" + (f" [{source}]" if source else ""),
-        f"motor {snapshot.get('motor_duty_pct', 0.0):.1f} % fan "
-        f"{snapshot.get('fan_duty_pct', 0.0):.1f} %",
-        f"{snapshot.get('area_ha', 0.0):.4f} ha",
+        f"motor {state.motor_duty_pct:.1f} % fan {state.fan_duty_pct:.1f} %",
+        f"{state.area_ha:.4f} ha",
     ]
-    seeds = snapshot.get("seeds")
-    if isinstance(seeds, dict):
-        parts.append(f"{seeds.get('records_stored', 0)} seeds recorded")
-    codes = [str(a.get("code")) for a in snapshot.get("alarms") or []]
+    if state.seeds is not None:
+        parts.append(f"{state.seeds.records_stored} seeds recorded")
+    codes = [a.code for a in state.alarms]
     parts.append("alarms: " + (", ".join(codes) or "none"))
     return ", ".join(parts)
 
@@ -312,7 +310,7 @@ def status_line(snapshot: dict[str, Any]) -> str:
 async def _log_status(daemon: Daemon) -> None:
     while True:
         await asyncio.sleep(STATUS_EVERY_S)
-        log.info("%s", status_line(daemon.snapshot()))
+        log.info("%s", status_line(daemon.state()))
 
 
 async def _start_controllers(stack: contextlib.AsyncExitStack, can_channel: str) -> dict[str, Any]:

@@ -133,7 +133,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         daemon = Daemon(settings, state)
         settle_gc()
         if args.tui:
-            await run_with_live_view(daemon.snapshot, daemon.run())
+            await run_with_live_view(daemon.state, daemon.run())
         else:
             await daemon.run()
         return daemon.safe_off_failure

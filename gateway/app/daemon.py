@@ -50,7 +50,8 @@ from gateway.control.controller import Controller, ControlOutputs
 from gateway.core import commands as cmd
 from gateway.core.alarms import AlarmBoard
 from gateway.core.errors import CommandError, ConfigError
-from gateway.core.records import AlarmEvent
+from gateway.core.records import AlarmEvent, FixQuality
+from gateway.state import ActiveAlarmState, MachineState
 from gateway.ui.touchscreen import HmiAdapter
 
 log = logging.getLogger(__name__)
@@ -155,7 +156,7 @@ class Daemon:
                 settings.hmi,
                 crops=settings.control.crops,
                 execute=self.try_execute,
-                snapshot=self.snapshot,
+                state=self.state,
             )
         self.parts = Parts()  # the optional parts, filled by gateway.app.wiring
         self.tick_hooks: list[Callable[[ControlOutputs], None]] = []
@@ -474,57 +475,57 @@ class Daemon:
             )
 
     # ---- telemetry ----------------------------------------------------------------------------
-    def snapshot(self) -> dict[str, Any]:
+    def state(self) -> MachineState:
+        """The machine now, for the terminal view, the touchscreen and the MQTT state payload:
+        built afresh on each call from the controller's last outputs and the parts' states."""
         out = self.outputs
         c = self.controller
-        data: dict[str, Any] = {
-            "machine_id": self.settings.machine.id,
-            "utc": datetime.now(UTC).isoformat(),
-            "work_state": out.state.value if out else "stopped",
-            "mode": c.mode.value,
-            "speed_kmh": out.speed_kmh if out else None,
-            "speed_source": out.speed_source if out else None,
-            "tilt_deg": out.tilt_deg if out else None,
-            "raised": out.raised if out else True,
-            "crop": c.crop,
-            "target_rate_kg_ha": (
+        parts = self.parts
+        devices = {name: st.available for name, st in self.bus.stats.items()}
+        gnss = parts.gnss
+        fix: FixQuality = "none"
+        if gnss is not None and gnss.available and gnss.latest is not None:
+            fix = gnss.latest.fix
+            devices["gnss"] = True
+        elif gnss is not None:
+            devices["gnss"] = False
+        # the screen and the seed-tube sensors are devices a dashboard must see go missing too
+        if self.hmi is not None:
+            devices["hmi"] = self.hmi.link.available
+        if parts.seed_sensors is not None:
+            devices["seed_sensors"] = bool(parts.seed_sensors.available)
+        return MachineState(
+            machine_id=self.settings.machine.id,
+            utc=datetime.now(UTC),
+            work_state=out.state.value if out else "stopped",
+            mode=c.mode.value,
+            speed_kmh=out.speed_kmh if out else None,
+            speed_source=out.speed_source if out else None,
+            tilt_deg=out.tilt_deg if out else None,
+            raised=out.raised if out else True,
+            crop=c.crop,
+            target_rate_kg_ha=(
                 out.target_rate_kg_ha
                 if out is not None and out.target_rate_kg_ha is not None
                 else c.rate_kg_ha
             ),
-            "commanded_rate_kg_ha": out.commanded_rate_kg_ha if out else 0.0,
-            "motor_duty_pct": out.motor_pct if out else 0.0,
-            "fan_duty_pct": out.fan_pct if out else 0.0,
-            "devices": {name: st.available for name, st in self.bus.stats.items()},
-            "alarms": [
-                {
-                    "code": a.code,
-                    "severity": a.severity,
-                    "message": a.message,
-                    "since": a.since.isoformat(),
-                }
+            commanded_rate_kg_ha=out.commanded_rate_kg_ha if out else 0.0,
+            motor_duty_pct=out.motor_pct if out else 0.0,
+            fan_duty_pct=out.fan_pct if out else 0.0,
+            devices=devices,
+            alarms=tuple(
+                ActiveAlarmState(a.code, a.severity, a.message, a.since)
                 for a in self.alarms.active
-            ],
-            "area_ha": c.counters.area_m2 / 10_000.0,
-            "seed_mass_kg": c.counters.seed_mass_g / 1000.0,
-        }
-        gnss = self.parts.gnss
-        fix = "none"
-        if gnss is not None and gnss.available and gnss.latest is not None:
-            fix = gnss.latest.fix
-            data["devices"]["gnss"] = True
-        elif gnss is not None:
-            data["devices"]["gnss"] = False
-        data["gnss_fix"] = fix
-        # the screen and the seed-tube sensors are devices a dashboard must see go missing too
-        if self.hmi is not None:
-            data["devices"]["hmi"] = self.hmi.link.available
-        sensors = self.parts.seed_sensors
-        if sensors is not None:
-            data["devices"]["seed_sensors"] = bool(sensors.available)
-        data.update(self.parts.snapshots())
-        return data
-
+            ),
+            area_ha=c.counters.area_m2 / 10_000.0,
+            seed_mass_kg=c.counters.seed_mass_g / 1000.0,
+            gnss_fix=fix,
+            store=parts.store.state() if parts.store is not None else None,
+            seeds=parts.seeds.state() if parts.seeds is not None else None,
+            metering=parts.metering.status() if parts.metering is not None else None,
+            pwm_channel=parts.pwm_channel.state() if parts.pwm_channel is not None else None,
+            rejected=parts.rejected.counts() if parts.rejected is not None else None,
+        )
 
 async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:
     """Cancel each stage's tasks and wait until they have finished, lowest stage first.

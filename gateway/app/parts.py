@@ -7,8 +7,8 @@ tests read parts by attribute, so mypy sees every type (they used to travel in a
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from drivers.can_bus import IsobusListener
@@ -36,12 +36,3 @@ class Parts:
     isobus: IsobusListener | None = None
     rejected: RejectedInputs | None = None
 
-    def snapshots(self) -> dict[str, Any]:
-        """Each present part's own ``snapshot()``, under the part's name (the live view and the
-        state payload read ``store``, ``seeds``, ``metering``, ...)."""
-        out: dict[str, Any] = {}
-        for f in fields(self):
-            snap = getattr(getattr(self, f.name), "snapshot", None)
-            if callable(snap):
-                out[f.name] = snap()
-        return out

@@ -13,7 +13,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Mapping
 from typing import Any, Protocol
+
+from gateway.state import RejectedCounts
 
 log = logging.getLogger(__name__)
 
@@ -27,7 +30,7 @@ class _HasStats(Protocol):
 
 
 class RejectedInputs:
-    """Reads the counters of whichever devices exist; ``snapshot`` is ``state.rejected``."""
+    """Reads the counters of whichever devices exist; ``counts`` is ``state.rejected``."""
 
     def __init__(
         self,
@@ -43,11 +46,11 @@ class RejectedInputs:
         self.seed_sensors = seed_sensors
         self.recorder = recorder
         self.interval_s = interval_s
-        self._last_logged: dict[str, Any] = self.snapshot()
+        self._last_logged = self.counts()
 
-    def snapshot(self) -> dict[str, Any]:
-        """Totals since start: ``{"gnss": {reason: lines}, "gnss_discarded_bytes": n,
-        "hmi": {reason: frames}, "seed_sensors": {reason: lines or edges}}``."""
+    def counts(self) -> RejectedCounts:
+        """Totals since start: GNSS lines, touchscreen frames and seed-sensor lines or edges
+        per reason, and the bytes dropped from overlong GNSS lines."""
         gnss: dict[str, int] = {}
         discarded = 0
         if self.gnss is not None:
@@ -59,22 +62,29 @@ class RejectedInputs:
             seeds = dict(self.seed_sensors.stats.rejected_by_reason)
         if self.recorder is not None and self.recorder.plausibility.implausible_total:
             seeds[IMPLAUSIBLE_RATE] = self.recorder.plausibility.implausible_total
-        return {"gnss": gnss, "gnss_discarded_bytes": discarded, "hmi": hmi, "seed_sensors": seeds}
+        return RejectedCounts(
+            gnss=gnss, gnss_discarded_bytes=discarded, hmi=hmi, seed_sensors=seeds
+        )
 
     def summary(self) -> str | None:
         """What was rejected since the last summary, as one line; None if nothing was."""
-        now = self.snapshot()
+        now = self.counts()
         before, self._last_logged = self._last_logged, now
         parts = []
-        for device in ("gnss", "hmi", "seed_sensors"):
+        devices: tuple[tuple[str, Mapping[str, int], Mapping[str, int]], ...] = (
+            ("gnss", now.gnss, before.gnss),
+            ("hmi", now.hmi, before.hmi),
+            ("seed_sensors", now.seed_sensors, before.seed_sensors),
+        )
+        for device, counts, counted in devices:
             grown = {
-                reason: n - before[device].get(reason, 0)
-                for reason, n in sorted(now[device].items())
-                if n > before[device].get(reason, 0)
+                reason: n - counted.get(reason, 0)
+                for reason, n in sorted(counts.items())
+                if n > counted.get(reason, 0)
             }
             if grown:
                 parts.append(f"{device}: " + ", ".join(f"{r} {n}" for r, n in grown.items()))
-        discarded = now["gnss_discarded_bytes"] - before["gnss_discarded_bytes"]
+        discarded = now.gnss_discarded_bytes - before.gnss_discarded_bytes
         if discarded > 0:
             parts.append(f"gnss bytes discarded (binary output?): {discarded}")
         return "; ".join(parts) or None

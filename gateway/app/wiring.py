@@ -27,6 +27,7 @@ from gateway.ui.touchscreen import HmiAdapter
 if TYPE_CHECKING:
     from drivers.gnss_reader import GnssEpoch
     from gateway.link.payloads import StatePayload
+    from gateway.state import MachineState
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,7 @@ class Daemon(Protocol):
         stop_stage: int | None = None,
     ) -> None: ...
 
-    def snapshot(self) -> dict[str, Any]: ...
+    def state(self) -> MachineState: ...
 
     def execute(self, command: cmd.Command, source: str) -> str: ...
 
@@ -76,32 +77,45 @@ async def _forever() -> None:
 
 
 def state_payload(daemon: Daemon) -> StatePayload:
+    """The MQTT ``state`` message: the daemon's state, as docs/mqtt.md documents it."""
     from gateway.link.payloads import ActiveAlarmInfo, RejectedInput, StatePayload
 
-    snap = daemon.snapshot()
-    store = snap.get("store") or {}
-    recorder = snap.get("seeds") or {}
+    state = daemon.state()
+    records_lost = 0
+    if state.store is not None:
+        records_lost += state.store.records_lost
+    if state.seeds is not None:
+        records_lost += state.seeds.records_lost
+    rejected = state.rejected
     return StatePayload(
-        machine_id=snap["machine_id"],
-        utc=snap["utc"],
-        work_state=snap["work_state"],
-        speed_kmh=snap["speed_kmh"],
-        speed_source=snap["speed_source"] or "none",
-        tilt_deg=snap["tilt_deg"],
-        raised=snap["raised"],
-        crop=snap["crop"],
-        target_rate_kg_ha=snap["target_rate_kg_ha"],
-        commanded_rate_kg_ha=snap["commanded_rate_kg_ha"],
-        motor_duty_pct=snap["motor_duty_pct"],
-        fan_duty_pct=snap["fan_duty_pct"],
-        devices=snap["devices"],
-        gnss_fix=snap["gnss_fix"],
-        alarms=[ActiveAlarmInfo(**a) for a in snap["alarms"]],
-        area_ha=snap["area_ha"],
-        seed_mass_kg=snap["seed_mass_kg"],
-        records_held=store.get("records_held", 0),
-        records_lost=store.get("records_lost", 0) + recorder.get("records_lost", 0),
-        rejected=RejectedInput(**snap.get("rejected", {})),
+        machine_id=state.machine_id,
+        utc=state.utc,
+        work_state=state.work_state,
+        speed_kmh=state.speed_kmh,
+        speed_source=state.speed_source or "none",
+        tilt_deg=state.tilt_deg,
+        raised=state.raised,
+        crop=state.crop,
+        target_rate_kg_ha=state.target_rate_kg_ha,
+        commanded_rate_kg_ha=state.commanded_rate_kg_ha,
+        motor_duty_pct=state.motor_duty_pct,
+        fan_duty_pct=state.fan_duty_pct,
+        devices=dict(state.devices),
+        gnss_fix=state.gnss_fix,
+        alarms=[
+            ActiveAlarmInfo(code=a.code, severity=a.severity, message=a.message, since=a.since)
+            for a in state.alarms
+        ],
+        area_ha=state.area_ha,
+        seed_mass_kg=state.seed_mass_kg,
+        records_held=state.store.records_held if state.store is not None else 0,
+        records_lost=records_lost,
+        rejected=RejectedInput() if rejected is None else RejectedInput(
+            gnss=dict(rejected.gnss),
+            gnss_discarded_bytes=rejected.gnss_discarded_bytes,
+            hmi=dict(rejected.hmi),
+            seed_sensors=dict(rejected.seed_sensors),
+        ),
     )
 
 

@@ -17,10 +17,10 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import Any, Literal
+from typing import Literal
 
 from drivers.can_bus import CanBus, MeteringCanLink
 from drivers.errors import DriverError
@@ -174,6 +174,30 @@ class ChannelState:
     measured_rpm: float | None = None
     applied_rate_kg_ha: float | None = None
     fault: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelStatus:
+    """One CAN channel as the live view and telemetry show it (a copy of its
+    ``ChannelState``, rates rounded to what is worth showing, and its active alarm kinds)."""
+
+    product: str
+    node_id: int
+    target_rate_kg_ha: float
+    target_rpm: float
+    measured_rpm: float | None
+    applied_rate_kg_ha: float | None
+    fault: str | None
+    alarms: tuple[AlarmKind, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class MeteringStatus:
+    """The metering component at one moment (``MeteringComponent.status()``)."""
+
+    working: bool
+    speed_kmh: float | None
+    channels: Mapping[str, ChannelStatus]  # channel name -> status, in config order
 
 
 def can_channels(settings: Settings) -> list[ChannelSection]:
@@ -337,23 +361,25 @@ class MeteringComponent:
             with contextlib.suppress(DriverError, TimeoutError):
                 await asyncio.wait_for(link.send_commands(), STOP_SEND_TIMEOUT_S)
 
-    def snapshot(self) -> dict[str, Any]:
-        return {
-            "working": self.working,
-            "speed_kmh": self.speed_kmh,
-            "channels": {
-                name: {
-                    "product": st.product,
-                    "node_id": st.node_id,
-                    "target_rate_kg_ha": round(st.target_rate_kg_ha, 3),
-                    "target_rpm": round(st.target_rpm, 2),
-                    "measured_rpm": st.measured_rpm,
-                    "applied_rate_kg_ha": (
+    def status(self) -> MeteringStatus:
+        """A copy for the live view and telemetry: the inputs and each channel's status (not
+        ``state``, which is the component's own live record per channel)."""
+        return MeteringStatus(
+            working=self.working,
+            speed_kmh=self.speed_kmh,
+            channels={
+                name: ChannelStatus(
+                    product=st.product,
+                    node_id=st.node_id,
+                    target_rate_kg_ha=round(st.target_rate_kg_ha, 3),
+                    target_rpm=round(st.target_rpm, 2),
+                    measured_rpm=st.measured_rpm,
+                    applied_rate_kg_ha=(
                         None if st.applied_rate_kg_ha is None else round(st.applied_rate_kg_ha, 2)
                     ),
-                    "fault": st.fault,
-                    "alarms": [a.kind for a in self.supervisor.active(name)],
-                }
+                    fault=st.fault,
+                    alarms=tuple(a.kind for a in self.supervisor.active(name)),
+                )
                 for name, st in self.state.items()
             },
-        }
+        )

@@ -4,7 +4,7 @@ under its outlets, and its as-applied log, so one drill can mix it with CAN chan
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
 
 from gateway.config import ChannelSection
 from gateway.metering.channels import AS_APPLIED_PERIOD_S
@@ -13,6 +13,21 @@ from gateway.metering.prescription import AsAppliedLog, Pose, PrescriptionMap
 # the alarms that are about paper A's motor (the PWM module and the rate its duty can give)
 PWM_CHANNEL_ALARMS = ("pwm.unavailable", "rate.too_fast", "rate.outside_calibration",
                       "rate.low_duty")
+
+
+@dataclass(frozen=True, slots=True)
+class PwmChannelState:
+    """Paper A's motor shaped like a CAN channel's status, so the live view shows every
+    channel in one table; the motor has no shaft feedback, so the duty written is what there
+    is to show. The rates and duty are None until the first control tick."""
+
+    name: str
+    product: str
+    prescription: bool  # its rate comes from the prescription map
+    target_rate_kg_ha: float | None
+    commanded_rate_kg_ha: float | None
+    duty_pct: float | None
+    alarms: tuple[str, ...]  # the active ones of PWM_CHANNEL_ALARMS
 
 
 class PwmChannelPart:
@@ -77,16 +92,15 @@ class PwmChannelPart:
         self._last_logged = now
         self.as_applied.record_channel(pose, self.channel, target_kg_ha or 0.0, commanded_kg_ha)
 
-    def snapshot(self) -> dict[str, Any]:
-        """Shaped like a CAN channel's so the live view can show every channel in one table;
-        the motor has no shaft feedback, so the duty written is what there is to show."""
+    def state(self) -> PwmChannelState:
+        """What the controller last aimed at and wrote, and the motor's active alarms."""
         active = self.active_alarms()
-        return {
-            "name": self.channel.name,
-            "product": self.channel.product,
-            "prescription": self.prescription is not None,
-            "target_rate_kg_ha": self.last_target,
-            "commanded_rate_kg_ha": self.last_commanded,
-            "duty_pct": self.last_duty_pct,
-            "alarms": [code for code in PWM_CHANNEL_ALARMS if code in active],
-        }
+        return PwmChannelState(
+            name=self.channel.name,
+            product=self.channel.product,
+            prescription=self.prescription is not None,
+            target_rate_kg_ha=self.last_target,
+            commanded_rate_kg_ha=self.last_commanded,
+            duty_pct=self.last_duty_pct,
+            alarms=tuple(code for code in PWM_CHANNEL_ALARMS if code in active),
+        )

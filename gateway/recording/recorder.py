@@ -30,18 +30,19 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from operator import itemgetter
-from typing import Any, Protocol
+from typing import Protocol
 
 from drivers.log_limit import RateLimitedLog
 from drivers.seed_sensors import SeedEdgeEvent
 from drivers.ticks import sleep_to_next_tick
 from gateway.config import Settings
 from gateway.core.records import SeedDrop, SeedRecord, SeedRow
-from gateway.recording.positioning import AntennaEpoch, Landing, SeedPositioner
+from gateway.recording.positioning import AntennaEpoch, Landing, Method, SeedPositioner
 from gateway.recording.seed_plausibility import SeedRatePlausibility
-from gateway.recording.spacing_quality import RowQualityAccumulator
+from gateway.recording.spacing_quality import RowQualityAccumulator, SpacingQuality
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +74,36 @@ class SeedSink(Protocol):
 
 
 RecordsCallback = Callable[[list[SeedRecord]], None]
+
+
+@dataclass(frozen=True, slots=True)
+class RowState:
+    """One seed row so far: seeds stored, the last spacing, edges dropped as implausible, and
+    the spacing quality (ISO 7256-1 indices) over what was stored."""
+
+    seeds: int
+    last_spacing_m: float | None
+    implausible_edges: int
+    quality: SpacingQuality
+
+
+@dataclass(frozen=True, slots=True)
+class RecorderState:
+    """The recorder at one moment, for the live view and the state payload (``state()``)."""
+
+    method: Method
+    records_stored: int
+    pending: int  # seeds waiting for the epoch after them
+    buffered: int  # positioned, waiting for the next flush
+    queued: int  # epochs and edges waiting for the next flush
+    unpositioned: int
+    extrapolated: int
+    bad_edges: int
+    store_errors: int
+    records_lost: int
+    implausible_edges: int
+    last_error: str | None
+    rows: Mapping[int, RowState]  # row number -> its state, in row order
 
 
 class SeedRecorder:
@@ -298,29 +329,29 @@ class SeedRecorder:
 
     # ------------------------------------------------------------ telemetry
 
-    def snapshot(self) -> dict[str, Any]:
-        """Plain data for the view and telemetry: per row count, last spacing, quality."""
+    def state(self) -> RecorderState:
+        """A copy for the view and telemetry: per row count, last spacing, quality."""
         st = self.positioner.stats
-        return {
-            "method": self.positioner.method,
-            "records_stored": self.records_stored,
-            "pending": self.positioner.pending,
-            "buffered": len(self._buffer),
-            "queued": len(self._events),
-            "unpositioned": st.unpositioned,
-            "extrapolated": st.extrapolated,
-            "bad_edges": self.bad_edges,
-            "store_errors": self.store_errors,
-            "records_lost": self.records_lost,
-            "implausible_edges": self.plausibility.implausible_total,
-            "last_error": self.last_error,
-            "rows": {
-                row: {
-                    "seeds": self.seeds_per_row[row],
-                    "last_spacing_m": self.last_spacing_m[row],
-                    "implausible_edges": self.plausibility.implausible.get(row, 0),
-                    "quality": self.quality[row].result().as_dict(),
-                }
+        return RecorderState(
+            method=self.positioner.method,
+            records_stored=self.records_stored,
+            pending=self.positioner.pending,
+            buffered=len(self._buffer),
+            queued=len(self._events),
+            unpositioned=st.unpositioned,
+            extrapolated=st.extrapolated,
+            bad_edges=self.bad_edges,
+            store_errors=self.store_errors,
+            records_lost=self.records_lost,
+            implausible_edges=self.plausibility.implausible_total,
+            last_error=self.last_error,
+            rows={
+                row: RowState(
+                    seeds=self.seeds_per_row[row],
+                    last_spacing_m=self.last_spacing_m[row],
+                    implausible_edges=self.plausibility.implausible.get(row, 0),
+                    quality=self.quality[row].result(),
+                )
                 for row in sorted(self.seeds_per_row)
             },
-        }
+        )

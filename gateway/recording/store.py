@@ -207,6 +207,21 @@ def _fast_record(fields: dict[str, Any]) -> SeedRecord:
     return record
 
 
+@dataclass(frozen=True, slots=True)
+class StoreState:
+    """What the store holds and lost, for the daemon's state (``state()``): the state
+    payload's ``records_held`` and ``records_lost`` come from here."""
+
+    failing: bool  # a write failed; new rows are held in memory until a retry succeeds
+    error: str | None  # the last commit error while failing
+    records_held: int
+    records_lost: int
+    alarms_held: int
+    alarms_lost: int
+    retries: int
+    backlog: int  # committed records the broker has not acknowledged yet
+
+
 @dataclass(frozen=True)
 class OutboxBatch:
     """Ids and the ready-to-publish ``SeedBatch`` JSON for them (the MQTT hot path)."""
@@ -987,18 +1002,18 @@ class RecordStore:
             deleted += step
         return deleted
 
-    def snapshot(self) -> dict[str, Any]:
-        """Plain data for the daemon's status and state payload: what is held, what was lost."""
-        return {
-            "failing": self._failing,
-            "error": self.commit_error,
-            "records_held": self.records_held,
-            "records_lost": self.records_lost,
-            "alarms_held": self.alarms_held,
-            "alarms_lost": self.alarms_lost,
-            "retries": self.retries,
-            "backlog": self.backlog(),
-        }
+    def state(self) -> StoreState:
+        """For the daemon's state and its payload: what is held, what was lost."""
+        return StoreState(
+            failing=self._failing,
+            error=self.commit_error,
+            records_held=self.records_held,
+            records_lost=self.records_lost,
+            alarms_held=self.alarms_held,
+            alarms_lost=self.alarms_lost,
+            retries=self.retries,
+            backlog=self.backlog(),
+        )
 
     def integrity_check(self) -> str:
         return str(self._db.execute("PRAGMA integrity_check").fetchone()[0])

@@ -10,7 +10,7 @@ most detailed of a few layouts that fits the console's height, summarising the l
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from rich.console import Console, ConsoleOptions, Group, RenderableType, RenderResult
@@ -18,8 +18,17 @@ from rich.markup import escape
 from rich.panel import Panel
 from rich.table import Table
 
+from gateway.state import (
+    ActiveAlarmState,
+    ChannelStatus,
+    MachineState,
+    PwmChannelState,
+    RecorderState,
+)
+
 MISSING = "–"  # shown for a value not known or not measured yet
 MAX_ALARM_LINES = 3  # in the compact layouts; the rest are counted ("+2 more")
+_ALARM_COLOURS = {"critical": "red", "warning": "yellow"}  # the rest (info) white
 
 
 def _fmt(value: Any, spec: str = "", unit: str = "") -> str:
@@ -31,10 +40,10 @@ def _fmt(value: Any, spec: str = "", unit: str = "") -> str:
     return escape(f"{value}{unit}")
 
 
-def render(snapshot: dict[str, Any], truth: dict[str, Any] | None = None) -> FittedView:
+def render(state: MachineState, truth: dict[str, Any] | None = None) -> FittedView:
     """One screen: machine state, rates, devices and alarms (and simulator truth if given),
     in the most detailed layout that fits the console it is printed on."""
-    return FittedView(snapshot, truth)
+    return FittedView(state, truth)
 
 
 class FittedView:
@@ -47,12 +56,12 @@ class FittedView:
 
     LEVELS = 4
 
-    def __init__(self, snapshot: dict[str, Any], truth: dict[str, Any] | None = None) -> None:
-        self.snapshot = snapshot
+    def __init__(self, state: MachineState, truth: dict[str, Any] | None = None) -> None:
+        self.state = state
         self.truth = truth
 
     def at_level(self, level: int) -> Panel:
-        return _panel(self.snapshot, self.truth, level)
+        return _panel(self.state, self.truth, level)
 
     def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
         limit = options.height or options.size.height
@@ -65,14 +74,14 @@ class FittedView:
         yield panel
 
 
-def _panel(snapshot: dict[str, Any], truth: dict[str, Any] | None, level: int) -> Panel:
-    main = _main_grid(snapshot, truth)
+def _panel(state: MachineState, truth: dict[str, Any] | None, level: int) -> Panel:
+    main = _main_grid(state, truth)
     lines = Table.grid(padding=(0, 2))  # label + text lines of the compact layouts
     lines.add_column(style="bold cyan", justify="right", min_width=15)
     lines.add_column()
     parts: list[RenderableType] = [main]
-    devices: dict[str, bool] = snapshot["devices"]
-    alarms: list[dict[str, Any]] = snapshot["alarms"] or []
+    devices = state.devices
+    alarms = state.alarms
     if level == 0:
         parts += [_devices_table(devices), _alarms_table(alarms)]
     else:
@@ -80,56 +89,53 @@ def _panel(snapshot: dict[str, Any], truth: dict[str, Any] | None, level: int) -
         shown = 1 if level >= 3 else MAX_ALARM_LINES
         lines.add_row("alarms", "\n".join(_alarm_lines(alarms, shown)) or "none")
         parts.append(lines)
-    seeds = snapshot.get("seeds")
-    if isinstance(seeds, dict) and isinstance(seeds.get("rows"), dict):
+    seeds = state.seeds
+    if seeds is not None:
         if level <= 1:
             parts.append(_seed_table(seeds))
         else:
             lines.add_row("seeds", _seed_line(seeds))
-    metering = snapshot.get("metering")
-    can_channels = metering.get("channels") if isinstance(metering, dict) else None
-    pwm = snapshot.get("pwm_channel")
-    if isinstance(can_channels, dict) or isinstance(pwm, dict):
-        channels = can_channels if isinstance(can_channels, dict) else {}
-        pwm_ch = pwm if isinstance(pwm, dict) else None
+    metering, pwm = state.metering, state.pwm_channel
+    if metering is not None or pwm is not None:
+        channels = metering.channels if metering is not None else {}
         if level <= 2:
-            parts.append(_metering_table(channels, pwm_ch))
+            parts.append(_metering_table(channels, pwm))
         else:
-            lines.add_row("channels", _metering_line(channels, pwm_ch))
-    return Panel(Group(*parts), title=f"sowgate · {escape(str(snapshot['machine_id']))}")
+            lines.add_row("channels", _metering_line(channels, pwm))
+    return Panel(Group(*parts), title=f"sowgate · {escape(state.machine_id)}")
 
 
-def _main_grid(snapshot: dict[str, Any], truth: dict[str, Any] | None) -> Table:
+def _main_grid(state: MachineState, truth: dict[str, Any] | None) -> Table:
     main = Table.grid(padding=(0, 2))
     main.add_column(style="bold cyan", justify="right", min_width=15)
     main.add_column()
     main.add_column(style="bold cyan", justify="right")
     main.add_column()
-    state = escape(str(snapshot["work_state"]).upper())
+    work_state = escape(state.work_state.upper())
     main.add_row(
         "state",
-        f"[bold]{state}[/] ({_fmt(snapshot['mode'])})",
+        f"[bold]{work_state}[/] ({_fmt(state.mode)})",
         "crop",
-        f"{_fmt(snapshot['crop'])} @ {snapshot['target_rate_kg_ha']:g} kg/ha",
+        f"{_fmt(state.crop)} @ {state.target_rate_kg_ha:g} kg/ha",
     )
-    source = snapshot["speed_source"]
+    source = state.speed_source
     main.add_row(
         "speed",
         # "[radar]" would be read as a markup tag and vanish: escaped
-        _fmt(snapshot["speed_kmh"], ".2f", " km/h")
+        _fmt(state.speed_kmh, ".2f", " km/h")
         + ("" if source is None else escape(f" [{source}]")),
         "commanded",
-        _fmt(snapshot["commanded_rate_kg_ha"], ".2f", " kg/ha"),
+        _fmt(state.commanded_rate_kg_ha, ".2f", " kg/ha"),
     )
     main.add_row(
         "tilt",
-        _fmt(snapshot["tilt_deg"], "+.2f", "°") + (" raised" if snapshot["raised"] else " lowered"),
+        _fmt(state.tilt_deg, "+.2f", "°") + (" raised" if state.raised else " lowered"),
         "motor / fan",
-        f"{snapshot['motor_duty_pct']:.1f} % / {snapshot['fan_duty_pct']:.1f} %",
+        f"{state.motor_duty_pct:.1f} % / {state.fan_duty_pct:.1f} %",
     )
-    main.add_row("GNSS", _fmt(snapshot.get("gnss_fix", "none")), "speed source", _fmt(source))
+    main.add_row("GNSS", _fmt(state.gnss_fix), "speed source", _fmt(source))
     main.add_row(
-        "area", f"{snapshot['area_ha']:.4f} ha", "seed", f"{snapshot['seed_mass_kg']:.3f} kg"
+        "area", f"{state.area_ha:.4f} ha", "seed", f"{state.seed_mass_kg:.3f} kg"
     )
     if truth:
         sown = truth.get("sown_m")
@@ -152,33 +158,38 @@ def _main_grid(snapshot: dict[str, Any], truth: dict[str, Any] | None) -> Table:
     return main
 
 
-def _devices_table(devices: dict[str, bool]) -> Table:
+def _devices_table(devices: Mapping[str, bool]) -> Table:
     t = Table(title="devices", show_header=False, box=None)
     for name, ok in devices.items():
         t.add_row(escape(name), "[green]ok[/]" if ok else "[red]lost[/]")
     return t
 
 
-def _devices_line(devices: dict[str, bool]) -> str:
+def _devices_line(devices: Mapping[str, bool]) -> str:
     return " · ".join(
         f"{escape(name)} " + ("[green]ok[/]" if ok else "[red]lost[/]")
         for name, ok in devices.items()
     )
 
 
-def _alarm_markup(alarm: dict[str, Any]) -> str:
-    colour = {"critical": "red", "warning": "yellow"}.get(alarm.get("severity", ""), "white")
-    return f"[{colour}]{escape(str(alarm.get('message', '')))}[/]"
+def _alarm_markup(alarm: ActiveAlarmState) -> str:
+    return _coloured(alarm.message, _ALARM_COLOURS.get(alarm.severity, "white"))
 
 
-def _alarms_table(alarms: list[dict[str, Any]]) -> Table:
+def _coloured(text: str, colour: str) -> str:
+    return f"[{colour}]{escape(text)}[/]"
+
+
+def _alarms_table(alarms: Sequence[ActiveAlarmState]) -> Table:
     t = Table(title="alarms", show_header=False, box=None)
-    for a in alarms or [{"severity": "", "message": "none"}]:
+    for a in alarms:
         t.add_row(_alarm_markup(a))
+    if not alarms:
+        t.add_row(_coloured("none", "white"))
     return t
 
 
-def _alarm_lines(alarms: list[dict[str, Any]], shown: int) -> list[str]:
+def _alarm_lines(alarms: Sequence[ActiveAlarmState], shown: int) -> list[str]:
     """At most ``shown`` lines; what does not fit is counted on the last one."""
     if len(alarms) <= shown:
         return [_alarm_markup(a) for a in alarms]
@@ -187,25 +198,24 @@ def _alarm_lines(alarms: list[dict[str, Any]], shown: int) -> list[str]:
     ]
 
 
-def _seed_table(seeds: dict[str, Any]) -> Table:
+def _figure(value: float | None, spec: str = ".1f") -> str:
+    return MISSING if value is None else f"{value:{spec}}"
+
+
+def _seed_table(seeds: RecorderState) -> Table:
     """Per-row spacing quality (ISO 7256-1 indices) of the seeds recorded so far."""
     t = Table(
-        title=f"seeds recorded: {seeds.get('records_stored', 0)} "
-        f"({escape(str(seeds.get('method')))})",
+        title=f"seeds recorded: {seeds.records_stored} ({escape(seeds.method)})",
         box=None,
     )
     for col in ("row", "seeds", "mean spacing", "multiples %", "misses %", "feed %", "CV %"):
         t.add_column(col, justify="right")
-    for row, info in sorted(seeds["rows"].items(), key=lambda kv: int(kv[0])):
-        q = info.get("quality") or {}
-
-        def f(key: str, spec: str = ".1f", q: dict[str, Any] = q) -> str:
-            v = q.get(key)
-            return MISSING if v is None else f"{v:{spec}}"
-
+    for row, info in sorted(seeds.rows.items()):
+        q = info.quality
         t.add_row(
-            str(row), str(info.get("seeds", 0)), f("mean_spacing_m", ".3f") + " m",
-            f("multiples_index"), f("miss_index"), f("quality_of_feed_index"), f("precision"),
+            str(row), str(info.seeds), _figure(q.mean_spacing_m, ".3f") + " m",
+            _figure(q.multiples_index), _figure(q.miss_index), _figure(q.quality_of_feed_index),
+            _figure(q.precision),
         )
     return t
 
@@ -219,23 +229,25 @@ def _span(values: Iterable[Any], spec: str) -> str:
     return f"{lo:{spec}}" if f"{lo:{spec}}" == f"{hi:{spec}}" else f"{lo:{spec}}–{hi:{spec}}"
 
 
-def _seed_line(seeds: dict[str, Any]) -> str:
+def _seed_line(seeds: RecorderState) -> str:
     """The seed table in one line: the range of each index over the rows."""
-    rows = seeds["rows"]
-    qualities = [info.get("quality") or {} for info in rows.values()]
-
-    def span(key: str, spec: str = ".1f") -> str:
-        return _span((q.get(key) for q in qualities), spec)
-
+    rows = seeds.rows
+    qualities = [info.quality for info in rows.values()]
+    spacing = _span((q.mean_spacing_m for q in qualities), ".3f")
+    misses = _span((q.miss_index for q in qualities), ".1f")
+    multiples = _span((q.multiples_index for q in qualities), ".1f")
+    cv = _span((q.precision for q in qualities), ".1f")
     return (
-        f"{seeds.get('records_stored', 0)} recorded ({escape(str(seeds.get('method')))}) "
-        f"over {len(rows)} rows · spacing {span('mean_spacing_m', '.3f')} m"
-        f" · misses {span('miss_index')} % · multiples {span('multiples_index')} %"
-        f" · CV {span('precision')} %"
+        f"{seeds.records_stored} recorded ({escape(seeds.method)}) "
+        f"over {len(rows)} rows · spacing {spacing} m"
+        f" · misses {misses} % · multiples {multiples} %"
+        f" · CV {cv} %"
     )
 
 
-def _metering_table(channels: dict[str, Any], pwm: dict[str, Any] | None = None) -> Table:
+def _metering_table(
+    channels: Mapping[str, ChannelStatus], pwm: PwmChannelState | None = None
+) -> Table:
     """Every ``[[channel]]`` in one table, the ``can_pid`` ones and paper A's ``pwm_modbus``
     motor alike, so a fitter checks all of them in one place.
 
@@ -247,38 +259,40 @@ def _metering_table(channels: dict[str, Any], pwm: dict[str, Any] | None = None)
         t.add_column(col, justify="right")
     for name, ch in channels.items():
         t.add_row(
-            escape(name), _fmt(ch.get("product") or "-"), f"{ch.get('target_rate_kg_ha', 0):g}",
-            f"{ch.get('target_rpm', 0):.1f} r/min",
-            _fmt(ch.get("measured_rpm"), ".1f", " r/min"),
-            escape(", ".join(ch.get("alarms") or []) or "-"),
+            escape(name), _fmt(ch.product or "-"), f"{ch.target_rate_kg_ha:g}",
+            f"{ch.target_rpm:.1f} r/min",
+            _fmt(ch.measured_rpm, ".1f", " r/min"),
+            escape(", ".join(ch.alarms) or "-"),
         )
     if pwm is not None:
-        duty, commanded = pwm.get("duty_pct"), pwm.get("commanded_rate_kg_ha")
+        duty, commanded = pwm.duty_pct, pwm.commanded_rate_kg_ha
         command = _fmt(duty, ".1f", " %")
         if duty is not None and commanded is not None:
             command += f" ({commanded:.2f} kg/ha)"
         t.add_row(
-            _fmt(pwm.get("name")), _fmt(pwm.get("product") or "-"),
-            _fmt(pwm.get("target_rate_kg_ha"), "g"), command, "open loop",
-            escape(", ".join(pwm.get("alarms") or []) or "-"),
+            _fmt(pwm.name), _fmt(pwm.product or "-"),
+            _fmt(pwm.target_rate_kg_ha, "g"), command, "open loop",
+            escape(", ".join(pwm.alarms) or "-"),
         )
     return t
 
 
-def _metering_line(channels: dict[str, Any], pwm: dict[str, Any] | None) -> str:
+def _metering_line(
+    channels: Mapping[str, ChannelStatus], pwm: PwmChannelState | None
+) -> str:
     """The channel table in one line: command → feedback per channel, and any alarms."""
     parts = []
     for name, ch in channels.items():
-        alarms = ", ".join(ch.get("alarms") or [])
+        alarms = ", ".join(ch.alarms)
         parts.append(
-            f"{escape(name)} {ch.get('target_rpm', 0):.1f}→"
-            f"{_fmt(ch.get('measured_rpm'), '.1f')} r/min"
+            f"{escape(name)} {ch.target_rpm:.1f}→"
+            f"{_fmt(ch.measured_rpm, '.1f')} r/min"
             + (f" [yellow]{escape(alarms)}[/]" if alarms else "")
         )
     if pwm is not None:
-        alarms = ", ".join(pwm.get("alarms") or [])
+        alarms = ", ".join(pwm.alarms)
         parts.append(
-            f"{_fmt(pwm.get('name'))} {_fmt(pwm.get('duty_pct'), '.1f', ' %')}"
+            f"{_fmt(pwm.name)} {_fmt(pwm.duty_pct, '.1f', ' %')}"
             + (f" [yellow]{escape(alarms)}[/]" if alarms else "")
         )
     return " · ".join(parts) or "none"
@@ -288,17 +302,17 @@ Renderer = Callable[[], FittedView]
 
 
 async def run_with_live_view(
-    snapshot: Callable[[], dict[str, Any]],
+    state: Callable[[], MachineState],
     work: Awaitable[Any],
     truth: Callable[[], dict[str, Any]] | None = None,
 ) -> None:
-    """Run ``work`` (the daemon) under a live view redrawn from ``snapshot`` four times a second;
+    """Run ``work`` (the daemon) under a live view redrawn from ``state`` four times a second;
     ``truth`` adds the simulator's ground truth in the demo."""
     from rich.live import Live
 
     task = asyncio.ensure_future(work)
-    with Live(render(snapshot()), refresh_per_second=4, screen=False) as live:
+    with Live(render(state()), refresh_per_second=4, screen=False) as live:
         while not task.done():
-            live.update(render(snapshot(), truth() if truth else None))
+            live.update(render(state(), truth() if truth else None))
             await asyncio.wait({task}, timeout=0.25)
     await task

@@ -10,12 +10,12 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable, Mapping
-from typing import Any
 
 from drivers.hmi_link import LOG_EVERY_S, HmiLink
 from drivers.log_limit import RateLimitedLog
 from gateway.config import CropModel, HmiSection
 from gateway.core import commands as cmd
+from gateway.state import MachineState
 from protocol import hmi
 
 log = logging.getLogger(__name__)
@@ -44,12 +44,12 @@ class HmiAdapter:
         *,
         crops: Mapping[str, CropModel],
         execute: Callable[[cmd.Command, str], tuple[bool, str]],
-        snapshot: Callable[[], dict[str, Any]],
+        state: Callable[[], MachineState],
     ) -> None:
         self.section = section
         self.crops = crops
         self.execute = execute
-        self.snapshot = snapshot
+        self.state = state
         self.link = HmiLink(
             section.port,
             section.baudrate,
@@ -106,20 +106,20 @@ class HmiAdapter:
 
     def screen_texts(self) -> dict[str, str]:
         o = self.section.objects
-        snap = self.snapshot()
+        state = self.state()
         labels = {**DEFAULT_STATE_LABELS, **self.section.state_labels}
-        crop = snap["crop"]
-        speed = snap["speed_kmh"]
-        tilt = snap["tilt_deg"]
-        alarms = snap["alarms"]  # oldest first
-        top = min(alarms, key=lambda a: _SEVERITY_ORDER.get(a["severity"], 3), default=None)
+        crop = state.crop
+        speed = state.speed_kmh
+        tilt = state.tilt_deg
+        # the alarms come oldest first: min keeps the oldest of the most severe
+        top = min(state.alarms, key=lambda a: _SEVERITY_ORDER.get(a.severity, 3), default=None)
         return {
             o.speed: "--" if speed is None else f"{speed:.1f} km/h",
             o.tilt: "--" if tilt is None else f"{tilt:+.1f} deg",
-            o.state: labels.get(snap["work_state"], snap["work_state"]),
+            o.state: labels.get(state.work_state, state.work_state),
             o.crop: self.section.crop_labels.get(crop, crop),
-            o.rate: f"{snap['target_rate_kg_ha']:g} kg/ha",
-            o.alarm: top["message"] if top is not None else "",
+            o.rate: f"{state.target_rate_kg_ha:g} kg/ha",
+            o.alarm: top.message if top is not None else "",
             o.message: self.last_message,
         }
 

@@ -42,7 +42,7 @@ class Rig:
                 raise AssertionError(f"daemon exited while waiting for {what}")
             if time.monotonic() > deadline:
                 raise AssertionError(
-                    f"timed out waiting for {what}; snapshot: {self.daemon.snapshot()}"
+                    f"timed out waiting for {what}; state: {self.daemon.state()}"
                 )
             await asyncio.sleep(0.05)
 

@@ -12,6 +12,7 @@ from drivers.can_bus import CanBus
 from drivers.tasks import cancel_and_wait
 from gateway.control.rate_model import plan_duty
 from gateway.control.work_state import WorkState
+from gateway.metering.channels import ChannelStatus
 from protocol import isobus
 from simulator.can_pid import TractorSimulator
 from simulator.machine import SimulatedMachine
@@ -90,19 +91,18 @@ async def test_paper_b_drill_without_any_rs485_bus(tmp_path: Path) -> None:
             }
             async with running(tmp_path, machine, **overrides) as rig:
 
-                def seed() -> dict[str, object]:
-                    snap = rig.daemon.parts.metering.snapshot()
-                    return snap["channels"]["seed"]  # type: ignore[no-any-return]
+                def seed() -> ChannelStatus:
+                    return rig.daemon.parts.metering.status().channels["seed"]
 
                 await rig.until(lambda: rig.state() is WorkState.SEEDING, what="seeding")
-                await rig.until(lambda: (seed()["measured_rpm"] or 0.0) > 10.0, what="turning")
+                await rig.until(lambda: (seed().measured_rpm or 0.0) > 10.0, what="turning")
                 codes = {a.code for a in rig.daemon.alarms.active}
                 assert not {c for c in codes if c.endswith(".unavailable")}, codes
                 assert "inclinometer.lost" not in codes
                 assert rig.machine.rs485 is not None
                 assert rig.daemon.bus.stats == {}  # never polled
                 tractor.in_work = isobus.InWork.OUT_OF_WORK
-                await rig.until(lambda: seed()["target_rpm"] == 0.0, what="raised -> stop")
+                await rig.until(lambda: seed().target_rpm == 0.0, what="raised -> stop")
         finally:
             for task in tasks:
                 await cancel_and_wait(task)

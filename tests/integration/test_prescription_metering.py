@@ -71,8 +71,7 @@ async def test_target_rate_follows_the_map_zone_under_the_outlets(tmp_path: Path
             async with running(tmp_path, machine, **_config(can_channel, fmap)) as rig:
 
                 def target() -> float | None:
-                    snap = rig.daemon.parts.metering.snapshot()
-                    return snap["channels"]["seed"]["target_rate_kg_ha"]
+                    return rig.daemon.parts.metering.status().channels["seed"].target_rate_kg_ha
 
                 await rig.until(lambda: target() == 150.0, timeout=10.0, what="zone A rate")
                 await rig.until(lambda: target() == 300.0, timeout=15.0, what="zone B rate")
@@ -113,8 +112,8 @@ async def test_a_bad_map_alarms_and_the_channels_use_their_default_rate(tmp_path
             # metering component from loading the map a second time
             assert rig.daemon.settings.prescription.enabled
             assert rig.daemon.parts.metering.prescription is None
-            snap = rig.daemon.parts.metering.snapshot()
-            assert snap["channels"]["seed"]["target_rate_kg_ha"] == 225.0
+            status = rig.daemon.parts.metering.status()
+            assert status.channels["seed"].target_rate_kg_ha == 225.0
 
 
 async def test_paper_a_pwm_channel_follows_the_map_and_logs_as_applied(tmp_path: Path) -> None:
@@ -161,7 +160,7 @@ async def test_paper_a_pwm_channel_follows_the_map_and_logs_as_applied(tmp_path:
         assert machine.pose().north > 3.0
         await rig.until(lambda: seeding_at(6.5), timeout=15.0, what="default outside the map")
         assert machine.pose().north > 9.0
-        assert rig.daemon.snapshot()["target_rate_kg_ha"] == 6.5
+        assert rig.daemon.state().target_rate_kg_ha == 6.5
         assert rig.daemon.controller.crop == "rapeseed"
     rows = (tmp_path / "state" / "as_applied.csv").read_text().splitlines()
     assert rows[0].startswith("time,lon,lat,channel")

@@ -8,11 +8,14 @@ import os
 import re
 import subprocess
 import sys
+from dataclasses import replace
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
 
 from gateway.app.cli import main as cli_main
+from gateway.state import ActiveAlarmState, MachineState, RecorderState
 from simulator.demo import status_line, summary, truth_report
 from simulator.machine import STARTUP_TRANSIENT_S, Truth
 
@@ -134,18 +137,25 @@ def test_the_demo_uses_the_state_dir_it_is_given_and_names_it_in_the_export_comm
 
 
 def test_the_status_line_says_state_speed_outputs_and_what_was_sown() -> None:
-    snapshot = {
-        "work_state": "seeding", "speed_kmh": 5.234, "speed_source": "radar",
-        "motor_duty_pct": 38.6, "fan_duty_pct": 80.0, "area_ha": 0.0123,
-        "alarms": [{"code": "gnss.not_rtk_fixed", "severity": "warning", "message": "no RTK"}],
-        "seeds": {"records_stored": 456},
-    }
-    line = status_line(snapshot)
+    now = datetime(2026, 4, 1, 8, 0, tzinfo=UTC)
+    seeds = RecorderState(
+        method="interpolated", records_stored=456, pending=0, buffered=0, queued=0,
+        unpositioned=0, extrapolated=0, bad_edges=0, store_errors=0, records_lost=0,
+        implausible_edges=0, last_error=None, rows={},
+    )
+    state = MachineState(
+        machine_id="m1", utc=now, work_state="seeding", mode="working", speed_kmh=5.234,
+        speed_source="radar", tilt_deg=None, raised=False, crop="wheat",
+        target_rate_kg_ha=200.0, commanded_rate_kg_ha=200.0, motor_duty_pct=38.6,
+        fan_duty_pct=80.0, devices={}, area_ha=0.0123, seed_mass_kg=0.0,
+        alarms=(ActiveAlarmState("gnss.not_rtk_fixed", "warning", "no RTK", now),), seeds=seeds,
+    )
+    line = status_line(state)
     assert line == (
         "seeding, 5.23 km/h [radar], motor 38.6 % fan 80.0 %, 0.0123 ha, "
         "456 seeds recorded, alarms: gnss.not_rtk_fixed"
     )
-    quiet = status_line({**snapshot, "speed_kmh": None, "alarms": [], "seeds": None})
+    quiet = status_line(replace(state, speed_kmh=None, alarms=(), seeds=None))
     assert "no speed" in quiet and "alarms: none" in quiet and "seeds" not in quiet
 
 

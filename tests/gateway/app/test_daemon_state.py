@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import FrozenInstanceError
 from pathlib import Path
+
+import pytest
 
 from gateway.app.daemon import Daemon
 from gateway.app.wiring import state_payload
@@ -54,8 +57,21 @@ def test_gpio_seed_sensors_are_read_ahead_of_each_epoch_reaching_the_recorder(
 
 def test_devices_not_configured_are_not_listed(tmp_path: Path) -> None:
     daemon = Daemon(parse_config({"hmi": {"enabled": False}}), tmp_path / "state")
-    assert "hmi" not in daemon.snapshot()["devices"]
-    assert "seed_sensors" not in daemon.snapshot()["devices"]
+    assert "hmi" not in daemon.state().devices
+    assert "seed_sensors" not in daemon.state().devices
+
+
+def test_a_state_is_a_frozen_copy_that_later_changes_do_not_reach(tmp_path: Path) -> None:
+    """The views draw from one state for a whole screen: it must not change under them (the
+    alarm board updates an active alarm's text in place, every control tick)."""
+    daemon = Daemon(parse_config({"hmi": {"enabled": False}}), tmp_path / "state")
+    daemon.alarms.raise_("speed.lost", "no valid ground speed for 1 s", "critical")
+    before = daemon.state()
+    daemon.alarms.raise_("speed.lost", "no valid ground speed for 2 s", "critical")
+    assert [a.message for a in before.alarms] == ["no valid ground speed for 1 s"]
+    assert [a.message for a in daemon.state().alarms] == ["no valid ground speed for 2 s"]
+    with pytest.raises(FrozenInstanceError):
+        before.crop = "barley"  # type: ignore[misc]
 
 
 def test_the_service_process_freezes_start_up_and_collects_young_objects_less_often() -> None:

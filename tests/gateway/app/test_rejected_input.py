@@ -38,7 +38,7 @@ def test_the_summary_names_what_grew_since_the_last_one_and_is_none_when_nothing
     assert inputs.summary() is None
     gnss.stats.rejected["checksum"] = 5
     assert inputs.summary() == "gnss: checksum 2"
-    assert inputs.snapshot()["gnss"] == {"checksum": 5, "unknown_sentence": 10}
+    assert inputs.counts().gnss == {"checksum": 5, "unknown_sentence": 10}
 
 
 async def test_run_logs_the_summary_at_info(caplog: pytest.LogCaptureFixture) -> None:

@@ -206,22 +206,22 @@ async def test_component_runs_channels_against_simulated_controllers() -> None:
             deadline = time.monotonic() + 6.0
             while time.monotonic() < deadline:
                 await asyncio.sleep(0.1)
-                snap = comp.snapshot()["channels"]
+                snap = comp.status().channels
                 if all(
-                    v["measured_rpm"] is not None
-                    and abs(v["measured_rpm"] - v["target_rpm"]) < 0.03 * v["target_rpm"]
+                    v.measured_rpm is not None
+                    and abs(v.measured_rpm - v.target_rpm) < 0.03 * v.target_rpm
                     for v in snap.values()
                 ):
                     break
-            good = comp.snapshot()
+            good = comp.status()
             plants[2].silent = True
             await asyncio.sleep(1.6)
             t_comp.cancel()
             await asyncio.sleep(0.1)
             t_sim.cancel()
-    for name, v in good["channels"].items():
-        assert v["measured_rpm"] == pytest.approx(v["target_rpm"], rel=0.03), name
-        assert v["applied_rate_kg_ha"] == pytest.approx(v["target_rate_kg_ha"], rel=0.03)
+    for name, v in good.channels.items():
+        assert v.measured_rpm == pytest.approx(v.target_rpm, rel=0.03), name
+        assert v.applied_rate_kg_ha == pytest.approx(v.target_rate_kg_ha, rel=0.03)
     assert not [a for a in inp.alarms if a.kind != "feedback_lost"]
     lost = [a for a in inp.alarms if a.kind == "feedback_lost" and a.active]
     assert [a.channel for a in lost] == ["deep"]

@@ -150,8 +150,8 @@ def test_records_dropped_when_the_store_fails_too_long_are_counted(store: Record
     feed(recorder, [(1 + i % 6, 1.0 + 4.0 * i / n) for i in range(n)], until=5.5)
     recorder.flush()
     assert recorder.records_lost == 25
-    assert recorder.snapshot()["records_lost"] == 25
-    assert recorder.snapshot()["buffered"] == MAX_BUFFERED_DROPS
+    assert recorder.state().records_lost == 25
+    assert recorder.state().buffered == MAX_BUFFERED_DROPS
 
 
 def test_a_flood_of_edges_on_one_row_raises_implausible_rate_naming_the_row_then_clears(
@@ -172,11 +172,11 @@ def test_a_flood_of_edges_on_one_row_raises_implausible_rate_naming_the_row_then
     active = {a.code: a for a in alarms.active}
     assert "seed_sensors.implausible_rate" in active
     assert "row(s) 3 " in active["seed_sensors.implausible_rate"].message
-    snap = recorder.snapshot()
-    assert snap["implausible_edges"] == recorder.plausibility.implausible[3]
-    assert snap["rows"][3]["seeds"] + snap["rows"][3]["implausible_edges"] <= 20_000
-    assert snap["rows"][3]["seeds"] <= 200 * (0.2 + 1.0)
-    assert snap["rows"][1]["seeds"] == 10 and snap["rows"][1]["implausible_edges"] == 0
+    state = recorder.state()
+    assert state.implausible_edges == recorder.plausibility.implausible[3]
+    assert state.rows[3].seeds + state.rows[3].implausible_edges <= 20_000
+    assert state.rows[3].seeds <= 200 * (0.2 + 1.0)
+    assert state.rows[1].seeds == 10 and state.rows[1].implausible_edges == 0
     clock.t = MONO0 + 1.2 + 5.1  # no implausible edge for longer than the clear delay
     health.check()
     assert "seed_sensors.implausible_rate" not in _codes(alarms)

@@ -71,13 +71,13 @@ def test_positioned_seeds_reach_the_store_with_ids_and_then_the_callback(
     stored = rec.flush()
     assert [r.id for r in stored] == list(range(1, len(edges) + 1))
     assert seen == stored
-    snap = rec.snapshot()
-    assert snap["records_stored"] == len(edges)
-    assert snap["rows"][1]["seeds"] == 7 and snap["rows"][4]["seeds"] == 2
-    assert snap["rows"][4]["last_spacing_m"] == pytest.approx(0.2, abs=0.003)
-    q1 = snap["rows"][1]["quality"]
-    assert q1["n"] == 6 and q1["multiples_index"] == pytest.approx(100 / 6)
-    assert snap["rows"][2]["seeds"] == 0 and snap["rows"][2]["quality"]["n"] == 0
+    state = rec.state()
+    assert state.records_stored == len(edges)
+    assert state.rows[1].seeds == 7 and state.rows[4].seeds == 2
+    assert state.rows[4].last_spacing_m == pytest.approx(0.2, abs=0.003)
+    q1 = state.rows[1].quality
+    assert q1.n == 6 and q1.multiples_index == pytest.approx(100 / 6)
+    assert state.rows[2].seeds == 0 and state.rows[2].quality.n == 0
 
 
 def test_an_edge_for_an_unknown_row_is_counted_and_recording_goes_on(
@@ -86,7 +86,7 @@ def test_an_edge_for_an_unknown_row_is_counted_and_recording_goes_on(
     rec = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
     feed(rec, [(9, 1.0), (2, 1.0)], until=2.0)
     assert len(rec.flush()) == 1
-    assert rec.bad_edges == 1 and "row 9" in (rec.snapshot()["last_error"] or "")
+    assert rec.bad_edges == 1 and "row 9" in (rec.state().last_error or "")
 
 
 class FailingOnce:
@@ -219,7 +219,7 @@ def test_driver_callbacks_only_queue_and_the_flush_positions_in_arrival_order(
     edges = [(1 + i % 6, 1.0 + 0.05 * i) for i in range(30)]
     queued = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
     feed(queued, edges, until=2.8)
-    assert queued.positioner.stats.epochs == 0 and queued.snapshot()["queued"] > 30
+    assert queued.positioner.stats.epochs == 0 and queued.state().queued > 30
     live = SeedPositioner(settings().positioning)
     landed = []
     for ev in _events(edges, until=2.8):
@@ -232,7 +232,7 @@ def test_driver_callbacks_only_queue_and_the_flush_positions_in_arrival_order(
     assert [(r.row, r.utc, r.lat, r.lon, r.spacing_m) for r in records] == [
         (la.drop.row, la.drop.utc, la.drop.lat, la.drop.lon, la.drop.spacing_m) for la in landed
     ]
-    assert len(records) == 30 and queued.snapshot()["queued"] == 0
+    assert len(records) == 30 and queued.state().queued == 0
 
 
 def test_a_stalled_flush_loop_positions_inline_so_the_queue_stays_bounded(
@@ -240,7 +240,7 @@ def test_a_stalled_flush_loop_positions_inline_so_the_queue_stays_bounded(
 ) -> None:
     rec = SeedRecorder(settings(), store, clock=lambda: MONO0 + 3.0)
     feed(rec, [(1, 0.5 + i * 0.001) for i in range(MAX_QUEUED_EVENTS + 50)], until=2.8)
-    assert rec.snapshot()["queued"] < MAX_QUEUED_EVENTS
+    assert rec.state().queued < MAX_QUEUED_EVENTS
     assert rec.positioner.stats.epochs > 0
 
 

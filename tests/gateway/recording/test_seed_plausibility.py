@@ -200,7 +200,7 @@ async def test_a_burst_of_200000_lines_over_a_pty_stores_only_what_a_row_can_dro
     assert recorder.records_stored <= DEFAULT_MAX_SEEDS_PER_S_PER_ROW * (span + WINDOW_S)
     assert recorder.records_stored + dropped == 200_000  # every edge stored or counted
     assert recorder.plausibility.implausible == {1: dropped}
-    assert recorder.snapshot()["rows"][1]["implausible_edges"] == dropped
+    assert recorder.state().rows[1].implausible_edges == dropped
 
 
 async def test_2100_seeds_per_second_on_48_rows_over_a_pty_are_all_stored(

@@ -1,48 +1,92 @@
-"""The live view renders every part of a snapshot without crashing, including missing values."""
+"""The live view renders every part of the machine state without crashing, missing values too."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+from datetime import UTC, datetime
 from pathlib import Path
 
 from rich.console import Console
 
+from gateway.core.records import AlarmSeverity
+from gateway.metering.channels import AlarmKind
+from gateway.state import (
+    ActiveAlarmState,
+    ChannelStatus,
+    MachineState,
+    MeteringStatus,
+    PwmChannelState,
+    RecorderState,
+    RowState,
+    SpacingQuality,
+)
 from gateway.ui.terminal import render
 
-SNAPSHOT = {
-    "machine_id": "m1",
-    "work_state": "seeding",
-    "mode": "working",
-    "speed_kmh": None,
-    "speed_source": None,
-    "tilt_deg": None,
-    "raised": True,
-    "crop": "wheat",
-    "target_rate_kg_ha": 225.0,
-    "commanded_rate_kg_ha": 0.0,
-    "motor_duty_pct": 0.0,
-    "fan_duty_pct": 0.0,
-    "devices": {"radar": False},
-    "alarms": [{"code": "speed.lost", "severity": "critical", "message": "no valid ground speed"}],
-    "area_ha": 0.0,
-    "seed_mass_kg": 0.0,
-    "gnss_fix": "rtk_float",
-    "seeds": {
-        "records_stored": 3,
-        "method": "interpolated",
-        "rows": {1: {"seeds": 3, "quality": {"mean_spacing_m": 0.2, "miss_index": 0.0}}},
-    },
-}
+SINCE = datetime(2026, 4, 1, 8, 0, tzinfo=UTC)
+
+
+def _alarm(code: str, severity: AlarmSeverity, message: str) -> ActiveAlarmState:
+    return ActiveAlarmState(code, severity, message, SINCE)
+
+
+def _seeds(records_stored: int, rows: dict[int, RowState]) -> RecorderState:
+    return RecorderState(
+        method="interpolated", records_stored=records_stored, pending=0, buffered=0, queued=0,
+        unpositioned=0, extrapolated=0, bad_edges=0, store_errors=0, records_lost=0,
+        implausible_edges=0, last_error=None, rows=rows,
+    )
+
+
+def _row(seeds: int, **quality: float) -> RowState:
+    indices: dict[str, float | None] = dict.fromkeys(
+        ("multiples_index", "miss_index", "quality_of_feed_index", "precision",
+         "mean_spacing_m")
+    )
+    indices.update(quality)
+    return RowState(seeds=seeds, last_spacing_m=None, implausible_edges=0,
+                    quality=SpacingQuality(n=seeds, x_ref_m=None, **indices))
+
+
+def _can_channel(product: str, rate: float, target_rpm: float, measured_rpm: float | None,
+                 *alarms: AlarmKind) -> ChannelStatus:
+    return ChannelStatus(
+        product=product, node_id=1, target_rate_kg_ha=rate, target_rpm=target_rpm,
+        measured_rpm=measured_rpm, applied_rate_kg_ha=None, fault=None, alarms=alarms,
+    )
+
+
+STATE = MachineState(
+    machine_id="m1",
+    utc=SINCE,
+    work_state="seeding",
+    mode="working",
+    speed_kmh=None,
+    speed_source=None,
+    tilt_deg=None,
+    raised=True,
+    crop="wheat",
+    target_rate_kg_ha=225.0,
+    commanded_rate_kg_ha=0.0,
+    motor_duty_pct=0.0,
+    fan_duty_pct=0.0,
+    devices={"radar": False},
+    alarms=(_alarm("speed.lost", "critical", "no valid ground speed"),),
+    area_ha=0.0,
+    seed_mass_kg=0.0,
+    gnss_fix="rtk_float",
+    seeds=_seeds(3, {1: _row(3, mean_spacing_m=0.2, miss_index=0.0)}),
+)
 
 
 def test_view_shows_state_alarms_devices_and_seed_quality() -> None:
     console = Console(width=100, record=True)
-    console.print(render(SNAPSHOT, {"applied_kg_ha": None, "rate_error_pct": None}))
+    console.print(render(STATE, {"applied_kg_ha": None, "rate_error_pct": None}))
     text = console.export_text()
     for expected in ("SEEDING", "no valid ground speed", "lost", "rtk_float", "0.200 m", "–"):
         assert expected in text
 
 
-def _row(text: str, first_cell: str) -> str:
+def _line(text: str, first_cell: str) -> str:
     """The one line of the rendered text whose first cell is ``first_cell``."""
     rows = [line for line in text.splitlines() if line.strip("│ ").split()[:1] == [first_cell]]
     assert len(rows) == 1, text
@@ -50,25 +94,23 @@ def _row(text: str, first_cell: str) -> str:
 
 
 def test_channels_table_shows_the_can_channels_and_paper_a_pwm_channel_together() -> None:
-    snapshot = {
-        **SNAPSHOT,
-        "metering": {"channels": {"deep": {
-            "product": "fertiliser", "target_rate_kg_ha": 300.0, "target_rpm": 42.5,
-            "measured_rpm": 41.8, "alarms": ["off_target"],
-        }}},
-        "pwm_channel": {
-            "name": "seed", "product": "wheat", "prescription": False,
-            "target_rate_kg_ha": 225.0, "commanded_rate_kg_ha": 219.4, "duty_pct": 47.3,
-            "alarms": ["rate.too_fast"],
-        },
-    }
+    state = replace(
+        STATE,
+        metering=MeteringStatus(working=True, speed_kmh=None, channels={
+            "deep": _can_channel("fertiliser", 300.0, 42.5, 41.8, "off_target"),
+        }),
+        pwm_channel=PwmChannelState(
+            name="seed", product="wheat", prescription=False, target_rate_kg_ha=225.0,
+            commanded_rate_kg_ha=219.4, duty_pct=47.3, alarms=("rate.too_fast",),
+        ),
+    )
     console = Console(width=120, record=True)
-    console.print(render(snapshot))
+    console.print(render(state))
     text = console.export_text()
-    deep = _row(text, "deep")
+    deep = _line(text, "deep")
     for expected in ("fertiliser", "300", "42.5 r/min", "41.8 r/min", "off_target"):
         assert expected in deep
-    seed = _row(text, "seed")
+    seed = _line(text, "seed")
     for expected in ("wheat", "225", "47.3 %", "219.40 kg/ha", "open loop", "rate.too_fast"):
         assert expected in seed
 
@@ -76,7 +118,7 @@ def test_channels_table_shows_the_can_channels_and_paper_a_pwm_channel_together(
 def test_a_daemon_with_only_a_pwm_channel_shows_it_with_duty_and_its_own_alarms(
     tmp_path: Path,
 ) -> None:
-    """Through the daemon's real snapshot: no CAN channels, paper A's motor still listed."""
+    """Through the daemon's real state: no CAN channels, paper A's motor still listed."""
     from gateway.app.daemon import Daemon
     from gateway.config import parse_config
     from gateway.control.controller import ControlOutputs
@@ -98,8 +140,8 @@ def test_a_daemon_with_only_a_pwm_channel_shows_it_with_duty_and_its_own_alarms(
     for hook in daemon.tick_hooks:  # what the control loop does after a tick
         hook(outputs)
     console = Console(width=120, record=True)
-    console.print(render(daemon.snapshot()))
-    seed = _row(console.export_text(), "seed")
+    console.print(render(daemon.state()))
+    seed = _line(console.export_text(), "seed")
     for expected in ("wheat", "200", "38.6 %", "195.25 kg/ha", "rate.outside_calibration"):
         assert expected in seed
     assert "gnss" not in seed
@@ -107,40 +149,37 @@ def test_a_daemon_with_only_a_pwm_channel_shows_it_with_duty_and_its_own_alarms(
 
 # ---------------------------------------------------------------- fitting the terminal
 
-DEMO_SNAPSHOT = {  # what `sowgate demo --channels` shows after ~10 s (trimmed, real figures)
-    **SNAPSHOT,
-    "work_state": "seeding",
-    "speed_kmh": 3.02,
-    "speed_source": "radar",
-    "tilt_deg": -6.14,
-    "raised": False,
-    "crop": "rapeseed",
-    "target_rate_kg_ha": 6.0,
-    "commanded_rate_kg_ha": 6.0,
-    "motor_duty_pct": 32.8,
-    "fan_duty_pct": 70.0,
-    "devices": {"pwm": True, "radar": True, "inclinometer": True, "gnss": True, "hmi": True,
-                "seed_sensors": False},
-    "alarms": [
-        {"code": "seed_sensors.unavailable", "severity": "warning",
-         "message": "seed sensors [ttyUSB2] not answering"},
-        {"code": "gnss.not_rtk_fixed", "severity": "warning", "message": "GNSS fix rtk_float"},
-    ],
-    "area_ha": 0.0013,
-    "seed_mass_kg": 0.008,
-    "gnss_fix": "rtk_fixed",
-    "seeds": {"records_stored": 171, "method": "interpolated", "rows": {
-        str(row): {"seeds": 28, "quality": {
-            "mean_spacing_m": 0.19 + row / 1000, "multiples_index": 3.4, "miss_index": row * 1.0,
-            "quality_of_feed_index": 96.6, "precision": 11.5}}
+DEMO_STATE = replace(  # what `sowgate demo --channels` shows after ~10 s (trimmed, real figures)
+    STATE,
+    work_state="seeding",
+    speed_kmh=3.02,
+    speed_source="radar",
+    tilt_deg=-6.14,
+    raised=False,
+    crop="rapeseed",
+    target_rate_kg_ha=6.0,
+    commanded_rate_kg_ha=6.0,
+    motor_duty_pct=32.8,
+    fan_duty_pct=70.0,
+    devices={"pwm": True, "radar": True, "inclinometer": True, "gnss": True, "hmi": True,
+             "seed_sensors": False},
+    alarms=(
+        _alarm("seed_sensors.unavailable", "warning", "seed sensors [ttyUSB2] not answering"),
+        _alarm("gnss.not_rtk_fixed", "warning", "GNSS fix rtk_float"),
+    ),
+    area_ha=0.0013,
+    seed_mass_kg=0.008,
+    gnss_fix="rtk_fixed",
+    seeds=_seeds(171, {
+        row: _row(28, mean_spacing_m=0.19 + row / 1000, multiples_index=3.4,
+                  miss_index=row * 1.0, quality_of_feed_index=96.6, precision=11.5)
         for row in range(1, 7)
-    }},
-    "metering": {"channels": {
-        name: {"product": "fertiliser", "target_rate_kg_ha": 150.0, "target_rpm": 8.88,
-               "measured_rpm": 8.89, "alarms": []}
+    }),
+    metering=MeteringStatus(working=True, speed_kmh=3.02, channels={
+        name: _can_channel("fertiliser", 150.0, 8.88, 8.89)
         for name in ("shallow", "deep", "seed")
-    }},
-}
+    }),
+)
 DEMO_TRUTH = {"sown_m": 6.25, "applied_kg_ha": 5.70, "rate_error_pct": -4.92,
               "settled_m": 2.65, "settled_kg_ha": 6.11, "settled_rate_error_pct": 1.78}
 ROW_LABELS = ("state", "crop", "speed", "commanded", "tilt", "motor / fan", "GNSS",
@@ -148,15 +187,15 @@ ROW_LABELS = ("state", "crop", "speed", "commanded", "tilt", "motor / fan", "GNS
               "devices", "alarms", "seeds", "channels")
 
 
-def _screen(width: int, height: int, snapshot: dict[str, object],
+def _screen(width: int, height: int, state: MachineState,
             truth: dict[str, object] | None = None) -> list[str]:
     console = Console(width=width, height=height, record=True)
-    console.print(render(snapshot, truth))
+    console.print(render(state, truth))
     return console.export_text().splitlines()
 
 
 def test_the_demo_screen_fits_80_by_24_with_every_label_and_nothing_cut() -> None:
-    lines = _screen(80, 24, DEMO_SNAPSHOT, DEMO_TRUTH)
+    lines = _screen(80, 24, DEMO_STATE, DEMO_TRUTH)
     text = "\n".join(lines)
     assert len(lines) <= 24, text
     assert lines[0].startswith("╭") and lines[-1].startswith("╰"), text  # the whole panel
@@ -170,13 +209,13 @@ def test_the_demo_screen_fits_80_by_24_with_every_label_and_nothing_cut() -> Non
 
 
 def test_a_tall_terminal_keeps_the_full_tables() -> None:
-    text = "\n".join(_screen(120, 60, DEMO_SNAPSHOT, DEMO_TRUTH))
+    text = "\n".join(_screen(120, 60, DEMO_STATE, DEMO_TRUTH))
     assert "metering channels" in text and "mean spacing" in text
     assert "seed_sensors" in text and "lost" in text
 
 
 def test_the_speed_source_in_brackets_is_shown_not_taken_as_markup() -> None:
-    text = "\n".join(_screen(100, 40, DEMO_SNAPSHOT))
+    text = "\n".join(_screen(100, 40, DEMO_STATE))
     assert "3.02 km/h [radar]" in text
     assert "seed sensors [ttyUSB2] not answering" in text  # alarm text is not markup either
 
@@ -188,6 +227,6 @@ def test_rate_error_is_a_dash_until_something_has_been_sown() -> None:
 
     truth = Truth()
     truth.record(0.0, 0.004, 0.1, sowing=True, width_m=2.0)  # the first step off standstill
-    text = "\n".join(_screen(100, 40, DEMO_SNAPSHOT, truth_report(truth, 6.0)))
-    applied = _row(text, "applied")
+    text = "\n".join(_screen(100, 40, DEMO_STATE, truth_report(truth, 6.0)))
+    applied = _line(text, "applied")
     assert "-100" not in applied and applied.count("–") == 2, applied
