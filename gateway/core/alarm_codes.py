@@ -129,8 +129,9 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "calibration.refused", ("warning",),
         "at start, a saved calibration (`calibration.json`) would make a channel's command 0 or "
         "saturate it (shaft above `max_shaft_rpm`, duty above 100 %) at its configured rate "
-        "somewhere in `machine.working_speed_kmh`: it is not applied and the config value is "
-        "used; the message names the calibration key and why",
+        "at a speed in `machine.working_speed_kmh` where the config value works with a 25 % "
+        "margin: it is not applied and the config value is used; the message names the "
+        "calibration key and why",
         "repeat the rotation test (check `--outlets-weighed`), or `sowgate calibrate undo --key "
         "<key>`, then restart",
     ),

@@ -109,3 +109,19 @@ def test_a_paper_a_refit_needing_more_than_full_duty_is_refused() -> None:
 def test_a_bad_working_speed_range_names_the_key(bad: list[float]) -> None:
     with pytest.raises(ConfigError, match=r"machine\.working_speed_kmh"):
         parse_config({"machine": {"working_speed_kmh": bad}})
+
+
+def test_a_small_refit_of_a_channel_near_its_limit_is_not_refused() -> None:
+    """The CAN drill example's seed channel (11.2 g/rev x 10 outlets, 225 kg/ha over 3 m)
+    saturates from 5.97 km/h; a 2 % lower refit saturates from 5.85 km/h, and a checked speed
+    between the two must not turn a sound refit into a refusal."""
+    before = parse_config({
+        "machine": {"working_width_m": 3.0, "working_speed_kmh": [4.0, 5.9]},
+        "channel": [{"name": "seed", "target_rate_kg_ha": 225.0, "node_id": 3,
+                     "outlets": 10, "grams_per_rev": 11.2}],
+    })
+    after = before.model_copy(deep=True)
+    after.channel[0].grams_per_rev = 11.0
+    assert working_speed_problem(before, after, "rotation.seed") is None
+    after.channel[0].grams_per_rev = 5.0  # saturates from 2.7 km/h: the whole range
+    assert working_speed_problem(before, after, "rotation.seed") is not None
