@@ -216,7 +216,8 @@ def _check_change(rows: Sequence[tuple[str, float, float]], source: str,
         raise cal.CalibrationError(
             f"the result is {worst:.0f} % away from the {source} value it replaces (more than "
             f"{cal.LARGE_CHANGE_PCT:g} %): check the outlets weighed (--outlets-weighed) and "
-            "the masses; --accept-large-change saves it anyway. Nothing saved"
+            "the masses; --accept-large-change saves it anyway (if the saved value is the "
+            f"mistake: sowgate calibrate undo --key rotation.{args.channel}). Nothing saved"
         )
     log.warning("calibration rotation.%s: %.0f %% change accepted (--accept-large-change)",
                 args.channel, worst)

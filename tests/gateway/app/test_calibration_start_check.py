@@ -8,15 +8,19 @@ daemon then commanded 0 r/min to the seed channel with no alarm.
 
 from __future__ import annotations
 
+import argparse
+import io
 from pathlib import Path
 from typing import Any
 
 import pytest
+from rich.console import Console
 
 from gateway.app.calibration_check import working_speed_problem
 from gateway.app.daemon import Daemon
 from gateway.calibration import fits as cal
-from gateway.config import ConfigError, Settings, parse_config
+from gateway.calibration.cli import add_calibration_commands, run_calibration
+from gateway.config import ConfigError, Settings, load_config, parse_config
 
 
 def drill(**machine: Any) -> Settings:
@@ -125,3 +129,38 @@ def test_a_small_refit_of_a_channel_near_its_limit_is_not_refused() -> None:
     assert working_speed_problem(before, after, "rotation.seed") is None
     after.channel[0].grams_per_rev = 5.0  # saturates from 2.7 km/h: the whole range
     assert working_speed_problem(before, after, "rotation.seed") is not None
+
+
+def test_the_field_report_end_to_end(tmp_path: Path) -> None:
+    """CLI then daemon: the 24 outlets' catch is stored per outlet and the seed shaft turns;
+    forced through as one outlet's, the daemon refuses it at start instead of sowing nothing."""
+    cfg = tmp_path / "drill.toml"
+    cfg.write_text(
+        '[hmi]\nenabled = false\n[machine]\nworking_width_m = 3.0\nrows = 24\n'
+        '[[channel]]\nname = "seed"\ntarget_rate_kg_ha = 225\nnode_id = 3\noutlets = 24\n'
+        "grams_per_rev = 11.2\n"
+    )
+    masses = ",".join(f"{287.6 * n / 2:.3f}" for n in (20, 30, 40, 50, 60))
+
+    def calibrate(state: Path, *extra: str) -> int:
+        root = argparse.ArgumentParser(prog="sowgate")
+        add_calibration_commands(root.add_subparsers(dest="command"))
+        args = root.parse_args(["calibrate", "--config", str(cfg), "--state-dir", str(state),
+                                "rotation", "--channel", "seed", "--speeds", "20,30,40,50,60",
+                                "--no-wait", "--mass", masses, *extra])
+        return run_calibration(args, console=Console(file=io.StringIO()),
+                               ask=lambda q: pytest.fail(q))
+
+    good, bad = tmp_path / "good", tmp_path / "bad"
+    assert calibrate(good) == 0
+    settings = load_config(cfg)
+    daemon = start(settings, good)
+    assert settings.channel[0].grams_per_rev == pytest.approx(287.6 / 24)
+    assert not daemon.alarms.is_active("calibration.refused")
+
+    assert calibrate(bad, "--outlets-weighed", "1") == 1  # a 25x change: refused by the CLI
+    assert calibrate(bad, "--outlets-weighed", "1", "--accept-large-change") == 0
+    settings = load_config(cfg)
+    daemon = start(settings, bad)
+    assert settings.channel[0].grams_per_rev == 11.2
+    assert daemon.alarms.is_active("calibration.refused")
