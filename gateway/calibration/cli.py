@@ -91,13 +91,15 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
                    "of --outlets-weighed outlets together")
     r.add_argument("--outlets-weighed", type=_positive_int, default=None, metavar="N",
                    help="how many outlets each weighed mass comes from (default: all of the "
-                   "channel's [[channel]] outlets; paper A: all machine.rows). g/rev is stored "
+                   "channel's [[channel]] outlets in --config, 1 without one; paper A: all "
+                   "machine.rows). g/rev is stored "
                    "per outlet; paper A's eq. 6 is scaled to the whole machine by rows/N")
     r.add_argument("--accept-poor-fit", action="store_true",
                    help="save a fit that fails a quality gate (CV, R², set-point span); "
                    "logged and recorded in the entry")
     r.add_argument("--accept-large-change", action="store_true",
-                   help="save a result more than 25 percent away from the value it replaces")
+                   help=f"save a result more than {cal.LARGE_CHANGE_PCT:g} percent away from the "
+                   "value it replaces (the saved one, else the config's)")
     r.add_argument("--min-stable-rpm", type=float, default=cal.PAPER_B_MIN_STABLE_RPM)
     r.add_argument("--working-range", type=_floats, default=None, help="lo,hi r/min")
     r.add_argument("--drive", choices=("manual", "can"), default="manual")
@@ -152,7 +154,7 @@ class Outlets:
 
     def describe(self) -> str:
         of = f" of {self.total}" if self.total is not None else (
-            " (outlet count unknown without --config)")
+            "; the outlet count is unknown without --config")
         return f"mass from {self.weighed} outlet(s){of}"
 
 
