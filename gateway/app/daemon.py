@@ -42,6 +42,7 @@ from drivers.modbus_bus import ModbusBus
 from drivers.rs485_devices import Channel, Inclinometer, PwmModule, Radar
 from drivers.tasks import cancel_all
 from gateway.app import wiring
+from gateway.app.calibration_check import working_speed_problem
 from gateway.app.parts import Parts
 from gateway.calibration.apply import apply_calibrations
 from gateway.calibration.fits import CalibrationStore
@@ -114,7 +115,9 @@ class Daemon:
         self.state_dir = state_dir
         self.clock = clock
         self.alarms = AlarmBoard(settings.machine.id)
-        self.calibrations = apply_calibrations(settings, state_dir)
+        self.calibrations = apply_calibrations(
+            settings, state_dir, vet=working_speed_problem, alarms=self.alarms
+        )
         self.alarm_log: deque[AlarmEvent] = deque(maxlen=64)
         self.alarms.subscribe(self.alarm_log.append)
         self.controller = Controller(

@@ -4,25 +4,41 @@
 directory; the fitter's config keeps the factory values. At start the daemon lays the
 calibrations over the config so a refitted machine sows with its own curves, and the
 ``undo`` of a bad calibration is a restart away.
+
+A calibration is applied at the daemon's next start, not while it runs. The daemon passes a
+``vet`` (``gateway.app.calibration_check.working_speed_problem``): a calibration that would
+make a channel sow nothing or run flat out over the machine's working speeds is refused, the
+config value kept, and ``calibration.refused`` raised naming the key and why.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from gateway.calibration.fits import CalibrationError, CalibrationStore
 from gateway.config import Settings
+from gateway.core.alarms import AlarmBoard
 
 log = logging.getLogger(__name__)
 
+REFUSED_ALARM = "calibration.refused"
 
-def apply_calibrations(settings: Settings, state_dir: Path) -> list[str]:
+# (settings before the entry, settings with it, key) -> why it must not be used, or None
+Vet = Callable[[Settings, Settings, str], str | None]
+
+
+def apply_calibrations(settings: Settings, state_dir: Path, *, vet: Vet | None = None,
+                       alarms: AlarmBoard | None = None) -> list[str]:
     """Apply what ``calibration.json`` holds to ``settings`` in place; returns what changed.
 
     An unreadable file or an entry that no longer fits the config is reported and skipped:
-    the daemon starts on the config's values rather than not at all.
+    the daemon starts on the config's values rather than not at all. Each entry is first
+    applied to a copy and, with a ``vet``, checked: an entry it objects to is refused (the
+    config value stays), logged, listed as ``<key>: refused (...)`` and, with ``alarms``,
+    raised as ``calibration.refused``.
     """
     try:
         current = CalibrationStore(state_dir).current()
@@ -30,16 +46,30 @@ def apply_calibrations(settings: Settings, state_dir: Path) -> list[str]:
         log.error("calibrations not applied: %s", exc)
         return [f"calibration file ignored: {exc}"]
     applied: list[str] = []
+    refused: list[str] = []
     for key, entry in sorted(current.items()):
         try:
-            note = _apply_one(settings, key, entry.get("result", {}), entry)
-        except (ValueError, KeyError, TypeError) as exc:
+            result = entry.get("result", {})
+            candidate = settings.model_copy(deep=True)
+            _apply_one(candidate, key, result, entry)
+            problem = vet(settings, candidate, key) if vet is not None else None
+            if problem is None:
+                note = _apply_one(settings, key, result, entry)
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
             log.error("calibration %s not applied: %s", key, exc)
             applied.append(f"{key}: not applied ({exc})")
+            continue
+        if problem is not None:
+            log.error("calibration %s refused, the config value is used: %s", key, problem)
+            applied.append(f"{key}: refused ({problem})")
+            refused.append(f"{key} {problem}")
             continue
         if note:
             applied.append(note)
             log.info("calibration applied: %s", note)
+    if alarms is not None and refused:
+        alarms.raise_(REFUSED_ALARM, "calibration refused, config value used: "
+                      + "; ".join(refused), "warning")
     return applied
 
 

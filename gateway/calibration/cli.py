@@ -1,7 +1,12 @@
 """``sowgate calibrate rotation|speed|tilt|undo|show``: field calibration from the cab.
 
 The timed runs show a rich progress bar; the operator then weighs the catch and types the
-mass (or passes ``--mass`` for scripted use). With ``--drive can`` the CLI itself commands a
+mass (or passes ``--mass`` for scripted use). Which mass is asked for is said in ``--help``
+and in every prompt: the catch of ``--outlets-weighed N`` outlets (default all of the
+channel's); g/rev is stored per outlet, paper A's eq. 6 for the whole machine. A fit outside
+the quality gates (``fits.MAX_GPR_CV_PCT`` ...) or a result more than ``fits.LARGE_CHANGE_PCT``
+from the value it replaces is shown and refused unless ``--accept-poor-fit`` /
+``--accept-large-change``. With ``--drive can`` the CLI itself commands a
 ``can_pid`` channel's controller over CAN at each speed (stop the daemon first: one owner per
 bus); with ``--drive manual`` (default) the operator runs the meter from the HMI and the CLI
 only times. Results go to ``<state_dir>/calibration.json`` (previous value kept for undo).
@@ -15,6 +20,7 @@ import contextlib
 import csv
 import itertools
 import json
+import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -33,6 +39,8 @@ from gateway.calibration import fits as cal
 from gateway.config import ConfigError, Settings, load_config, state_dir
 from gateway.core.errors import GatewayError
 
+log = logging.getLogger(__name__)
+
 EXIT_OK = 0
 EXIT_FAILED = 1
 DEFAULT_B_SPEEDS = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)  # paper B
@@ -48,6 +56,16 @@ def _floats(text: str) -> list[float]:
         return [float(x) for x in text.replace(",", " ").split()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more (got {value})")
+    return value
 
 
 def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
@@ -69,7 +87,19 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
                    help="paper A: measured shaft r/min per run (default: the set speeds)")
     r.add_argument("--seconds", type=float, default=None, help="run length (B 30 s, A 60 s)")
     r.add_argument("--mass", type=_floats, default=None,
-                   help="weighed grams per run, in run order (skips the prompts)")
+                   help="weighed grams per run, in run order (skips the prompts): the catch "
+                   "of --outlets-weighed outlets together")
+    r.add_argument("--outlets-weighed", type=_positive_int, default=None, metavar="N",
+                   help="how many outlets each weighed mass comes from (default: all of the "
+                   "channel's [[channel]] outlets in --config, 1 without one; paper A: all "
+                   "machine.rows). g/rev is stored "
+                   "per outlet; paper A's eq. 6 is scaled to the whole machine by rows/N")
+    r.add_argument("--accept-poor-fit", action="store_true",
+                   help="save a fit that fails a quality gate (CV, R², set-point span); "
+                   "logged and recorded in the entry")
+    r.add_argument("--accept-large-change", action="store_true",
+                   help=f"save a result more than {cal.LARGE_CHANGE_PCT:g} percent away from the "
+                   "value it replaces (the saved one, else the config's)")
     r.add_argument("--min-stable-rpm", type=float, default=cal.PAPER_B_MIN_STABLE_RPM)
     r.add_argument("--working-range", type=_floats, default=None, help="lo,hi r/min")
     r.add_argument("--drive", choices=("manual", "can"), default="manual")
@@ -106,12 +136,94 @@ def _store(args: argparse.Namespace) -> cal.CalibrationStore:
 
 
 def _masses(args: argparse.Namespace, n: int, console: Console,
-            ask: Callable[[str], float]) -> list[float]:
+            ask: Callable[[str], float], outlets_weighed: int = 1) -> list[float]:
     if args.mass is not None:
         if len(args.mass) != n:
             raise cal.CalibrationError(f"--mass has {len(args.mass)} values for {n} runs")
         return list(args.mass)
-    return [ask(f"weighed mass of run {i + 1} (g)") for i in range(n)]
+    return [ask(f"weighed mass of run {i + 1} (g, mass from {outlets_weighed} outlet(s))")
+            for i in range(n)]
+
+
+@dataclass(frozen=True)
+class Outlets:
+    """Which catch the masses are: ``weighed`` outlets of ``total`` (None: not known)."""
+
+    weighed: int
+    total: int | None
+
+    def describe(self) -> str:
+        of = f" of {self.total}" if self.total is not None else (
+            "; the outlet count is unknown without --config")
+        return f"mass from {self.weighed} outlet(s){of}"
+
+
+def _outlets(args: argparse.Namespace, settings: Settings | None) -> Outlets:
+    """The outlets the weighed masses come from, checked against the config."""
+    name = args.channel
+    if args.model == "paper_a":
+        if settings is None:
+            if args.outlets_weighed is not None:
+                raise cal.CalibrationError(
+                    "--outlets-weighed with --model paper_a needs --config: eq. 6 is the whole "
+                    "machine's discharge, scaled by machine.rows"
+                )
+            return Outlets(1, None)
+        total = settings.machine.rows
+        what = f"machine.rows is {total}"
+    else:
+        ch = next((c for c in settings.channel if c.name == name), None) if settings else None
+        if ch is None:
+            return Outlets(args.outlets_weighed or 1, None)
+        total = ch.outlets
+        what = f"channel {name!r} has {total} outlets"
+    weighed = args.outlets_weighed or total
+    if weighed > total:
+        raise cal.CalibrationError(f"--outlets-weighed {weighed}: {what}")
+    return Outlets(weighed, total)
+
+
+def _check_quality(problems: list[str], args: argparse.Namespace, console: Console) -> None:
+    """Refuse a fit that fails a quality gate, unless ``--accept-poor-fit`` (then logged)."""
+    if not problems:
+        return
+    if not args.accept_poor_fit:
+        raise cal.CalibrationError(
+            "poor fit, nothing saved:\n  - " + "\n  - ".join(problems)
+            + "\n  (--accept-poor-fit saves it anyway)"
+        )
+    for problem in problems:
+        log.warning("calibration rotation.%s saved despite a poor fit (--accept-poor-fit): %s",
+                    args.channel, problem)
+        console.print(f"[yellow]accepted with --accept-poor-fit:[/yellow] {escape(problem)}")
+
+
+def _check_change(rows: Sequence[tuple[str, float, float]], source: str,
+                  args: argparse.Namespace, console: Console) -> bool:
+    """Show the result beside the value it replaces; refuse a change over the threshold.
+
+    Returns True when a large change was accepted with ``--accept-large-change``."""
+    if not rows:
+        return False
+    changes = [cal.change_pct(new, old) for _, old, new in rows]
+    table = _table(f"rotation.{args.channel}: new result beside the {source} value it replaces",
+                   ("value", f"replaces ({source})", "new", "change %"),
+                   [(what, f"{old:.2f}", f"{new:.2f}", f"{c:+.1f}")
+                    for (what, old, new), c in zip(rows, changes, strict=True)])
+    console.print(table)
+    worst = max(abs(c) for c in changes)
+    if worst <= cal.LARGE_CHANGE_PCT:
+        return False
+    if not args.accept_large_change:
+        raise cal.CalibrationError(
+            f"the result is {worst:.0f} % away from the {source} value it replaces (more than "
+            f"{cal.LARGE_CHANGE_PCT:g} %): check the outlets weighed (--outlets-weighed) and "
+            "the masses; --accept-large-change saves it anyway (if the saved value is the "
+            f"mistake: sowgate calibrate undo --key rotation.{args.channel}). Nothing saved"
+        )
+    log.warning("calibration rotation.%s: %.0f %% change accepted (--accept-large-change)",
+                args.channel, worst)
+    return True
 
 
 @dataclass
@@ -274,17 +386,58 @@ def _check_rotation_target(settings: Settings | None, name: str, model: str) -> 
         )
 
 
+def _previous_gpr(store: cal.CalibrationStore, settings: Settings | None,
+                  name: str) -> tuple[float, str] | None:
+    """The per-outlet g/rev a new result replaces: the saved one, else the config's."""
+    entry = store.get(f"rotation.{name}")
+    if entry is not None and entry.get("model") == "grams_per_rev":
+        return float(entry["result"]["grams_per_rev"]), "calibration"
+    ch = next((c for c in settings.channel if c.name == name), None) if settings else None
+    return (ch.grams_per_rev, "config") if ch is not None else None
+
+
+def _previous_paper_a(store: cal.CalibrationStore, settings: Settings | None,
+                      name: str) -> tuple[dict[str, float], dict[str, float], str] | None:
+    """Eq. 5 and eq. 6 coefficients a new paper-A fit replaces: saved, else the config's."""
+    entry = store.get(f"rotation.{name}")
+    if entry is not None and entry.get("model") == "paper_a":
+        result = entry["result"]
+        return dict(result["motor"]), dict(result["meter"]), "calibration"
+    if settings is None:
+        return None
+    crop_name = name if name in settings.control.crops else next(
+        (c.product for c in settings.channel if c.name == name and c.drive == "pwm_modbus"), None)
+    crop = settings.control.crops.get(crop_name) if crop_name is not None else None
+    if crop is None:
+        return None
+    motor = {"slope": crop.motor_slope, "intercept": crop.motor_intercept}
+    meter = {"a": crop.meter_a, "b": crop.meter_b, "c": crop.meter_c}
+    return motor, meter, "config"
+
+
+def _saved(console: Console, key: str, stored: str) -> None:
+    console.print(
+        f"saved {key}: {stored}. The daemon applies it at its next start (restart it: "
+        f"`systemctl restart sowgate`); `sowgate calibrate undo --key {key}` restores the "
+        "value it replaced."
+    )
+
+
 def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
     settings = _settings(args)
     _check_rotation_target(settings, args.channel, args.model)
+    outlets = _outlets(args, settings)
     store = _store(args)
+    key = f"rotation.{args.channel}"
+    console.print(f"masses asked for: the catch of each run, {outlets.describe()}")
     if args.model == "grams_per_rev":
         speeds = args.speeds or list(DEFAULT_B_SPEEDS)
         seconds = args.seconds or DEFAULT_B_SECONDS
         drive = _can_driver(settings, args.channel, speeds) if args.drive == "can" else None
         driven = _timed_runs([f"{n:g} r/min for {seconds:g} s" for n in speeds], seconds,
                              console, drive, not args.no_wait)
-        masses = _masses(args, len(speeds), console, ask)
+        weighed = _masses(args, len(speeds), console, ask, outlets.weighed)
+        masses = [m / outlets.weighed for m in weighed]  # per outlet
         rpm = list(speeds)
         if driven:
             # the shaft's measured turns, spin-up and run-down included, not the set point
@@ -299,14 +452,31 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         runs = [cal.RotationRun(n, seconds, m, set_rpm=s if driven else None)
                 for n, m, s in zip(rpm, masses, speeds, strict=True)]
         fit = cal.grams_per_rev(runs, args.min_stable_rpm)
-        rows: list[tuple[Any, ...]] = [(r.rpm, r.mass_g, g, res) for r, g, res in
-                zip(fit.used, fit.per_run, fit.residuals_g_min, strict=True)]
-        rows += [(r.rpm, r.mass_g, "excluded (unstable)", "") for r in fit.excluded]
-        console.print(_table(f"rotation test {args.channel}", ("r/min", "g", "g/rev",
-                                                               "residual g/min"), rows))
+        rows: list[tuple[Any, ...]] = [
+            (r.rpm, r.mass_g * outlets.weighed, g, res) for r, g, res in
+            zip(fit.used, fit.per_run, fit.residuals_g_min, strict=True)]
+        rows += [(r.rpm, r.mass_g * outlets.weighed, "excluded (unstable)", "")
+                 for r in fit.excluded]
+        console.print(_table(f"rotation test {args.channel}", (
+            "r/min", f"g weighed ({outlets.weighed} outlet(s))", "g/rev per outlet",
+            "residual g/min per outlet"), rows))
         console.print(f"g/rev = {fit.grams_per_rev:.2f}  CV {fit.cv_pct:.2f} %  R² {fit.r2:.4f}")
-        store.save(f"rotation.{args.channel}", cal.to_entry(fit, channel=args.channel,
-                                                             model="grams_per_rev"))
+        console.print(f"{fit.grams_per_rev:.2f} g/rev per outlet ({outlets.describe()})")
+        problems = cal.grams_per_rev_problems(fit)
+        _check_quality(problems, args, console)
+        previous = _previous_gpr(store, settings, args.channel)
+        large = False
+        if previous is not None:
+            large = _check_change([("g/rev per outlet", previous[0], fit.grams_per_rev)],
+                                  previous[1], args, console)
+        replaces = (None if previous is None
+                    else {"grams_per_rev": previous[0], "from": previous[1]})
+        store.save(key, cal.to_entry(
+            fit, channel=args.channel, model="grams_per_rev",
+            outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
+            replaces=replaces, accepted_poor_fit=problems,
+            accepted_large_change=large))
+        _saved(console, key, f"{fit.grams_per_rev:.2f} g/rev per outlet")
         return EXIT_OK
     # paper A: duty -> speed line and speed -> rate quadratic
     if args.duties is None:
@@ -318,22 +488,47 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     rpm = list(args.rpm) if args.rpm is not None else [
         ask(f"measured shaft speed of run {i + 1} (r/min)") for i in range(len(duties))
     ]
-    masses = _masses(args, len(duties), console, ask)
-    rates = [m / (seconds / 60.0) for m in masses]
+    weighed = _masses(args, len(duties), console, ask, outlets.weighed)
+    # eq. 6 is the whole machine's discharge: a catch from fewer rows scales up by rows/N
+    scale = 1.0 if outlets.total is None else outlets.total / outlets.weighed
+    rates = [m * scale / (seconds / 60.0) for m in weighed]
     wr = tuple(args.working_range) if args.working_range else (min(rpm), max(rpm))
     if len(wr) != 2:
         raise cal.CalibrationError("--working-range takes two numbers: lo,hi r/min")
     line = cal.fit_motor_line(duties, rpm)
     quad = cal.fit_meter_quadratic(rpm, rates, (wr[0], wr[1]))
     console.print(_table(f"rotation test {args.channel} (paper A)",
-                         ("duty %", "r/min", "g/min", "speed resid.", "rate resid."),
+                         ("duty %", "r/min", "g/min whole machine", "speed resid.",
+                          "rate resid."),
                          list(zip(duties, rpm, rates, line.residuals, quad.residuals,
                                   strict=True))))
     console.print(f"R = {line.slope:.4f}·K {line.intercept:+.4f}  (R² {line.r2:.4f})")
     console.print(f"Q = {quad.a:.4f}·ω² {quad.b:+.4f}·ω {quad.c:+.4f}  (R² {quad.r2:.4f})")
-    store.save(f"rotation.{args.channel}", cal.to_entry(
+    problems = cal.paper_a_problems(line, quad, duties, rpm)
+    _check_quality(problems, args, console)
+    previous_a = _previous_paper_a(store, settings, args.channel)
+    large = False
+    if previous_a is not None:
+        motor, meter, source = previous_a
+        mid_duty = (min(duties) + max(duties)) / 2
+        mid_w = (wr[0] + wr[1]) / 2
+
+        def q(m: dict[str, float], w: float) -> float:
+            return m["a"] * w * w + m["b"] * w + m["c"]
+
+        large = _check_change([
+            (f"r/min at {mid_duty:.0f} % duty (eq. 5)",
+             motor["slope"] * mid_duty + motor["intercept"], line.predict(mid_duty)),
+            (f"g/min at {mid_w:.0f} r/min (eq. 6)", q(meter, mid_w), quad.predict(mid_w)),
+        ], source, args, console)
+    replaces_a = None if previous_a is None else {
+        "motor": previous_a[0], "meter": previous_a[1], "from": previous_a[2]}
+    store.save(key, cal.to_entry(
         {"motor": line.__dict__, "meter": quad.__dict__, "omega_range": list(wr)},
-        channel=args.channel, model="paper_a"))
+        channel=args.channel, model="paper_a", outlets_weighed=outlets.weighed,
+        outlets=outlets.total, weighed_mass_g=weighed, replaces=replaces_a,
+        accepted_poor_fit=problems, accepted_large_change=large))
+    _saved(console, key, "eq. 5 and eq. 6 for the whole machine")
     return EXIT_OK
 
 

@@ -46,6 +46,22 @@ MIN_CAL_DISTANCE_M = 10.0
 LOWERED_READINGS = 3
 MAX_READING_SPREAD_DEG = 2.0  # readings further apart: the machine was moving
 
+# Fit quality gates (``sowgate calibrate rotation`` refuses a fit outside them, with the
+# reason, unless ``--accept-poor-fit``, which is logged and saved in the entry).
+# Paper B's repeated runs agree within a few % (its table 2 runs: CV < 2 %); a CV above 10 %
+# is a weighing, timing or typing mistake (a mass from another run, all outlets in one run and
+# one in the next), not a meter that changes its displacement with speed.
+MAX_GPR_CV_PCT = 10.0
+MIN_GPR_R2 = 0.95  # delivered g/min against r/min through the origin (paper B: linear)
+MIN_MOTOR_R2 = 0.95  # paper A eq. 5, duty -> r/min (the paper's fits: R² > 0.99)
+MIN_METER_R2 = 0.95  # paper A eq. 6, r/min -> g/min
+# Paper A set points spanning less than this fraction of the largest one give a line and a
+# parabola that are not determined outside a sliver of the working range (poorly conditioned).
+MIN_SET_POINT_SPAN = 0.25
+# A result further than this from the value it replaces is shown side by side and refused
+# unless ``--accept-large-change``: a 25x per-outlet/all-outlets mix-up must not pass quietly.
+LARGE_CHANGE_PCT = 25.0
+
 
 class CalibrationError(GatewayError):
     """A calibration cannot be accepted; the message tells the operator why."""
@@ -190,6 +206,62 @@ def grams_per_rev(runs: Sequence[RotationRun],
     cv = float(np.std(per_run, ddof=1) / mean * 100)
     return GramsPerRevFit(mean, used, excluded, tuple(per_run.tolist()), cv, _r2(q, fitted),
                           tuple((q - fitted).tolist()))
+
+
+def grams_per_rev_problems(fit: GramsPerRevFit, *, max_cv_pct: float = MAX_GPR_CV_PCT,
+                           min_r2: float = MIN_GPR_R2) -> list[str]:
+    """Why a g/rev fit should not be trusted (empty: it passes every gate)."""
+    problems = []
+    if fit.cv_pct > max_cv_pct:
+        problems.append(
+            f"the runs disagree: g/rev CV {fit.cv_pct:.1f} % > {max_cv_pct:g} % "
+            "(MAX_GPR_CV_PCT); check each mass belongs to its run and the same outlets were "
+            "weighed every time"
+        )
+    if fit.r2 < min_r2:
+        problems.append(
+            f"delivered g/min does not follow r/min: R² {fit.r2:.3f} < {min_r2:g} (MIN_GPR_R2)"
+        )
+    return problems
+
+
+def _span_fraction(values: Sequence[float]) -> float:
+    top = max(abs(v) for v in values)
+    return 0.0 if top == 0 else (max(values) - min(values)) / top
+
+
+def paper_a_problems(line: LineFit, quad: QuadFit, duties: Sequence[float],
+                     rpm: Sequence[float], *, min_motor_r2: float = MIN_MOTOR_R2,
+                     min_meter_r2: float = MIN_METER_R2,
+                     min_span: float = MIN_SET_POINT_SPAN) -> list[str]:
+    """Why paper A's eq. 5 / eq. 6 fits should not be trusted (empty: every gate passes)."""
+    problems = []
+    if line.r2 < min_motor_r2:
+        problems.append(
+            f"eq. 5 (duty -> r/min) fits poorly: R² {line.r2:.3f} < {min_motor_r2:g} "
+            "(MIN_MOTOR_R2); re-measure the shaft speeds"
+        )
+    if quad.r2 < min_meter_r2:
+        problems.append(
+            f"eq. 6 (r/min -> g/min) fits poorly: R² {quad.r2:.3f} < {min_meter_r2:g} "
+            "(MIN_METER_R2); repeat the weighings"
+        )
+    for what, values in (("duty", duties), ("shaft speed", rpm)):
+        span = _span_fraction(values)
+        if span < min_span:
+            problems.append(
+                f"the {what} set points span only {span * 100:.0f} % of the largest "
+                f"(< {min_span * 100:g} %, MIN_SET_POINT_SPAN): the fit is poorly conditioned; "
+                "spread the runs over the working range"
+            )
+    return problems
+
+
+def change_pct(new: float, old: float) -> float:
+    """Signed relative change of ``new`` against ``old`` in % (inf when old is 0)."""
+    if old == 0:
+        return 0.0 if new == 0 else math.inf
+    return (new - old) / abs(old) * 100.0
 
 
 @dataclass(frozen=True)

@@ -17,11 +17,27 @@ from pydantic_settings import NoDecode
 from gateway.config._base import FieldProblem, OptionalPart, Section, check_unique, source_chain
 from protocol.registers import PWM_COMM_TIMEOUT_REGISTER
 
+MAX_WORKING_SPEED_KMH = 40.0  # as speed.max_plausible_kmh's upper bound
+
 
 class MachineSection(Section):
     id: str = Field("seeder-01", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     working_width_m: float = Field(2.0, gt=0, le=60)
     rows: int = Field(6, ge=1, le=128)
+    # The ground speeds the machine sows at (km/h, lo..hi). At start a calibration that would
+    # make a channel's command 0 or saturate (shaft above max_shaft_rpm, duty above 100 %) at
+    # its configured rate anywhere in this range is refused (alarm calibration.refused).
+    working_speed_kmh: tuple[float, float] = (4.0, 12.0)
+
+    @field_validator("working_speed_kmh")
+    @classmethod
+    def _speed_range(cls, value: tuple[float, float]) -> tuple[float, float]:
+        lo, hi = value
+        if not 0 < lo < hi <= MAX_WORKING_SPEED_KMH:
+            raise ValueError(
+                f"must be [lo, hi] km/h with 0 < lo < hi <= {MAX_WORKING_SPEED_KMH:g}"
+            )
+        return value
 
 
 class Rs485Section(OptionalPart):

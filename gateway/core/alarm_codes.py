@@ -126,6 +126,16 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "enable `[can]` or remove those channels",
     ),
     AlarmCode(
+        "calibration.refused", ("warning",),
+        "at start, a saved calibration (`calibration.json`) would make a channel's command 0 or "
+        "saturate it (shaft above `max_shaft_rpm`, duty above 100 %) at its configured rate "
+        "at a speed in `machine.working_speed_kmh` where the config value works with a 25 % "
+        "margin: it is not applied and the config value is used; the message names the "
+        "calibration key and why",
+        "repeat the rotation test (check `--outlets-weighed`), or `sowgate calibrate undo --key "
+        "<key>`, then restart",
+    ),
+    AlarmCode(
         "prescription.invalid", ("critical",),
         "the prescription map could not be used (default rates apply)",
         "fix the map file named in the message",
