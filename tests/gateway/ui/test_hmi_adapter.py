@@ -13,6 +13,7 @@ from drivers.tasks import cancel_and_wait
 from gateway.app.daemon import Daemon
 from gateway.config import parse_config
 from simulator.pty_link import PtyPair
+from tests.helpers import eventually
 
 
 async def test_hmi_write_timeout_from_the_config_is_what_the_link_waits(tmp_path: Path) -> None:
@@ -26,10 +27,7 @@ async def test_hmi_write_timeout_from_the_config_is_what_the_link_waits(tmp_path
         link = daemon.hmi.link
         task = asyncio.create_task(link.run())
         try:
-            deadline = time.monotonic() + 5.0
-            while not link.available:
-                assert time.monotonic() < deadline, "HMI port never opened"
-                await asyncio.sleep(0.02)
+            await eventually(lambda: link.available, what="the HMI port to open")
             page = {f"t{i}": "x" * 250 for i in range(3000)}  # far more than a pty buffers
             started = time.monotonic()
             await link.show_many(page)
@@ -68,16 +66,12 @@ async def test_a_storm_of_bad_frames_costs_a_few_log_lines_and_is_counted_per_re
         link = daemon.hmi.link
         task = asyncio.create_task(link.run())
         try:
-            deadline = time.monotonic() + 5.0
-            while not link.available:
-                assert time.monotonic() < deadline, "HMI port never opened"
-                await asyncio.sleep(0.02)
+            await eventually(lambda: link.available, what="the HMI port to open")
             bad_frames = 500
             screen.send_raw(b"\x55\x55\x09\x00\x00\x00\x0d\x0a" * bad_frames)
             screen.send_raw(b"\x55\x55\x05\x07\x00\x00\x0d\x0a" * 3)  # seed-level flag 7
-            while link.stats.rejected < bad_frames + 3:
-                assert time.monotonic() < deadline + 5.0, "bad frames never all arrived"
-                await asyncio.sleep(0.02)
+            await eventually(lambda: link.stats.rejected >= bad_frames + 3,
+                             what="every bad frame")
         finally:
             await cancel_and_wait(task)
     assert link.stats.rejected_by_reason == {"unknown_function": bad_frames, "bad_field": 3}
