@@ -6,6 +6,7 @@ import asyncio
 import struct
 import uuid
 from collections.abc import AsyncIterator
+from typing import Any
 
 import can
 import pytest
@@ -26,8 +27,18 @@ def channel() -> str:
 
 
 @pytest.fixture
-async def bus(channel: str) -> AsyncIterator[CanBus]:
-    async with CanBus("virtual", channel, backoff=FAST) as b:
+def opened() -> list[can.BusABC]:
+    """Every python-can interface the ``bus`` fixture opened, the current one last."""
+    return []
+
+
+@pytest.fixture
+async def bus(channel: str, opened: list[can.BusABC]) -> AsyncIterator[CanBus]:
+    def open_interface(**kwargs: Any) -> can.BusABC:
+        opened.append(can.Bus(**kwargs))
+        return opened[-1]
+
+    async with CanBus("virtual", channel, backoff=FAST, open_interface=open_interface) as b:
         yield b
 
 
@@ -61,11 +72,11 @@ async def test_close_stops_the_notifier_thread_and_is_idempotent(channel: str) -
     assert not b.connected
 
 
-async def test_bus_reopens_after_the_interface_fails(bus: CanBus, peer: CanBus) -> None:
+async def test_bus_reopens_after_the_interface_fails(
+    bus: CanBus, peer: CanBus, opened: list[can.BusABC]
+) -> None:
     """Shutting the interface under the notifier is what an unplugged adapter looks like."""
-    inner = bus._bus
-    assert inner is not None
-    inner.shutdown()
+    opened[-1].shutdown()
     # the notifier thread hits the closed bus, reports the error, recv() reconnects
     assert await bus.recv(max_wait_s=0.5) is None
     assert bus.stats.reconnects >= 1 and bus.connected
@@ -213,11 +224,10 @@ async def test_isobus_listener_runs_on_the_bus(bus: CanBus, peer: CanBus) -> Non
     assert lis.speed_kmh() == pytest.approx(9.0)
 
 
-async def test_send_on_a_failed_bus_reports_unavailable_then_recovers(bus: CanBus,
-                                                                      peer: CanBus) -> None:
-    inner = bus._bus
-    assert inner is not None
-    inner.shutdown()
+async def test_send_on_a_failed_bus_reports_unavailable_then_recovers(
+    bus: CanBus, peer: CanBus, opened: list[can.BusABC]
+) -> None:
+    opened[-1].shutdown()
     with pytest.raises(DeviceUnavailable, match="send failed"):
         await bus.send(0x201, bytes(8))
     await bus.send(0x202, bytes(8))  # reopened by the failed send
