@@ -73,6 +73,7 @@ __all__ = [
     "IsobusSection",
     "MachineSection",
     "MqttSection",
+    "OptionalPart",
     "PositioningSection",
     "PrescriptionSection",
     "RadarSection",

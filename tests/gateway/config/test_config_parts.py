@@ -267,8 +267,7 @@ def test_run_with_a_store_path_under_a_file_exits_78(tmp_path: Path) -> None:
 def test_every_table_with_an_enabled_switch_follows_the_one_rule() -> None:
     """A later table (a hopper, say) with ``enabled: bool`` must be an ``OptionalPart``, or a
     fitter's ``[hopper]`` table would again be silently off."""
-    from gateway.config import Settings, optional_parts
-    from gateway.config._base import OptionalPart
+    from gateway.config import OptionalPart, Settings, optional_parts
 
     for name, field in Settings.model_fields.items():
         kind = field.annotation
