@@ -3,17 +3,23 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import signal
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 from simulator.machine import SimulatedMachine
+from simulator.modbus_devices import Rs485Simulator
 from tests.helpers import eventually, sowgate_env, sowgate_process
 from tests.integration.conftest import steady_drive
 
 
-async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
+@contextlib.asynccontextmanager
+async def metering_process(
     tmp_path: Path,
-) -> None:
+) -> AsyncIterator[tuple[asyncio.subprocess.Process, Rs485Simulator]]:
+    """``sowgate run`` in its own process against the simulated machine, once the metering
+    motor and the fan turn; the process and the simulated RS485 bus."""
     async with SimulatedMachine(drive=steady_drive()) as machine:
         cfg = machine.write_config(tmp_path / "sowgate.toml", control={"start_working": True})
         env = sowgate_env(tmp_path / "state")
@@ -22,8 +28,15 @@ async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
             assert sim is not None
             await eventually(lambda: sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0, 20.0,
                              "motor and fan turning")
-            proc.send_signal(signal.SIGTERM)
-            _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
+            yield proc, sim
+
+
+async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
+    tmp_path: Path,
+) -> None:
+    async with metering_process(tmp_path) as (proc, sim):
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
         assert proc.returncode == 0, stderr.decode()
         assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
 
@@ -118,17 +131,10 @@ async def test_demo_publishes_to_the_broker_named_in_the_environment(tmp_path: P
 async def test_sowgate_run_says_so_and_exits_1_when_the_pwm_module_is_silent_at_stop(
     tmp_path: Path,
 ) -> None:
-    async with SimulatedMachine(drive=steady_drive()) as machine:
-        cfg = machine.write_config(tmp_path / "sowgate.toml", control={"start_working": True})
-        env = sowgate_env(tmp_path / "state")
-        async with sowgate_process("run", "--config", str(cfg), env=env) as proc:
-            sim = machine.rs485
-            assert sim is not None
-            await eventually(lambda: sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0, 20.0,
-                             "motor and fan turning")
-            sim.set_fault(sim.device_ids["pwm"], "silent")
-            proc.send_signal(signal.SIGTERM)
-            _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
+    async with metering_process(tmp_path) as (proc, sim):
+        sim.set_fault(sim.device_ids["pwm"], "silent")
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
     text = stderr.decode()
     assert proc.returncode == 1, text
     last = text.strip().splitlines()[-1]
