@@ -17,6 +17,7 @@ from drivers.errors import DeviceUnavailable, DriverError
 from protocol import can_metering as cm
 from protocol import isobus as ib
 from protocol.errors import FieldError
+from tests.helpers import eventually
 
 FAST = Backoff(initial_s=0.01, cap_s=0.05)
 
@@ -125,10 +126,7 @@ async def test_link_delivers_typed_status_and_skips_bad_frames(bus: CanBus, peer
             cm.MeterStatus(4, 21.5, True, True, False, False, cm.FaultCode.NONE, 0, 3, 40.0)
         )
         await peer.send(frame_id, data)
-        for _ in range(200):
-            if got:
-                break
-            await asyncio.sleep(0.01)
+        await eventually(lambda: got, 2.0, "the one good status", interval=0.01)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
@@ -214,10 +212,7 @@ async def test_isobus_listener_runs_on_the_bus(bus: CanBus, peer: CanBus) -> Non
     try:
         msg = speed_msg(65097, 2500)
         await peer.send(msg.arbitration_id, bytes(msg.data), extended=True)
-        for _ in range(200):
-            if lis.speed_kmh() is not None:
-                break
-            await asyncio.sleep(0.005)
+        await eventually(lambda: lis.speed_kmh() is not None, 1.0, "the speed", interval=0.005)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)

@@ -131,10 +131,8 @@ async def test_tractor_simulator_feeds_the_isobus_listener(buses: tuple[CanBus, 
     async with asyncio.TaskGroup() as tg:
         t1 = tg.create_task(tractor.run(), name="tractor")
         t2 = tg.create_task(lis.run(), name="isobus")
-        for _ in range(100):
-            await asyncio.sleep(0.02)
-            if lis.speed_kmh() is not None and lis.working() is not None:
-                break
+        await eventually(lambda: lis.speed_kmh() is not None and lis.working() is not None,
+                         2.0, "speed and work state from the tractor", interval=0.02)
         speed, working = lis.speed(), lis.working()
         tractor.silent = True
         await asyncio.sleep(0.5)

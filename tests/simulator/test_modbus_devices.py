@@ -23,7 +23,7 @@ from protocol.registers import (
 )
 from simulator.modbus_devices import FAULTS, Fault, Rs485Simulator
 from simulator.pty_link import PtyPair
-from tests.helpers import Plant
+from tests.helpers import Plant, eventually
 
 TIMEOUT_S = 0.15
 
@@ -276,11 +276,8 @@ async def test_vanish_breaks_the_open_port_and_restore_brings_the_same_path_back
     path = sim.device_path
     sim.vanish()
     assert not link_exists(path)
-    for _ in range(50):  # the master notices the EIO on its own
-        if not master.connected:
-            break
-        await asyncio.sleep(0.02)
-    assert not master.connected
+    # the master notices the EIO on its own
+    await eventually(lambda: not master.connected, 1.0, "the master to notice", interval=0.02)
     assert not await master.connect()  # nothing to open while unplugged
     sim.restore()
     assert sim.device_path == path and path_exists(path)

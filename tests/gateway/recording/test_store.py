@@ -350,10 +350,8 @@ async def test_run_prunes_at_start_and_raises_an_old_backlog(tmp_path: Path) -> 
         store.run(utcnow=lambda: T0 + timedelta(days=41)), name="store-run"
     )
     try:
-        for _ in range(100):
-            if calls and len(list(store.query_seeds())) == 12:
-                break
-            await asyncio.sleep(0.02)
+        await eventually(lambda: calls and len(list(store.query_seeds())) == 12, 2.0,
+                         "the backlog call after the prune", interval=0.02)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
