@@ -88,7 +88,12 @@ class BusStats:
 
 
 class CanBus:
-    """One CAN interface, reopened with backoff when it fails. Use as ``async with``."""
+    """One CAN interface, reopened with backoff when it fails. Use as ``async with``.
+
+    ``open_interface`` opens the python-can interface (``can.Bus`` by default, called with
+    ``interface=``, ``channel=`` and the ``bus_kwargs``); a test passes a wrapper to get hold of
+    each interface opened and fail it the way an unplugged adapter does.
+    """
 
     def __init__(
         self,
@@ -99,6 +104,7 @@ class CanBus:
         backoff: Backoff | None = None,
         rx_buffer: int = RX_BUFFER_MAX,
         bus_kwargs: dict[str, Any] | None = None,
+        open_interface: Callable[..., can.BusABC] | None = None,
     ) -> None:
         self.interface = interface
         self.channel = channel
@@ -106,6 +112,7 @@ class CanBus:
         self._backoff = backoff or Backoff(initial_s=0.1, cap_s=5.0)
         self._rx_buffer = rx_buffer
         self._bus_kwargs = bus_kwargs or {}
+        self._open_interface = open_interface or can.Bus
         self._bus: can.BusABC | None = None
         self._notifier: can.Notifier | None = None
         self._reader: _BoundedReader | None = None
@@ -129,7 +136,7 @@ class CanBus:
         if self.bitrate is not None and self.interface != "virtual":
             kwargs["bitrate"] = self.bitrate
         try:
-            bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+            bus = self._open_interface(interface=self.interface, channel=self.channel, **kwargs)
         except can.CanInterfaceNotImplementedError as exc:
             raise DriverError(
                 f"CAN interface {self.interface!r} is not available on this system: {exc}"

@@ -99,6 +99,13 @@ class HmiLink:
         """True while the port is open; says nothing about whether a screen is plugged in."""
         return self._writer is not None and not self._writer.is_closing()
 
+    @property
+    def write_backlog(self) -> int:
+        """Bytes written to the port that the screen has not taken yet (0 while closed); above
+        ``MAX_WRITE_BACKLOG`` further updates are dropped instead of queued."""
+        writer = self._writer
+        return 0 if writer is None else writer.transport.get_write_buffer_size()
+
     # -- reading ------------------------------------------------------------------------------
 
     async def run(self) -> None:
@@ -210,7 +217,7 @@ class HmiLink:
         writer = self._writer
         if writer is None or writer.is_closing():
             return self._drop(count, "port not open")
-        if writer.transport.get_write_buffer_size() > MAX_WRITE_BACKLOG:
+        if self.write_backlog > MAX_WRITE_BACKLOG:
             return self._drop(count, "screen is not reading")
         writer.write(payload)
         self.stats.writes += count

@@ -213,6 +213,16 @@ class HmiDecoder:
         """True while bytes are held that a later ``feed`` or ``flush`` will report."""
         return bool(self._buf or self._garbage)
 
+    @property
+    def partial_frame_bytes(self) -> int:
+        """Bytes held for a frame not complete yet (fewer than a frame's length)."""
+        return len(self._buf)
+
+    @property
+    def garbage_run_bytes(self) -> int:
+        """Bytes of the current garbage run not reported yet (fewer than ``MAX_BUFFER``)."""
+        return len(self._garbage)
+
     def feed(self, data: bytes | bytearray | memoryview) -> list[HmiEvent]:
         out: list[HmiEvent] = []
         buf = self._buf

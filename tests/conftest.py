@@ -1,4 +1,5 @@
-"""Suite-wide guards: a test that leaks tasks, threads or file descriptors fails."""
+"""Suite-wide guards (a test that leaks tasks, threads or file descriptors fails) and the
+fixtures several folders share: the simulated RS485 bus and the plant behind it."""
 
 from __future__ import annotations
 
@@ -10,6 +11,9 @@ import time
 from collections.abc import AsyncIterator, Iterator
 
 import pytest
+
+from simulator.modbus_devices import Rs485Simulator
+from tests.helpers import Plant
 
 LEAK_GRACE_S = 2.0
 
@@ -86,3 +90,18 @@ def _no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
     problems = _leak_problems(threads_before, fds_before)
     if problems:
         pytest.fail("test leaked " + "; ".join(problems))
+
+
+@pytest.fixture
+def plant() -> Plant:
+    """What the simulated RS485 devices report; a test file overrides it for its own values."""
+    return Plant()
+
+
+@pytest.fixture
+async def sim(plant: Plant) -> AsyncIterator[Rs485Simulator]:
+    """The simulated RS485 bus (radar, inclinometer, PWM module) on a pty, reporting ``plant``."""
+    async with Rs485Simulator(
+        radar_kmh=lambda: plant.kmh, tilt_deg=lambda: plant.tilt, on_duty=plant.on_duty
+    ) as simulator:
+        yield simulator

@@ -145,12 +145,14 @@ class Mosquitto:
 
 @dataclass
 class Subscriber:
-    """A dashboard: persistent session, reconnects, remembers everything it saw."""
+    """A dashboard: persistent session, reconnects, remembers everything it saw and when it
+    arrived (``arrived[i]`` is the monotonic time of ``messages[i]``)."""
 
     port: int
     base: str
     client_id: str = "dashboard"
     messages: list[tuple[str, bytes, bool]] = field(default_factory=list)
+    arrived: list[float] = field(default_factory=list)
     ready: asyncio.Event = field(default_factory=asyncio.Event)
 
     async def run(self) -> None:
@@ -162,21 +164,47 @@ class Subscriber:
                     self.ready.set()
                     async for m in client.messages:
                         payload = m.payload if isinstance(m.payload, bytes) else b""
+                        self.arrived.append(time.monotonic())
                         self.messages.append((m.topic.value, payload, m.retain))
             except aiomqtt.MqttError:
                 await asyncio.sleep(0.1)
 
     def on(self, suffix: str) -> list[bytes]:
-        return [p for t, p, _ in self.messages if t == f"{self.base}/{suffix}"]
+        return [p for _, p in self.timed(suffix)]
+
+    def timed(self, suffix: str) -> list[tuple[float, bytes]]:
+        """(arrival time, payload) of every message on ``BASE/suffix``."""
+        topic = f"{self.base}/{suffix}"
+        return [(t, p) for t, (top, p, _) in zip(self.arrived, self.messages, strict=True)
+                if top == topic]
 
     def seed_ids(self) -> list[int]:
         return [r["id"] for p in self.on("seeds") for r in json.loads(p)["records"]]
 
+    def alarms_between(self, t0: float, t1: float) -> set[str]:
+        """Codes shown active between ``t0`` and ``t1``: in the retained state's alarm list or
+        raised on the alarms topic."""
+        codes: set[str] = set()
+        for t, payload in self.timed("state"):
+            if t0 <= t <= t1:
+                with contextlib.suppress(ValueError, KeyError, TypeError):
+                    codes.update(a["code"] for a in json.loads(payload)["alarms"])
+        for t, payload in self.timed("alarms"):
+            if t0 <= t <= t1:
+                with contextlib.suppress(ValueError, KeyError, TypeError):
+                    event = json.loads(payload)
+                    if event["active"]:
+                        codes.add(event["code"])
+        return codes
+
 
 @contextlib.asynccontextmanager
-async def subscriber(port: int, base: str = "sowgate/seeder-01") -> AsyncIterator[Subscriber]:
-    sub = Subscriber(port, base)
-    task = asyncio.create_task(sub.run(), name="test-subscriber")
+async def subscriber(
+    port: int, base: str = "sowgate/seeder-01", client_id: str = "dashboard"
+) -> AsyncIterator[Subscriber]:
+    """A ``Subscriber`` running for the block, subscribed before the block starts."""
+    sub = Subscriber(port, base, client_id)
+    task = asyncio.create_task(sub.run(), name=f"test-subscriber-{client_id}")
     try:
         await asyncio.wait_for(sub.ready.wait(), 10)
         yield sub

@@ -74,6 +74,7 @@ __all__ = [
     "IsobusSection",
     "MachineSection",
     "MqttSection",
+    "OptionalPart",
     "PositioningSection",
     "PrescriptionSection",
     "RadarSection",

@@ -307,6 +307,7 @@ class RecordStore:
         # checkpoint never stalls the event loop (and with it the control loop).
         self._ckpt_lock = threading.Lock()
         self._ckpt_db: sqlite3.Connection | None = None
+        self.checkpoints = 0  # WAL fsyncs made (an idle box makes none; for tests and the log)
         # why writing fails, None once everything held is written (read by the alarms)
         self.commit_error: str | None = None
 
@@ -783,6 +784,7 @@ class RecordStore:
                 db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
                 self._ckpt_db = db
             db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchall()
+            self.checkpoints += 1
 
     # -- outbox ------------------------------------------------------------------------------
 

@@ -6,6 +6,7 @@ import asyncio
 import struct
 import uuid
 from collections.abc import AsyncIterator
+from typing import Any
 
 import can
 import pytest
@@ -16,6 +17,7 @@ from drivers.errors import DeviceUnavailable, DriverError
 from protocol import can_metering as cm
 from protocol import isobus as ib
 from protocol.errors import FieldError
+from tests.helpers import eventually
 
 FAST = Backoff(initial_s=0.01, cap_s=0.05)
 
@@ -26,8 +28,18 @@ def channel() -> str:
 
 
 @pytest.fixture
-async def bus(channel: str) -> AsyncIterator[CanBus]:
-    async with CanBus("virtual", channel, backoff=FAST) as b:
+def opened() -> list[can.BusABC]:
+    """Every python-can interface the ``bus`` fixture opened, the current one last."""
+    return []
+
+
+@pytest.fixture
+async def bus(channel: str, opened: list[can.BusABC]) -> AsyncIterator[CanBus]:
+    def open_interface(**kwargs: Any) -> can.BusABC:
+        opened.append(can.Bus(**kwargs))
+        return opened[-1]
+
+    async with CanBus("virtual", channel, backoff=FAST, open_interface=open_interface) as b:
         yield b
 
 
@@ -61,11 +73,11 @@ async def test_close_stops_the_notifier_thread_and_is_idempotent(channel: str) -
     assert not b.connected
 
 
-async def test_bus_reopens_after_the_interface_fails(bus: CanBus, peer: CanBus) -> None:
+async def test_bus_reopens_after_the_interface_fails(
+    bus: CanBus, peer: CanBus, opened: list[can.BusABC]
+) -> None:
     """Shutting the interface under the notifier is what an unplugged adapter looks like."""
-    inner = bus._bus
-    assert inner is not None
-    inner.shutdown()
+    opened[-1].shutdown()
     # the notifier thread hits the closed bus, reports the error, recv() reconnects
     assert await bus.recv(max_wait_s=0.5) is None
     assert bus.stats.reconnects >= 1 and bus.connected
@@ -114,10 +126,7 @@ async def test_link_delivers_typed_status_and_skips_bad_frames(bus: CanBus, peer
             cm.MeterStatus(4, 21.5, True, True, False, False, cm.FaultCode.NONE, 0, 3, 40.0)
         )
         await peer.send(frame_id, data)
-        for _ in range(200):
-            if got:
-                break
-            await asyncio.sleep(0.01)
+        await eventually(lambda: got, 2.0, "the one good status", interval=0.01)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
@@ -201,21 +210,17 @@ async def test_isobus_listener_runs_on_the_bus(bus: CanBus, peer: CanBus) -> Non
     try:
         msg = speed_msg(65097, 2500)
         await peer.send(msg.arbitration_id, bytes(msg.data), extended=True)
-        for _ in range(200):
-            if lis.speed_kmh() is not None:
-                break
-            await asyncio.sleep(0.005)
+        await eventually(lambda: lis.speed_kmh() is not None, 1.0, "the speed", interval=0.005)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
     assert lis.speed_kmh() == pytest.approx(9.0)
 
 
-async def test_send_on_a_failed_bus_reports_unavailable_then_recovers(bus: CanBus,
-                                                                      peer: CanBus) -> None:
-    inner = bus._bus
-    assert inner is not None
-    inner.shutdown()
+async def test_send_on_a_failed_bus_reports_unavailable_then_recovers(
+    bus: CanBus, peer: CanBus, opened: list[can.BusABC]
+) -> None:
+    opened[-1].shutdown()
     with pytest.raises(DeviceUnavailable, match="send failed"):
         await bus.send(0x201, bytes(8))
     await bus.send(0x202, bytes(8))  # reopened by the failed send

@@ -7,7 +7,7 @@ import itertools
 import logging
 import math
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -26,6 +26,7 @@ from protocol.nmea import Rmc, encode_nmea
 from protocol.unicore import encode_headinga, utc_to_gps
 from simulator.plant import Drive, Leg
 from simulator.um982 import Fix, Um982Emulator, um982_sentences
+from tests.helpers import eventually
 
 T0 = datetime(2024, 6, 1, 8, 0, 0, tzinfo=UTC)
 
@@ -188,14 +189,6 @@ async def emulator(tmp_path: Path) -> AsyncIterator[Um982Emulator]:
         yield emu
 
 
-async def _wait_for(cond: Callable[[], bool], within_s: float = 5.0) -> None:
-    deadline = time.monotonic() + within_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.02)
-
-
 def _fast_backoff() -> Backoff:
     return Backoff(initial_s=0.05, cap_s=0.2)
 
@@ -204,7 +197,7 @@ async def test_reader_delivers_epochs_matching_ground_truth(emulator: Um982Emula
     """Positions within a few RTK sigmas of the truth; arrival after the epoch instant."""
     epochs: list[GnssEpoch] = []
     async with GnssReader(emulator.device_path, on_epoch=epochs.append) as reader:
-        await _wait_for(lambda: len(epochs) >= 8)
+        await eventually(lambda: len(epochs) >= 8)
         assert reader.available
         assert reader.speed_kmh() is not None
         stats = reader.stats
@@ -228,7 +221,7 @@ async def test_reader_stamps_with_the_injected_clock(emulator: Um982Emulator) ->
         return time.monotonic() + 1000.0
 
     async with GnssReader(emulator.device_path, on_epoch=epochs.append, clock=shifted):
-        await _wait_for(lambda: len(epochs) >= 2)
+        await eventually(lambda: len(epochs) >= 2)
     assert all(abs(e.t_mono - shifted()) < 10.0 for e in epochs)
 
 
@@ -237,12 +230,12 @@ async def test_corrupted_lines_and_noise_are_counted_and_skipped(
 ) -> None:
     epochs: list[GnssEpoch] = []
     async with GnssReader(emulator.device_path, on_epoch=epochs.append) as reader:
-        await _wait_for(lambda: len(epochs) >= 2)
+        await eventually(lambda: len(epochs) >= 2)
         emulator.corrupt_next(3)
         emulator.garbage(40)
-        await _wait_for(lambda: reader.stats.rejected.get("checksum", 0) >= 3)
+        await eventually(lambda: reader.stats.rejected.get("checksum", 0) >= 3)
         n = len(epochs)
-        await _wait_for(lambda: len(epochs) >= n + 3)
+        await eventually(lambda: len(epochs) >= n + 3)
         stats = reader.stats
     assert stats.rejected["checksum"] == 3
     assert sum(stats.rejected.values()) > 3  # the noise is counted too
@@ -254,11 +247,11 @@ async def test_dropped_heading_still_gives_epochs_without_heading(
 ) -> None:
     epochs: list[GnssEpoch] = []
     async with GnssReader(emulator.device_path, on_epoch=epochs.append):
-        await _wait_for(lambda: len(epochs) >= 2)
+        await eventually(lambda: len(epochs) >= 2)
         emulator.drop_heading(True)
-        await _wait_for(lambda: sum(e.heading_deg is None for e in epochs) >= 3)
+        await eventually(lambda: sum(e.heading_deg is None for e in epochs) >= 3)
         emulator.drop_heading(False)
-        await _wait_for(lambda: epochs[-1].heading_valid)
+        await eventually(lambda: epochs[-1].heading_valid)
 
 
 async def test_port_vanishing_is_survived_by_reconnecting(emulator: Um982Emulator) -> None:
@@ -266,15 +259,15 @@ async def test_port_vanishing_is_survived_by_reconnecting(emulator: Um982Emulato
     async with GnssReader(
         emulator.device_path, on_epoch=epochs.append, stale_after_s=0.3, backoff=_fast_backoff()
     ) as reader:
-        await _wait_for(lambda: len(epochs) >= 3)
+        await eventually(lambda: len(epochs) >= 3)
         emulator.unplug()
-        await _wait_for(lambda: not reader.stats.connected)
-        await _wait_for(lambda: not reader.available)
+        await eventually(lambda: not reader.stats.connected)
+        await eventually(lambda: not reader.available)
         assert reader.speed_kmh() is None
         before = epochs[-1].utc
         emulator.replug()
-        await _wait_for(lambda: reader.stats.reconnects >= 1 and epochs[-1].utc > before)
-        await _wait_for(lambda: reader.available)
+        await eventually(lambda: reader.stats.reconnects >= 1 and epochs[-1].utc > before)
+        await eventually(lambda: reader.available)
         assert reader.stats.last_error is not None
 
 
@@ -287,7 +280,7 @@ async def test_missing_port_is_retried_until_it_appears(tmp_path: Path) -> None:
         assert not reader.stats.connected and "cannot open" in (reader.stats.last_error or "")
         drive = _straight_drive()
         async with Um982Emulator(drive.pose_at, origin_lat=1.0, origin_lon=2.0, link_path=link):
-            await _wait_for(lambda: len(epochs) >= 2)
+            await eventually(lambda: len(epochs) >= 2)
 
 
 def test_heading_logged_in_beidou_time_joins_its_rmc_gga_epoch() -> None:
@@ -333,12 +326,12 @@ async def test_an_epoch_after_binary_output_is_kept_and_the_binary_bytes_are_cou
     """Binary logs on the same port used to cost the NMEA sentence that followed them."""
     epochs: list[GnssEpoch] = []
     async with GnssReader(emulator.device_path, on_epoch=epochs.append) as reader:
-        await _wait_for(lambda: len(epochs) >= 2)
+        await eventually(lambda: len(epochs) >= 2)
         written = emulator.epochs_written
         emulator.binary_output(3000)
-        await _wait_for(lambda: reader.stats.discarded_bytes > 0)
-        await _wait_for(lambda: emulator.epochs_written >= written + 3)
-        await _wait_for(lambda: len(epochs) >= emulator.epochs_written - 1)
+        await eventually(lambda: reader.stats.discarded_bytes > 0)
+        await eventually(lambda: emulator.epochs_written >= written + 3)
+        await eventually(lambda: len(epochs) >= emulator.epochs_written - 1)
         stats = reader.stats
     assert stats.discarded_bytes == 3000
     assert stats.rejected == {"overlong": 1}
@@ -353,9 +346,9 @@ async def test_rejected_lines_are_warned_about_rate_limited_not_once_per_line(
     caplog.set_level(logging.INFO)
     epochs: list[GnssEpoch] = []
     async with GnssReader(emulator.device_path, on_epoch=epochs.append) as reader:
-        await _wait_for(lambda: len(epochs) >= 2)
+        await eventually(lambda: len(epochs) >= 2)
         emulator.corrupt_next(30)
-        await _wait_for(lambda: reader.stats.rejected.get("checksum", 0) >= 30)
+        await eventually(lambda: reader.stats.rejected.get("checksum", 0) >= 30)
     checksum_warnings = [
         r for r in caplog.records if r.levelno == logging.WARNING and "checksum" in r.getMessage()
     ]

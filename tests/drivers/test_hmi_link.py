@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -24,16 +24,7 @@ from protocol.hmi import (
 )
 from simulator.hmi_peer import HmiPeer
 from simulator.pty_link import PtyPair
-
-WAIT_S = 5.0  # generous: two cores shared by many test runs
-
-
-async def wait_until(condition: Callable[[], bool], what: str) -> None:
-    deadline = time.monotonic() + WAIT_S
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.01)
+from tests.helpers import eventually
 
 
 def fast_backoff() -> Backoff:
@@ -68,7 +59,7 @@ def events() -> list[HmiEvent]:
 async def link(peer: HmiPeer, events: list[HmiEvent]) -> AsyncIterator[HmiLink]:
     hmi = HmiLink(peer.device_path, 9600, "ascii", on_event=events.append, backoff=fast_backoff())
     async with running(hmi):
-        await wait_until(lambda: hmi.available, "the HMI port to open")
+        await eventually(lambda: hmi.available, what="the HMI port to open")
         yield hmi
 
 
@@ -82,7 +73,7 @@ async def test_button_presses_arrive_as_typed_events(
     peer.empty()
     peer.zero_tilt()
     peer.press_stop()
-    await wait_until(lambda: len(events) >= 6, "six events")
+    await eventually(lambda: len(events) >= 6, what="six events")
     assert events == [
         StartWork(),
         SelectCrop(2, 225.0),
@@ -103,7 +94,7 @@ async def test_text_written_by_the_daemon_appears_on_the_screen(
     assert await peer.wait_text("t_speed") == "4.8 km/h"
     assert await peer.wait_text("t_msg") == 'rate "too" high'
     assert peer.texts["t_state"] == "seeding"
-    await wait_until(lambda: peer.values.get("n_duty") == 873, "the number object")
+    await eventually(lambda: peer.values.get("n_duty") == 873, what="the number object")
     assert link.stats.writes == 4 and link.stats.dropped_writes == 0
 
 
@@ -112,7 +103,7 @@ async def test_text_uses_the_configured_encoding(tmp_path: Path) -> None:
     async with HmiPeer(encoding="gb2312") as screen:
         hmi = HmiLink(screen.device_path, 9600, "gb2312", on_event=lambda e: None)
         async with running(hmi):
-            await wait_until(lambda: hmi.available, "the HMI port to open")
+            await eventually(lambda: hmi.available, what="the HMI port to open")
             await hmi.show("t_state", "播种中")
             assert await screen.wait_text("t_state") == "播种中"
 
@@ -126,7 +117,7 @@ async def test_garbage_is_rejected_and_the_link_keeps_working(
     peer.select(1, 6.0)
     peer.send_raw(b"\x55\x55\x09\x00\x00\x00\x0d\x0a")  # unknown function code
     peer.press_stop()
-    await wait_until(lambda: len(events) >= 5, "five events")
+    await eventually(lambda: len(events) >= 5, what="five events")
     assert events[0] == StartWork()
     assert isinstance(events[1], Rejected) and events[1].raw == b"\x00\x13noise\xfe"
     assert events[2] == SelectCrop(1, 6.0)
@@ -141,10 +132,10 @@ async def test_trailing_garbage_is_reported_once_the_line_goes_quiet(
 ) -> None:
     """Nothing follows the noise, so the idle gap (not the next frame) ends the run."""
     peer.send_raw(b"\x55\x55\x03\x02")  # a frame cut off mid-way
-    await wait_until(lambda: len(events) == 1, "the idle flush")
+    await eventually(lambda: len(events) == 1, what="the idle flush")
     assert events == [Rejected("incomplete frame", b"\x55\x55\x03\x02")]
     peer.press_start()
-    await wait_until(lambda: len(events) == 2, "the next frame")
+    await eventually(lambda: len(events) == 2, what="the next frame")
     assert events[1] == StartWork()
 
 
@@ -154,7 +145,7 @@ async def test_frame_split_across_writes_decodes(
     peer.send_raw(b"\x55\x55\x03")
     await asyncio.sleep(0.05)
     peer.send_raw(b"\x02\x08\xca\x0d\x0a")
-    await wait_until(lambda: len(events) == 1, "the frame")
+    await eventually(lambda: len(events) == 1, what="the frame")
     assert events == [SelectCrop(2, 225.0)]
 
 
@@ -166,10 +157,10 @@ async def test_screen_error_replies_are_counted_not_forwarded(
     async with HmiPeer(known_objects={"t_speed"}) as screen:
         hmi = HmiLink(screen.device_path, 9600, "ascii", on_event=events.append)
         async with running(hmi):
-            await wait_until(lambda: hmi.available, "the HMI port to open")
+            await eventually(lambda: hmi.available, what="the HMI port to open")
             await hmi.show("t_missing", "x")
             await hmi.show("t_speed", "1.0")
-            await wait_until(lambda: hmi.stats.screen_errors == 1, "the screen error")
+            await eventually(lambda: hmi.stats.screen_errors == 1, what="the screen error")
             assert hmi.last_screen_error is not None and hmi.last_screen_error.code == 0x1A
             assert await screen.wait_text("t_speed") == "1.0"
     assert events == [] and hmi.stats.rejected == 0
@@ -185,10 +176,10 @@ async def test_failing_event_handler_does_not_stop_the_link(peer: HmiPeer) -> No
 
     hmi = HmiLink(peer.device_path, 9600, "ascii", on_event=handler)
     async with running(hmi) as task:
-        await wait_until(lambda: hmi.available, "the HMI port to open")
+        await eventually(lambda: hmi.available, what="the HMI port to open")
         peer.press_start()
         peer.press_stop()
-        await wait_until(lambda: len(seen) == 2, "both events")
+        await eventually(lambda: len(seen) == 2, what="both events")
         assert not task.done() and hmi.stats.callback_errors == 1
 
 
@@ -201,19 +192,21 @@ async def test_vanished_screen_is_reported_then_reconnected(tmp_path: Path) -> N
     hmi = HmiLink(str(path), 9600, "ascii", on_event=events.append, backoff=fast_backoff())
     try:
         async with running(hmi) as task:
-            await wait_until(lambda: hmi.available, "the HMI port to open")
+            await eventually(lambda: hmi.available, what="the HMI port to open")
             first.vanish()
-            await wait_until(lambda: not hmi.available, "the link to notice the loss")
+            await eventually(lambda: not hmi.available, what="the link to notice the loss")
             assert hmi.stats.disconnects == 1
             assert await hmi.show("t_speed", "lost") is False
             assert hmi.stats.dropped_writes == 1
-            await wait_until(lambda: hmi.stats.open_failures >= 2, "retries while unplugged")
+            await eventually(lambda: hmi.stats.open_failures >= 2, what="retries while unplugged")
             assert not task.done()
 
             async with HmiPeer(link_path=path) as second:
-                await wait_until(lambda: hmi.available, "the link to reopen")
+                await eventually(lambda: hmi.available, what="the link to reopen")
                 second.press_start()
-                await wait_until(lambda: events == [StartWork()], "an event after reconnecting")
+                await eventually(
+                    lambda: events == [StartWork()], what="an event after reconnecting"
+                )
                 assert await hmi.show("t_speed", "back")
                 assert await second.wait_text("t_speed") == "back"
             assert hmi.stats.connects == 2 and hmi.stats.reconnects >= 2
@@ -231,7 +224,7 @@ async def test_missing_port_retries_without_raising(tmp_path: Path) -> None:
         backoff=fast_backoff(),
     )
     async with running(hmi) as task:
-        await wait_until(lambda: hmi.stats.open_failures >= 3, "several open attempts")
+        await eventually(lambda: hmi.stats.open_failures >= 3, what="several open attempts")
         assert not hmi.available and not task.done()
         assert await hmi.show("t_speed", "x") is False
         assert await hmi.show_many({"t_a": "1", "t_b": "2"}) is False
@@ -244,13 +237,12 @@ async def test_screen_that_stops_reading_never_blocks_the_caller_long() -> None:
     with PtyPair() as pair:  # nobody reads the master end
         hmi = HmiLink(pair.device_path, 9600, "ascii", on_event=lambda e: None, write_timeout_s=0.2)
         async with running(hmi):
-            await wait_until(lambda: hmi.available, "the HMI port to open")
+            await eventually(lambda: hmi.available, what="the HMI port to open")
             page = {f"t{i}": "x" * 250 for i in range(400)}  # ~100 kB: more than a pty holds
             started = time.monotonic()
             await hmi.show_many(page)
             assert time.monotonic() - started < 3.0
-            assert hmi._writer is not None
-            assert hmi._writer.transport.get_write_buffer_size() > MAX_WRITE_BACKLOG
+            assert hmi.write_backlog > MAX_WRITE_BACKLOG
             started = time.monotonic()
             assert await hmi.show("t_speed", "1.0") is False
             assert time.monotonic() - started < 1.0

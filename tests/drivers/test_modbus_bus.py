@@ -11,7 +11,7 @@ import asyncio
 import logging
 import math
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -22,40 +22,14 @@ from drivers.rs485_devices import Inclinometer, PwmModule, Radar
 from gateway.config import ActuatorsSection, InclinometerSection, RadarSection, Rs485Section
 from protocol.errors import FieldError
 from simulator.modbus_devices import Rs485Simulator
+from tests.helpers import WAIT_S, Plant, eventually
 
 TIMEOUT_S = 0.15
-WAIT_S = 5.0  # generous: two cores shared by many test runs
-
-
-async def wait_until(condition: Callable[[], bool], what: str, limit_s: float = WAIT_S) -> None:
-    deadline = time.monotonic() + limit_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.01)
-
-
-class Plant:
-    def __init__(self) -> None:
-        self.kmh = 6.4
-        self.tilt = 8.75
-        self.duties: list[tuple[str, float]] = []
-
-    def on_duty(self, channel: str, pct: float) -> None:
-        self.duties.append((channel, pct))
 
 
 @pytest.fixture
 def plant() -> Plant:
-    return Plant()
-
-
-@pytest.fixture
-async def sim(plant: Plant) -> AsyncIterator[Rs485Simulator]:
-    async with Rs485Simulator(
-        radar_kmh=lambda: plant.kmh, tilt_deg=lambda: plant.tilt, on_duty=plant.on_duty
-    ) as simulator:
-        yield simulator
+    return Plant(kmh=6.4, tilt=8.75)
 
 
 def make_bus(path: str, retries: int = 0) -> ModbusBus:
@@ -278,7 +252,7 @@ async def test_vanished_port_fails_fast_then_reconnects_by_itself(
 ) -> None:
     assert await radar.read() == pytest.approx(6.4)
     sim.vanish()
-    await wait_until(lambda: not bus.connected, "the bus to notice the vanished port")
+    await eventually(lambda: not bus.connected, what="the bus to notice the vanished port")
     started = time.monotonic()
     with pytest.raises(DeviceUnavailable, match=r"radar \(id 1\): .*port .* is down"):
         await radar.read()
@@ -288,7 +262,7 @@ async def test_vanished_port_fails_fast_then_reconnects_by_itself(
     assert bus.device_stats("radar").port_errors == 1
     await asyncio.sleep(0.3)  # a few reconnect attempts fail meanwhile
     sim.restore()
-    await wait_until(lambda: bus.connected, "the bus to reopen the restored port")
+    await eventually(lambda: bus.connected, what="the bus to reopen the restored port")
     assert await radar.read() == pytest.approx(6.4)
     assert bus.reconnects == 1 and radar.available
 

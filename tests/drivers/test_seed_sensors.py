@@ -26,19 +26,9 @@ from drivers.seed_sensors import (
     gpiod_request,
 )
 from simulator.pty_link import PtyPair
+from tests.helpers import eventually
 
 FAST = Backoff(initial_s=0.02, cap_s=0.05)
-
-
-WAIT_S = 3.0
-
-
-async def wait_for(cond: Callable[[], bool]) -> None:
-    deadline = time.monotonic() + WAIT_S
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.01)
 
 
 @contextlib.asynccontextmanager
@@ -69,11 +59,11 @@ async def test_serial_lines_become_edges_stamped_on_arrival(pty: PtyPair) -> Non
         pty.device_path, 115200, 6, got.append, clock=lambda: float(next(ticks)), backoff=FAST
     )
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         os.write(pty.master_fd, b"D,1\r\n")
-        await wait_for(lambda: len(got) == 1)
+        await eventually(lambda: len(got) == 1)
         os.write(pty.master_fd, b"D,6\r\n")
-        await wait_for(lambda: len(got) == 2)
+        await eventually(lambda: len(got) == 2)
     assert [e.row for e in got] == [1, 6]
     assert got[0].t_mono < got[1].t_mono  # each stamped by the clock when it arrived
     assert src.stats.edges == 2
@@ -83,10 +73,10 @@ async def test_serial_stamps_are_the_monotonic_arrival_time(pty: PtyPair) -> Non
     got: list[SeedEdgeEvent] = []
     src = SerialSeedSensors(pty.device_path, 115200, rows=6, on_edge=got.append, backoff=FAST)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         before = time.monotonic()
         os.write(pty.master_fd, b"D,3\r\n")
-        await wait_for(lambda: bool(got))
+        await eventually(lambda: bool(got))
         after = time.monotonic()
     assert before <= got[0].t_mono <= after
 
@@ -95,9 +85,9 @@ async def test_serial_bad_lines_are_counted_and_reading_continues(pty: PtyPair) 
     got: list[SeedEdgeEvent] = []
     src = SerialSeedSensors(pty.device_path, 115200, rows=4, on_edge=got.append, backoff=FAST)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         os.write(pty.master_fd, b"D,9\r\n\xff\xfe\r\nD,2\r\n")
-        await wait_for(lambda: len(got) == 1)
+        await eventually(lambda: len(got) == 1)
     assert got[0].row == 2
     assert src.stats.rejected == 2
     assert src.stats.rejected_by_reason == {"bad_row": 1, "malformed": 1}
@@ -112,9 +102,9 @@ async def test_serial_bad_lines_are_warned_about_once_per_kind_and_interval(
     got: list[SeedEdgeEvent] = []
     src = SerialSeedSensors(pty.device_path, 115200, rows=4, on_edge=got.append, backoff=FAST)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         os.write(pty.master_fd, b"D,9\r\n" * 200 + b"X,1\r\n" * 50 + b"D,2\r\n")
-        await wait_for(lambda: len(got) == 1)
+        await eventually(lambda: len(got) == 1)
     assert src.stats.rejected_by_reason == {"bad_row": 200, "malformed": 50}
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 2, warnings
@@ -131,9 +121,9 @@ async def test_serial_a_failing_callback_does_not_stop_the_reader(pty: PtyPair) 
 
     src = SerialSeedSensors(pty.device_path, 115200, rows=6, on_edge=flaky, backoff=FAST)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         os.write(pty.master_fd, b"D,1\r\nD,2\r\n")
-        await wait_for(lambda: seen == [1, 2])
+        await eventually(lambda: seen == [1, 2])
 
 
 async def test_serial_reconnects_when_the_port_vanishes_and_returns(tmp_path: Path) -> None:
@@ -143,14 +133,14 @@ async def test_serial_reconnects_when_the_port_vanishes_and_returns(tmp_path: Pa
     src = SerialSeedSensors(str(link), 115200, rows=6, on_edge=got.append, backoff=FAST)
     try:
         async with running(src):
-            await wait_for(lambda: src.available)
+            await eventually(lambda: src.available)
             first.close()  # unplugged
-            await wait_for(lambda: not src.available)
+            await eventually(lambda: not src.available)
             assert src.stats.last_error is not None
             with PtyPair(link) as second:  # plugged back in
-                await wait_for(lambda: src.available)
+                await eventually(lambda: src.available)
                 os.write(second.master_fd, b"D,5\r\n")
-                await wait_for(lambda: bool(got))
+                await eventually(lambda: bool(got))
     finally:
         first.close()
     assert got[0].row == 5
@@ -160,7 +150,7 @@ async def test_serial_reconnects_when_the_port_vanishes_and_returns(tmp_path: Pa
 async def test_serial_a_missing_port_is_retried_not_fatal(tmp_path: Path) -> None:
     src = SerialSeedSensors(str(tmp_path / "nope"), 115200, 6, lambda e: None, backoff=FAST)
     async with running(src):
-        await wait_for(lambda: src.stats.last_error is not None)
+        await eventually(lambda: src.stats.last_error is not None)
         assert not src.available
     assert "cannot open" in (src.stats.last_error or "")
 
@@ -172,7 +162,7 @@ async def stopped_right_after(
     so the driver has not read them yet when the stop comes."""
     task = asyncio.create_task(src.run(), name="seed-sensors-under-test")
     try:
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         deliver()
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
@@ -280,11 +270,11 @@ async def test_gpio_falling_edges_map_lines_to_rows_with_kernel_timestamps() -> 
     chip = FakeChip()
     src = GpioSeedSensors("/dev/gpiochip0", [17, 27, 22], 2.0, got.append, request_factory=chip)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         assert chip.requests[0].offsets == [17, 27, 22]
         assert chip.requests[0].bias == "pull_up"
         chip.requests[0].push(falling(27, 100.5), falling(22, 100.6))
-        await wait_for(lambda: len(got) == 2)
+        await eventually(lambda: len(got) == 2)
     assert got == [SeedEdgeEvent(2, 100.5), SeedEdgeEvent(3, 100.6)]
     assert chip.requests[0].released
 
@@ -296,12 +286,12 @@ async def test_gpio_lines_are_read_in_batches_not_once_per_edge() -> None:
     chip = FakeChip()
     src = GpioSeedSensors("chip", [5, 6], 0.0, got.append, request_factory=chip)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         t0 = time.monotonic()
         for k in range(200):  # an edge every ~1 ms for ~0.2 s
             chip.requests[0].push(falling(5 + k % 2, 1.0 + k * 0.001))
             await asyncio.sleep(0.001)
-        await wait_for(lambda: len(got) == 200)
+        await eventually(lambda: len(got) == 200)
         elapsed = time.monotonic() - t0
     assert [e.t_mono for e in got] == pytest.approx([1.0 + k * 0.001 for k in range(200)], abs=1e-9)
     assert chip.requests[0].reads <= elapsed / GPIO_READ_INTERVAL_S + 2
@@ -316,11 +306,11 @@ async def test_gpio_reads_fall_on_the_shared_tick_grid() -> None:
     src = GpioSeedSensors("chip", [5], 0.0, lambda e: read_at.append(loop.time()),
                           request_factory=chip)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         for k in range(40):
             chip.requests[0].push(falling(5, 1.0 + k * 0.01))
             await asyncio.sleep(0.005)
-        await wait_for(lambda: len(read_at) == 40)
+        await eventually(lambda: len(read_at) == 40)
     reads = sorted(set(read_at))[1:]  # the first read comes as soon as the first edge does
     assert reads
     for t in reads:
@@ -336,10 +326,10 @@ async def test_gpio_reads_ahead_of_each_epoch_leave_the_lines_no_wake_up_of_thei
     chip = FakeChip()
     src = GpioSeedSensors("chip", [5], 0.0, got.append, request_factory=chip)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         request = chip.requests[0]
         request.push(falling(5, 1.0))
-        await wait_for(lambda: len(got) == 1)  # the driver's own read; it now rests
+        await eventually(lambda: len(got) == 1)  # the driver's own read; it now rests
         src.read_pending()  # nothing queued: no read, but its own next one is put off
         reads = request.reads
         for k in range(8):  # "epochs" 50 ms apart, an edge before each
@@ -368,12 +358,12 @@ async def test_gpio_edges_lost_to_a_kernel_queue_overflow_are_counted() -> None:
         return FakeEdgeEvent(FakeEdgeType.FALLING_EDGE, round(t_s * 1e9), 5, seqno)
 
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         chip.requests[0].push(numbered(1, 1.0), numbered(2, 1.1), numbered(6, 1.5))
-        await wait_for(lambda: len(got) == 3)
+        await eventually(lambda: len(got) == 3)
         assert src.stats.lost == 3
         chip.requests[0].push(numbered(7, 1.6))
-        await wait_for(lambda: len(got) == 4)
+        await eventually(lambda: len(got) == 4)
     assert src.stats.lost == 3
 
 
@@ -414,7 +404,7 @@ async def test_gpio_a_missing_chip_is_retried_until_it_appears() -> None:
     chip = FakeChip(fail_opens=2)
     src = GpioSeedSensors("chip", [5], 1.0, lambda e: None, request_factory=chip, backoff=FAST)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
     assert chip.calls == 3
     assert "cannot request lines" in (src.stats.last_error or "")
 
@@ -423,10 +413,10 @@ async def test_gpio_a_read_error_releases_and_requests_again() -> None:
     chip = FakeChip()
     src = GpioSeedSensors("chip", [5], 1.0, lambda e: None, request_factory=chip, backoff=FAST)
     async with running(src):
-        await wait_for(lambda: src.available)
+        await eventually(lambda: src.available)
         chip.requests[0].fail_reads = True
         chip.requests[0].push(falling(5, 1.0))
-        await wait_for(lambda: len(chip.requests) == 2 and src.available)
+        await eventually(lambda: len(chip.requests) == 2 and src.available)
         assert chip.requests[0].released
     assert src.stats.reconnects == 1
 

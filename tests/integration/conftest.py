@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ from gateway.control.work_state import WorkState
 from simulator.machine import SimulatedMachine
 from simulator.modbus_devices import Rs485Simulator
 from simulator.plant import Drive, Leg
+from tests.helpers import eventually
 
 
 def steady_drive(speed_kmh: float = 5.0, standing_s: float = 1.0, total_s: float = 600.0) -> Drive:
@@ -35,16 +35,10 @@ class Rig:
     async def until(
         self, predicate: Callable[[], bool], timeout: float = 8.0, what: str = "condition"
     ) -> None:
-        deadline = time.monotonic() + timeout
-        while not predicate():
-            if self.task.done():
-                self.task.result()
-                raise AssertionError(f"daemon exited while waiting for {what}")
-            if time.monotonic() > deadline:
-                raise AssertionError(
-                    f"timed out waiting for {what}; state: {self.daemon.state()}"
-                )
-            await asyncio.sleep(0.05)
+        await eventually(
+            predicate, timeout, what, unless=self.task,
+            detail=lambda: f"state: {self.daemon.state()}",
+        )
 
     async def stop(self) -> None:
         self.daemon.request_stop()

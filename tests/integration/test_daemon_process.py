@@ -3,63 +3,48 @@
 from __future__ import annotations
 
 import asyncio
-import os
+import contextlib
 import signal
-import sys
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 from simulator.machine import SimulatedMachine
+from simulator.modbus_devices import Rs485Simulator
+from tests.helpers import eventually, sowgate_env, sowgate_process
 from tests.integration.conftest import steady_drive
 
 
-async def _wait(predicate: object, timeout: float) -> None:
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not predicate():  # type: ignore[operator]
-        assert loop.time() < deadline, "timed out"
-        await asyncio.sleep(0.05)
+@contextlib.asynccontextmanager
+async def metering_process(
+    tmp_path: Path,
+) -> AsyncIterator[tuple[asyncio.subprocess.Process, Rs485Simulator]]:
+    """``sowgate run`` in its own process against the simulated machine, once the metering
+    motor and the fan turn; the process and the simulated RS485 bus."""
+    async with SimulatedMachine(drive=steady_drive()) as machine:
+        cfg = machine.write_config(tmp_path / "sowgate.toml", control={"start_working": True})
+        env = sowgate_env(tmp_path / "state")
+        async with sowgate_process("run", "--config", str(cfg), env=env) as proc:
+            sim = machine.rs485
+            assert sim is not None
+            await eventually(lambda: sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0, 20.0,
+                             "motor and fan turning")
+            yield proc, sim
 
 
 async def test_sigterm_sets_motor_and_fan_to_zero_before_the_process_exits(
     tmp_path: Path,
 ) -> None:
-    async with SimulatedMachine(drive=steady_drive()) as machine:
-        cfg = machine.write_config(tmp_path / "sowgate.toml", control={"start_working": True})
-        env = {**os.environ, "SOWGATE_STATE_DIR": str(tmp_path / "state")}
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable,
-            "-m",
-            "gateway.app.cli",
-            "run",
-            "--config",
-            str(cfg),
-            env=env,
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
-        )
-        try:
-            sim = machine.rs485
-            assert sim is not None
-            await _wait(lambda: sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0, 20.0)
-            proc.send_signal(signal.SIGTERM)
-            _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
-        finally:
-            if proc.returncode is None:
-                proc.kill()
-                await proc.wait()
+    async with metering_process(tmp_path) as (proc, sim):
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
         assert proc.returncode == 0, stderr.decode()
         assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
 
 
 async def _demo(state: Path, *args: str) -> str:
     """``sowgate demo --no-tui ARGS`` in its own process, its store in ``state``; its output."""
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "gateway.app.cli", "demo", "--no-tui", "--state-dir", str(state),
-        *args,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-    )
-    out, err = await asyncio.wait_for(proc.communicate(), 60.0)
+    async with sowgate_process("demo", "--no-tui", "--state-dir", str(state), *args) as proc:
+        out, err = await asyncio.wait_for(proc.communicate(), 60.0)
     assert proc.returncode == 0, err.decode()
     return out.decode()
 
@@ -102,33 +87,19 @@ async def test_systemd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> Non
     try:
         async with SimulatedMachine(drive=steady_drive()) as machine:
             cfg = machine.write_config(tmp_path / "sowgate.toml")
-            env = {
-                **os.environ,
-                "SOWGATE_STATE_DIR": str(tmp_path / "state"),
+            env = sowgate_env(tmp_path / "state", {
                 "NOTIFY_SOCKET": str(sock_path),
                 "WATCHDOG_USEC": "1000000",  # pings every 0.5 s while the loop runs
-            }
-            proc = await asyncio.create_subprocess_exec(
-                sys.executable,
-                "-m",
-                "gateway.app.cli",
-                "run",
-                "--config",
-                str(cfg),
-                env=env,
-                stdout=asyncio.subprocess.DEVNULL,
-                stderr=asyncio.subprocess.PIPE,
-            )
-            try:
-                await _wait(lambda: any("READY=1" in m for m in received), 20.0)
-                await _wait(lambda: sum("WATCHDOG=1" in m for m in received) >= 3, 10.0)
+            })
+            async with sowgate_process(
+                "run", "--config", str(cfg), env=env, stdout=asyncio.subprocess.DEVNULL
+            ) as proc:
+                await eventually(lambda: any("READY=1" in m for m in received), 20.0, "READY=1")
+                await eventually(lambda: sum("WATCHDOG=1" in m for m in received) >= 3, 10.0,
+                                 "three WATCHDOG=1")
                 proc.send_signal(signal.SIGTERM)
                 await asyncio.wait_for(proc.wait(), 10.0)
-            finally:
-                if proc.returncode is None:
-                    proc.kill()
-                    await proc.wait()
-            await _wait(lambda: any("STOPPING=1" in m for m in received), 5.0)
+            await eventually(lambda: any("STOPPING=1" in m for m in received), 5.0, "STOPPING=1")
     finally:
         loop.remove_reader(sock.fileno())
         sock.close()
@@ -141,16 +112,14 @@ async def test_demo_publishes_to_the_broker_named_in_the_environment(tmp_path: P
     with Mosquitto() as broker:
         async with subscriber(broker.port, "sowgate/seeder-01") as sub:
             # as in compose.yaml: naming the broker switches MQTT on, no ENABLED needed
-            env = {**os.environ,
-                   "SOWGATE_MQTT__HOST": "127.0.0.1", "SOWGATE_MQTT__PORT": str(broker.port)}
-            proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "gateway.app.cli", "demo", "--no-tui", "--duration", "8",
-                "--state-dir", str(tmp_path), env=env,
-                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
-            )
-            out, err = await asyncio.wait_for(proc.communicate(), 60.0)
+            env = sowgate_env(env={
+                "SOWGATE_MQTT__HOST": "127.0.0.1", "SOWGATE_MQTT__PORT": str(broker.port)})
+            async with sowgate_process(
+                "demo", "--no-tui", "--duration", "8", "--state-dir", str(tmp_path), env=env
+            ) as proc:
+                out, err = await asyncio.wait_for(proc.communicate(), 60.0)
             assert proc.returncode == 0, err.decode()
-            await _wait(lambda: sub.on("status")[-1:] == [b"offline"], 5.0)
+            await eventually(lambda: sub.on("status")[-1:] == [b"offline"], 5.0, "offline")
     assert sub.on("status")[0] == b"online"
     assert sub.on("state") and sub.seed_ids()
     # and it told the user where it publishes
@@ -162,26 +131,10 @@ async def test_demo_publishes_to_the_broker_named_in_the_environment(tmp_path: P
 async def test_sowgate_run_says_so_and_exits_1_when_the_pwm_module_is_silent_at_stop(
     tmp_path: Path,
 ) -> None:
-    async with SimulatedMachine(drive=steady_drive()) as machine:
-        cfg = machine.write_config(tmp_path / "sowgate.toml", control={"start_working": True})
-        env = {**os.environ, "SOWGATE_STATE_DIR": str(tmp_path / "state")}
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "gateway.app.cli", "run", "--config", str(cfg),
-            env=env,
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
-        )
-        try:
-            sim = machine.rs485
-            assert sim is not None
-            await _wait(lambda: sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0, 20.0)
-            sim.set_fault(sim.device_ids["pwm"], "silent")
-            proc.send_signal(signal.SIGTERM)
-            _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
-        finally:
-            if proc.returncode is None:
-                proc.kill()
-                await proc.wait()
+    async with metering_process(tmp_path) as (proc, sim):
+        sim.set_fault(sim.device_ids["pwm"], "silent")
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = await asyncio.wait_for(proc.communicate(), 10.0)
     text = stderr.decode()
     assert proc.returncode == 1, text
     last = text.strip().splitlines()[-1]

@@ -13,6 +13,7 @@ import pytest
 from gateway.app.daemon import Daemon
 from simulator.machine import SimulatedMachine
 from simulator.modbus_devices import Rs485Simulator
+from tests.helpers import eventually
 from tests.integration.conftest import metering
 
 DRAIN_S = 0.3  # as long as the seed sensors' longest drain
@@ -55,12 +56,8 @@ async def test_stop_runs_the_stages_in_order_and_sets_the_safe_state_without_wai
         daemon.add_task("producer", part("producer", events, drained), stop_stage=0)
         task = asyncio.create_task(daemon.run(), name="daemon")
         try:
-            loop = asyncio.get_running_loop()
-            deadline = loop.time() + 15.0
-            while not (sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0):
-                assert loop.time() < deadline, "metering never started"
-                assert not task.done()
-                await asyncio.sleep(0.05)
+            await eventually(lambda: sim.duty_pct["motor"] > 0 and sim.duty_pct["fan"] > 0,
+                             15.0, "metering", unless=task)
             daemon.request_stop()
             await asyncio.wait_for(task, 5.0)
         finally:
@@ -97,11 +94,8 @@ async def test_a_stop_while_a_poll_is_unanswered_waits_for_the_reply_then_writes
     caplog.set_level(logging.DEBUG, logger="pymodbus")
     async with metering(tmp_path, make_machine()) as (rig, sim):
         sim.set_reply_delay(sim.device_ids["radar"], 0.12)  # inside rs485.timeout_s 0.2
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + 5.0
-        while sim.replies_pending == 0:  # a radar request is on the line, unanswered
-            assert loop.time() < deadline, "no radar poll seen"
-            await asyncio.sleep(0.002)
+        # a radar request is on the line, unanswered
+        await eventually(lambda: sim.replies_pending > 0, 5.0, "a radar poll", interval=0.002)
         rig.daemon.request_stop()
         await asyncio.wait_for(rig.task, 5.0)
         stray = [

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,6 +13,7 @@ from gateway.control.rate_model import plan_duty
 from gateway.control.work_state import WorkState
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
+from tests.helpers import eventually
 from tests.integration.conftest import metering, running
 
 
@@ -175,10 +175,7 @@ async def test_stop_switches_off_and_exits_even_if_a_task_swallows_the_cancel(
         daemon.add_task("stubborn-reader", reader_that_swallows_one_cancel)
         task = asyncio.create_task(daemon.run(), name="daemon")
         try:
-            deadline = time.monotonic() + 8.0
-            while sim.duty_pct["motor"] <= 0.0:
-                assert not task.done() and time.monotonic() < deadline, "never metered"
-                await asyncio.sleep(0.05)
+            await eventually(lambda: sim.duty_pct["motor"] > 0.0, 8.0, "metering", unless=task)
             daemon.request_stop()
             await asyncio.wait_for(asyncio.shield(task), 5.0)
         finally:

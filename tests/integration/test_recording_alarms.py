@@ -5,8 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from tests.helpers import eventually
 from tests.integration.conftest import running
-from tests.integration.test_recording_end_to_end import eventually, recording_machine
+from tests.integration.test_recording_end_to_end import recording_machine
 
 RECORDING_ALARMS = {
     "gnss.unavailable", "gnss.not_rtk_fixed", "gnss.heading_invalid",

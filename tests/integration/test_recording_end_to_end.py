@@ -8,8 +8,6 @@ import asyncio
 import os
 import signal
 import statistics
-import sys
-from collections.abc import Callable
 from pathlib import Path
 
 import pymap3d
@@ -18,6 +16,7 @@ from gateway.recording.store import RecordStore
 from simulator.machine import ORIGIN_LAT, ORIGIN_LON, SimulatedMachine
 from simulator.plant import Drive, Leg
 from simulator.pty_link import PtyPair
+from tests.helpers import eventually, sowgate_env, spawn_sowgate
 from tests.integration.conftest import running
 from tests.mosquitto import Mosquitto, Subscriber, subscriber
 
@@ -55,13 +54,7 @@ def stored_ids(db: Path) -> list[int]:
         return [r.id for r in store.query_seeds()]
 
 
-async def eventually(check: Callable[[], bool], timeout: float, what: str) -> None:
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not check():
-        if loop.time() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        await asyncio.sleep(0.1)
+
 
 
 async def test_every_seed_is_recorded_where_it_landed(tmp_path: Path) -> None:
@@ -157,17 +150,9 @@ async def test_broker_unreachable_at_start_then_everything_flows(tmp_path: Path)
 
 
 async def _spawn(config: Path, state: Path) -> asyncio.subprocess.Process:
-    env = {**os.environ, "SOWGATE_STATE_DIR": str(state)}
-    return await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "gateway.app.cli",
-        "run",
-        "--config",
-        str(config),
-        env=env,
-        stdout=asyncio.subprocess.DEVNULL,
-        stderr=asyncio.subprocess.PIPE,
+    """``sowgate run --config CONFIG``, its store in ``state``; the caller reaps it."""
+    return await spawn_sowgate(
+        "run", "--config", str(config), env=sowgate_env(state), stdout=asyncio.subprocess.DEVNULL
     )
 
 

@@ -10,8 +10,9 @@ from pathlib import Path
 import aiomqtt
 
 from simulator.machine import SimulatedMachine
+from tests.helpers import eventually
 from tests.integration.conftest import running, steady_drive
-from tests.mosquitto import Mosquitto, subscriber
+from tests.mosquitto import Mosquitto, Subscriber, subscriber
 
 BASE = "sowgate/seeder-01"
 
@@ -21,13 +22,10 @@ async def _send(port: int, name: str, payload: bytes) -> None:
         await client.publish(f"{BASE}/cmd/{name}", payload, qos=1)
 
 
-async def _ack(sub: object, name: str, count: int) -> dict[str, object]:
-    for _ in range(200):
-        acks = sub.on(f"cmd/{name}/ack")  # type: ignore[attr-defined]
-        if len(acks) >= count:
-            return dict(json.loads(acks[count - 1]))
-        await asyncio.sleep(0.05)
-    raise AssertionError(f"no ack #{count} on cmd/{name}/ack")
+async def _ack(sub: Subscriber, name: str, count: int) -> dict[str, object]:
+    topic = f"cmd/{name}/ack"
+    await eventually(lambda: len(sub.on(topic)) >= count, 10.0, f"ack #{count} on {topic}")
+    return dict(json.loads(sub.on(topic)[count - 1]))
 
 
 async def test_rate_and_start_over_mqtt_reach_the_controller_and_the_screen(

@@ -12,11 +12,11 @@ from typing import Any
 
 import pytest
 
+from tests.helpers import eventually
 from tests.integration.test_recording_end_to_end import (
     BASE,
     _spawn,
     all_delivered,
-    eventually,
     mqtt_overrides,
     recording_machine,
     stored_ids,

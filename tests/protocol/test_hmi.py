@@ -169,7 +169,7 @@ def test_endless_garbage_is_reported_in_capped_runs() -> None:
         events += decoder.feed(b"\xaa" * (MAX_BUFFER // 2 + 3))
     assert len(events) == (10 * (MAX_BUFFER // 2 + 3)) // MAX_BUFFER
     assert all(isinstance(e, Rejected) and len(e.raw) == MAX_BUFFER for e in events)
-    assert len(decoder._garbage) < MAX_BUFFER and len(decoder._buf) < 8
+    assert decoder.garbage_run_bytes < MAX_BUFFER and decoder.partial_frame_bytes < 8
     assert decoder.feed(frame(0x01))[-1] == StartWork()
 
 
@@ -312,7 +312,7 @@ def test_fuzz_valid_frames_survive_any_garbage(items: list[HmiCommand | bytes]) 
 def test_fuzz_arbitrary_bytes_never_crash_and_stay_bounded(data: bytes) -> None:
     decoder = HmiDecoder()
     events = decoder.feed(data)
-    assert len(decoder._buf) < 8 and len(decoder._garbage) < MAX_BUFFER
+    assert decoder.partial_frame_bytes < 8 and decoder.garbage_run_bytes < MAX_BUFFER
     events += decoder.flush()
     assert all(not isinstance(e, Rejected) or 0 < len(e.raw) <= MAX_BUFFER for e in events)
     assert decode_bytewise(data) == events

@@ -12,14 +12,15 @@ from pathlib import Path
 from typing import Any
 
 from gateway.recording.store import RecordStore
-from tests.mosquitto import Mosquitto
+from tests.helpers import eventually
+from tests.mosquitto import Mosquitto, Subscriber
 from tests.reliability.harness import (
     MACHINE_ID,
     DaemonProcess,
     RowResult,
     Steady,
     TracedMachine,
-    eventually,
+    dashboard,
     finish_row,
     fmt_s,
     mqtt_overrides,
@@ -41,14 +42,13 @@ from tests.reliability.rows import (
     RSS_GROWTH_MAX_MB,
     SPEED_GAP_S,
 )
-from tests.reliability.watcher import Watcher, watching
 
 # ---- Modbus faults on one daemon ------------------------------------------------------------
 
 
 async def _modbus_fault(
     machine: TracedMachine,
-    dash: Watcher,
+    dash: Subscriber,
     daemon: DaemonProcess,
     steady: Steady,
     fault: str,
@@ -126,7 +126,7 @@ def _modbus_row(fault: str) -> str:
 async def group_modbus(tmp: Path) -> dict[str, RowResult]:
     out: dict[str, RowResult] = {}
     with Mosquitto() as broker:
-        async with watching(broker.port) as dash, TracedMachine(drive=steady_drive()) as machine:
+        async with dashboard(broker.port) as dash, TracedMachine(drive=steady_drive()) as machine:
             cfg = machine.write_config(tmp / "sowgate.toml", **mqtt_overrides(broker.port))
             daemon = DaemonProcess(cfg, tmp / "state", tmp / "daemon.log")
             try:
@@ -155,7 +155,7 @@ async def group_serial(tmp: Path) -> dict[str, RowResult]:
     rng = random.Random(7)
     machine = TracedMachine(drive=sowing_drive(55.0), with_gnss=True, with_seed_tubes=True)
     with Mosquitto() as broker:
-        async with watching(broker.port), machine:
+        async with dashboard(broker.port), machine:
             tubes, gnss, hmi = machine.seed_tubes, machine.gnss, machine.hmi
             assert hmi is not None
             cfg = machine.write_config(tmp / "sowgate.toml", **mqtt_overrides(broker.port))

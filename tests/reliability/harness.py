@@ -16,9 +16,8 @@ import os
 import re
 import signal
 import statistics
-import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,6 +26,8 @@ from gateway.recording.store import RecordStore
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
 from simulator.seed_tubes import SeedTubeEmulator
+from tests.helpers import eventually, sowgate_env, spawn_sowgate
+from tests.mosquitto import Subscriber, subscriber
 
 MACHINE_ID = "seeder-01"
 BASE = f"sowgate/{MACHINE_ID}"
@@ -46,15 +47,10 @@ def steady_drive(kmh: float = 8.0, total_s: float = 900.0) -> Drive:
     return Drive(legs=[Leg(1.0, 0.0), Leg(total_s, kmh)], dt=0.02)
 
 
-async def eventually(check: Callable[[], bool], timeout: float, what: str) -> float:
-    """Wait until ``check()``; the seconds it took. AssertionError naming ``what`` if not."""
-    loop = asyncio.get_running_loop()
-    start = loop.time()
-    while not check():
-        if loop.time() - start > timeout:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        await asyncio.sleep(0.05)
-    return loop.time() - start
+def dashboard(port: int) -> contextlib.AbstractAsyncContextManager[Subscriber]:
+    """The rows' dashboard on the broker at ``port``: every message under ``BASE`` and when it
+    arrived (``Subscriber.timed``, ``Subscriber.alarms_between``)."""
+    return subscriber(port, BASE, "reliability-dashboard")
 
 
 class DaemonProcess:
@@ -66,7 +62,7 @@ class DaemonProcess:
         self.config = config
         self.state_dir = state_dir
         self.log_path = log_path
-        self.env = {**os.environ, "SOWGATE_STATE_DIR": str(state_dir), **(env or {})}
+        self.env = sowgate_env(state_dir, env)
         self.proc: asyncio.subprocess.Process | None = None
         self.exit_codes: list[int] = []
         self.starts = 0
@@ -75,10 +71,9 @@ class DaemonProcess:
         if self.running:
             raise RuntimeError("daemon already running")
         with self.log_path.open("ab") as log:
-            self.proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "gateway.app.cli", "run", "--config", str(self.config),
-                env=self.env, stdin=asyncio.subprocess.DEVNULL,
-                stdout=asyncio.subprocess.DEVNULL, stderr=log,
+            self.proc = await spawn_sowgate(
+                "run", "--config", str(self.config),
+                env=self.env, stdout=asyncio.subprocess.DEVNULL, stderr=log,
             )
         self.starts += 1
 

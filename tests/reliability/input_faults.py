@@ -17,13 +17,14 @@ import aiomqtt
 import tomli_w
 
 from gateway.config import EXIT_CONFIG
+from tests.helpers import eventually, sowgate_env, spawn_sowgate
 from tests.mosquitto import Mosquitto, free_port
 from tests.reliability.harness import (
     BASE,
     DaemonProcess,
     RowResult,
     TracedMachine,
-    eventually,
+    dashboard,
     finish_row,
     mqtt_overrides,
     steady_drive,
@@ -31,7 +32,6 @@ from tests.reliability.harness import (
 from tests.reliability.rows import (
     EXAMPLE_CONFIG,
 )
-from tests.reliability.watcher import watching
 
 # ---- command fuzz ---------------------------------------------------------------------------
 
@@ -86,7 +86,7 @@ async def group_commands(tmp: Path) -> dict[str, RowResult]:
     corpus = command_corpus()
     machine = TracedMachine(drive=steady_drive())
     with Mosquitto() as broker:
-        async with watching(broker.port) as dash, machine:
+        async with dashboard(broker.port) as dash, machine:
             commands = {"enabled": ["rate", "channel_rate", "start", "stop", "zero_tilt",
                                     "tilt_critical", "speed_cal"]}
             cfg = machine.write_config(tmp / "sowgate.toml", commands=commands,
@@ -104,7 +104,7 @@ async def group_commands(tmp: Path) -> dict[str, RowResult]:
                         sent[name] = sent.get(name, 0) + 1
 
                 def acks(name: str) -> list[bytes]:
-                    return [p for _, p in dash.on(f"cmd/{name}/ack")]
+                    return dash.on(f"cmd/{name}/ack")
 
                 def all_acked() -> bool:
                     return all(len(acks(n)) >= c for n, c in sent.items())
@@ -122,7 +122,7 @@ async def group_commands(tmp: Path) -> dict[str, RowResult]:
                     res.check(strict[index].get("ok") is False,
                               f"rate_kg_ha \"6\" (a string) accepted: {strict[index]}")
                 sessions = daemon.log_text().count("mqtt connected to")
-                onlines = len([p for _, p in dash.on("status") if p == b"online"])
+                onlines = dash.on("status").count(b"online")
                 res.recovery = f"{sessions} MQTT session(s) for {total} commands"
                 res.check(sessions == 1 and onlines == 1,
                           f"the MQTT session restarted: {sessions} connects, 'online' published "
@@ -230,15 +230,11 @@ async def _run_process(
 ) -> tuple[int | None, str]:
     """``sowgate run --config CONFIG``: its exit code (None: still running after ``timeout``,
     then killed) and what it wrote to standard error (kept in a file, so a kill loses none)."""
-    import os
-    import sys
-
     err_path = config.with_suffix(".stderr")
     with err_path.open("wb") as err:
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "gateway.app.cli", "run", "--config", str(config),
-            env={**os.environ, **(env or {})}, stdin=asyncio.subprocess.DEVNULL,
-            stdout=asyncio.subprocess.DEVNULL, stderr=err,
+        proc = await spawn_sowgate(
+            "run", "--config", str(config),
+            env=sowgate_env(env=env), stdout=asyncio.subprocess.DEVNULL, stderr=err,
         )
     code: int | None
     try:

@@ -8,15 +8,16 @@ import random
 import time
 from pathlib import Path
 
+from tests.helpers import eventually
 from tests.mosquitto import Mosquitto
 from tests.reliability.harness import (
     DaemonProcess,
     RowResult,
     TracedMachine,
     contiguous,
+    dashboard,
     edge_mono,
     edges_since,
-    eventually,
     fill,
     finish_row,
     integrity,
@@ -32,7 +33,6 @@ from tests.reliability.rows import (
     DISK_FULL_S,
     KILLS,
 )
-from tests.reliability.watcher import watching
 
 # ---- SIGKILL ×10 ----------------------------------------------------------------------------
 
@@ -108,7 +108,7 @@ async def group_broker(tmp: Path) -> dict[str, RowResult]:
     machine = TracedMachine(drive=sowing_drive(BROKER_DOWN_S + 20.0), with_gnss=True,
                             with_seed_tubes=True)
     with Mosquitto(persistent=True) as broker:
-        async with watching(broker.port) as dash, machine:
+        async with dashboard(broker.port) as dash, machine:
             tubes = machine.seed_tubes
             cfg = machine.write_config(tmp / "sowgate.toml", **mqtt_overrides(broker.port))
             db = tmp / "state" / "records.sqlite3"
@@ -117,7 +117,9 @@ async def group_broker(tmp: Path) -> dict[str, RowResult]:
                 await daemon.start()
                 await eventually(lambda: daemon.has_open(tubes.device_path), 30.0, "seed port")
                 n_open = len(tubes.truth)
-                await eventually(lambda: len(dash.seed_ids()) > 100, 30.0, "seeds on the broker")
+                await eventually(
+                    lambda: len(set(dash.seed_ids())) > 100, 30.0, "seeds on the broker"
+                )
                 broker.stop()
                 at_down = len(seed_ids(db))
                 await asyncio.sleep(BROKER_DOWN_S)
@@ -127,7 +129,7 @@ async def group_broker(tmp: Path) -> dict[str, RowResult]:
                 broker.start()
                 backlog = seed_ids(db)
                 try:
-                    took = await eventually(lambda: set(backlog) <= dash.seed_ids(), 60.0,
+                    took = await eventually(lambda: set(backlog) <= set(dash.seed_ids()), 60.0,
                                             "the outage's backlog delivered")
                     res.recovery = f"backlog of {len(backlog) - at_down} delivered {took:.1f} s " \
                                    "after the broker came back"
@@ -137,8 +139,10 @@ async def group_broker(tmp: Path) -> dict[str, RowResult]:
                 sent, stored = await records_vs_edges(res, machine, daemon, db, n_open)
                 ids = seed_ids(db)
                 with contextlib.suppress(AssertionError):
-                    await eventually(lambda: set(ids) <= dash.seed_ids(), 10.0, "all delivered")
-                undelivered = len(set(ids) - dash.seed_ids())
+                    await eventually(
+                        lambda: set(ids) <= set(dash.seed_ids()), 10.0, "all delivered"
+                    )
+                undelivered = len(set(ids) - set(dash.seed_ids()))
                 res.lost = (f"{max(0, sent - stored)} of {sent} edges not stored; "
                             f"{undelivered} of {len(ids)} stored not delivered")
                 res.check(stored >= sent, f"{sent - stored} of {sent} seed edges not stored")
@@ -158,7 +162,7 @@ async def group_disk(tmp: Path) -> dict[str, RowResult]:
     machine = TracedMachine(drive=sowing_drive(DISK_FULL_S + 20.0), with_gnss=True,
                             with_seed_tubes=True)
     with tmpfs(tmp / "disk", "2m") as disk, Mosquitto() as broker:
-        async with watching(broker.port) as dash, machine:
+        async with dashboard(broker.port) as dash, machine:
             tubes = machine.seed_tubes
             state = disk / "state"
             cfg = machine.write_config(tmp / "sowgate.toml", **mqtt_overrides(broker.port))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import time
 import uuid
 from collections.abc import AsyncIterator
 
@@ -21,6 +20,7 @@ from simulator.can_pid import (
     MeterPlant,
     TractorSimulator,
 )
+from tests.helpers import eventually
 
 
 def commanded(plant: MeterPlant, rpm: float, seconds: float, period: float = 0.1) -> None:
@@ -97,11 +97,9 @@ async def test_simulated_controller_follows_targets_sent_over_can(
     async with asyncio.TaskGroup() as tg:
         t_sim = tg.create_task(sim.run(), name="sim")
         t_link = tg.create_task(link.run(lambda s, t: statuses.append((s, t))), name="link")
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline:
-            await asyncio.sleep(0.05)
-            if statuses and abs(statuses[-1][0].measured_rpm - 30.0) < 0.6:
-                break
+        await eventually(
+            lambda: statuses and abs(statuses[-1][0].measured_rpm - 30.0) < 0.6, 5.0, "30 rpm"
+        )
         t_sim.cancel()
         t_link.cancel()
     assert statuses, "no status frames"
@@ -133,10 +131,8 @@ async def test_tractor_simulator_feeds_the_isobus_listener(buses: tuple[CanBus, 
     async with asyncio.TaskGroup() as tg:
         t1 = tg.create_task(tractor.run(), name="tractor")
         t2 = tg.create_task(lis.run(), name="isobus")
-        for _ in range(100):
-            await asyncio.sleep(0.02)
-            if lis.speed_kmh() is not None and lis.working() is not None:
-                break
+        await eventually(lambda: lis.speed_kmh() is not None and lis.working() is not None,
+                         2.0, "speed and work state from the tractor", interval=0.02)
         speed, working = lis.speed(), lis.working()
         tractor.silent = True
         await asyncio.sleep(0.5)

@@ -4,10 +4,7 @@ and what to do next."""
 from __future__ import annotations
 
 import logging
-import os
 import re
-import subprocess
-import sys
 from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -18,6 +15,7 @@ from gateway.app.cli import main as cli_main
 from gateway.state import ActiveAlarmState, MachineState, RecorderState
 from simulator.demo import status_line, summary, truth_report
 from simulator.machine import STARTUP_TRANSIENT_S, Truth
+from tests.helpers import run_sowgate, sowgate_env
 
 ROOT = Path(__file__).resolve().parents[2]
 WIDTH_M = 2.0
@@ -82,10 +80,9 @@ def test_a_run_that_never_left_the_start_up_is_flagged_not_representative() -> N
 
 def _run_demo(cwd: Path, *args: str, env: dict[str, str] | None = None) -> tuple[str, str]:
     """``sowgate demo --no-tui ARGS`` in its own process, in ``cwd``: (stdout, stderr)."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "gateway.app.cli", "demo", "--no-tui", *args],
-        cwd=cwd, capture_output=True, text=True, timeout=90,
-        env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
+    proc = run_sowgate(
+        "demo", "--no-tui", *args,
+        cwd=cwd, timeout=90, env=sowgate_env(env={"PYTHONPATH": str(ROOT), **(env or {})}),
     )
     assert proc.returncode == 0, proc.stderr
     return proc.stdout, proc.stderr
@@ -94,11 +91,9 @@ def _run_demo(cwd: Path, *args: str, env: dict[str, str] | None = None) -> tuple
 def test_the_demo_says_what_runs_keeps_its_store_and_says_what_to_do_next(
     tmp_path: Path,
 ) -> None:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("SOWGATE_")}
-    proc = subprocess.run(
-        [sys.executable, "-m", "gateway.app.cli", "demo", "--no-tui", "--duration", "7"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=90,
-        env={**env, "PYTHONPATH": str(ROOT)},
+    proc = run_sowgate(
+        "demo", "--no-tui", "--duration", "7",
+        cwd=tmp_path, timeout=90, env=sowgate_env(env={"PYTHONPATH": str(ROOT)}, clean=True),
     )
     assert proc.returncode == 0, proc.stderr
     out, err = proc.stdout, proc.stderr

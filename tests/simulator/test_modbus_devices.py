@@ -23,33 +23,15 @@ from protocol.registers import (
 )
 from simulator.modbus_devices import FAULTS, Fault, Rs485Simulator
 from simulator.pty_link import PtyPair
+from tests.helpers import Plant, eventually
 
 TIMEOUT_S = 0.15
 
 
-class Plant:
-    """Values the simulated devices report; tests change them between requests."""
-
-    def __init__(self) -> None:
-        self.kmh = 5.25
-        self.tilt = -1.25
-        self.duties: list[tuple[str, float]] = []
-
-    def on_duty(self, channel: str, pct: float) -> None:
-        self.duties.append((channel, pct))
-
-
 @pytest.fixture
 def plant() -> Plant:
-    return Plant()
-
-
-@pytest.fixture
-async def sim(plant: Plant) -> AsyncIterator[Rs485Simulator]:
-    async with Rs485Simulator(
-        radar_kmh=lambda: plant.kmh, tilt_deg=lambda: plant.tilt, on_duty=plant.on_duty
-    ) as simulator:
-        yield simulator
+    """Values the simulated devices report; tests change them between requests."""
+    return Plant(kmh=5.25, tilt=-1.25)
 
 
 @pytest.fixture
@@ -294,11 +276,8 @@ async def test_vanish_breaks_the_open_port_and_restore_brings_the_same_path_back
     path = sim.device_path
     sim.vanish()
     assert not link_exists(path)
-    for _ in range(50):  # the master notices the EIO on its own
-        if not master.connected:
-            break
-        await asyncio.sleep(0.02)
-    assert not master.connected
+    # the master notices the EIO on its own
+    await eventually(lambda: not master.connected, 1.0, "the master to notice", interval=0.02)
     assert not await master.connect()  # nothing to open while unplugged
     sim.restore()
     assert sim.device_path == path and path_exists(path)

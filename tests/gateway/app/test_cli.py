@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from gateway.app.cli import main
+from tests.helpers import run_sowgate
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -33,24 +32,14 @@ def test_check_config_prints_one_line_per_problem_and_exits_78(
 def test_run_with_an_unknown_screen_encoding_exits_78_naming_the_key(tmp_path: Path) -> None:
     f = tmp_path / "sowgate.toml"
     f.write_text('[hmi]\nencoding = "nonesuch"\n')
-    proc = subprocess.run(
-        [sys.executable, "-m", "gateway.app.cli", "run", "--config", str(f)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = run_sowgate("run", "--config", str(f))
     assert proc.returncode == 78, proc.stderr
     assert proc.stderr.startswith("hmi.encoding: unknown text encoding")
     assert "Traceback" not in proc.stderr
 
 
 def test_run_with_a_missing_config_exits_78(tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "gateway.app.cli", "run", "--config", str(tmp_path / "none.toml")],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = run_sowgate("run", "--config", str(tmp_path / "none.toml"))
     assert proc.returncode == 78
     assert "config file not found" in proc.stderr
 

@@ -117,7 +117,7 @@ def test_state_carries_rejected_input_per_device_and_reason(tmp_path: Path) -> N
         daemon.hmi.link._dispatch([HmiRejected("noise", b"\x00", "garbage")])
         for k in range(1000):  # far beyond any seed meter, all at once on row 2
             recorder.on_edge(SeedEdgeEvent(2, 10.0 + k * 1e-6))
-        recorder._position_queued()
+        recorder.flush()  # what the recorder's tick does
         rejected = state_payload(daemon).rejected
         assert rejected.gnss == {"overlong": 1, "checksum": 1, "garbage": 1}
         assert rejected.gnss_discarded_bytes == 2000

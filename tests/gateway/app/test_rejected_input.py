@@ -10,6 +10,7 @@ import pytest
 
 from drivers.tasks import cancel_and_wait
 from gateway.app.rejected_input import RejectedInputs
+from tests.helpers import eventually
 
 
 @dataclass
@@ -48,10 +49,7 @@ async def test_run_logs_the_summary_at_info(caplog: pytest.LogCaptureFixture) ->
     hmi.stats.rejected_by_reason["unknown_function"] = 2
     task = asyncio.create_task(inputs.run())
     try:
-        for _ in range(200):
-            if caplog.records:
-                break
-            await asyncio.sleep(0.01)
+        await eventually(lambda: caplog.records, 2.0, "the first summary", interval=0.01)
     finally:
         await cancel_and_wait(task)
     (record,) = caplog.records  # once: nothing new after the first summary

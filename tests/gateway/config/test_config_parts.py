@@ -5,9 +5,7 @@ not there is a config error (exit 78) that names the key and the path."""
 from __future__ import annotations
 
 import logging
-import os
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -15,9 +13,9 @@ import pytest
 
 from gateway.app.cli import main
 from gateway.config import ConfigError, load_config, parse_config, parts_summary
+from tests.helpers import run_sowgate, sowgate_env
 
 ROOT = Path(__file__).resolve().parents[3]
-SOWGATE = Path(sys.executable).with_name("sowgate")
 
 # a table with its part's ordinary keys but no `enabled`, for every optional part
 PRESENT_WITHOUT_ENABLED: dict[str, dict[str, Any]] = {
@@ -198,11 +196,9 @@ def _run(
     config: Path, env: dict[str, str], cwd: Path | None = None
 ) -> subprocess.CompletedProcess[str]:
     """The real console script, as systemd starts it; it must stop by itself with 78."""
-    clean = {k: v for k, v in os.environ.items()
-             if k not in ("SOWGATE_STATE_DIR", "STATE_DIRECTORY") and not k.startswith("SOWGATE_")}
-    return subprocess.run(
-        [str(SOWGATE), "run", "--config", str(config)],
-        capture_output=True, text=True, timeout=30, env={**clean, **env}, cwd=cwd,
+    return run_sowgate(
+        "run", "--config", str(config),
+        env=sowgate_env(env=env, clean=True), cwd=cwd, timeout=30, console_script=True,
     )
 
 
@@ -271,8 +267,7 @@ def test_run_with_a_store_path_under_a_file_exits_78(tmp_path: Path) -> None:
 def test_every_table_with_an_enabled_switch_follows_the_one_rule() -> None:
     """A later table (a hopper, say) with ``enabled: bool`` must be an ``OptionalPart``, or a
     fitter's ``[hopper]`` table would again be silently off."""
-    from gateway.config import Settings, optional_parts
-    from gateway.config._base import OptionalPart
+    from gateway.config import OptionalPart, Settings, optional_parts
 
     for name, field in Settings.model_fields.items():
         kind = field.annotation

@@ -27,6 +27,7 @@ from gateway.core.records import SeedDrop
 from gateway.link.mqtt import MqttLink
 from gateway.link.payloads import StatePayload
 from gateway.recording.store import RecordStore
+from tests.helpers import eventually
 from tests.mosquitto import Mosquitto, subscriber
 
 MACHINE = "seeder-t"
@@ -114,13 +115,6 @@ async def running_link(
         await asyncio.gather(store_task, return_exceptions=True)
         store.close()
 
-
-async def eventually(check: Callable[[], bool], timeout: float = 15.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout
-    while not check():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what or check}")
-        await asyncio.sleep(0.05)
 
 
 async def send(port: int, topic: str, payload: bytes, retain: bool = False) -> None:

@@ -16,7 +16,8 @@ import aiomqtt
 import pytest
 
 from gateway.config import Settings, parse_config
-from tests.gateway.link.test_mqtt import BASE, MACHINE, drops, eventually, running_link
+from tests.gateway.link.test_mqtt import BASE, MACHINE, drops, running_link
+from tests.helpers import eventually
 from tests.mosquitto import Mosquitto
 
 USER, PASSWORD = "seeder-t", "correct horse battery staple"

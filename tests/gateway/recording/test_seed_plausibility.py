@@ -26,6 +26,7 @@ from gateway.recording.recorder import SeedRecorder
 from gateway.recording.seed_plausibility import WINDOW_S, SeedRatePlausibility
 from gateway.recording.store import RecordStore
 from simulator.pty_link import PtyPair
+from tests.helpers import eventually
 
 
 def _feed(
@@ -154,10 +155,7 @@ async def _recording(tmp_path: Path) -> AsyncIterator[tuple[PtyPair, SeedRecorde
         )
         tasks = [asyncio.create_task(t) for t in (sensors.run(), recorder.run(), receiver())]
         try:
-            deadline = time.monotonic() + 5.0
-            while not sensors.available:
-                assert time.monotonic() < deadline, "seed sensor port never opened"
-                await asyncio.sleep(0.01)
+            await eventually(lambda: sensors.available, what="the seed sensor port to open")
             yield pair, recorder, alarms
         finally:
             for task in tasks:  # the sensors hand over, then the recorder stores everything
@@ -187,12 +185,12 @@ async def test_a_burst_of_200000_lines_over_a_pty_stores_only_what_a_row_can_dro
 
         recorder.on_edge = stamped  # type: ignore[method-assign]
         await asyncio.to_thread(_write_all, pty.master_fd, b"D,1\r\n" * 200_000)
-        deadline = time.monotonic() + 60.0
-        while len(arrivals) < 200_000 or "seed_sensors.implausible_rate" not in {
-            a.code for a in alarms.active
-        }:
-            assert time.monotonic() < deadline, f"{len(arrivals)} edges, alarms {alarms.active}"
-            await asyncio.sleep(0.05)
+        await eventually(
+            lambda: len(arrivals) >= 200_000
+            and "seed_sensors.implausible_rate" in {a.code for a in alarms.active},
+            60.0, "every edge and the implausible-rate alarm",
+            detail=lambda: f"{len(arrivals)} edges, alarms {alarms.active}",
+        )
         alarm = next(a for a in alarms.active if a.code == "seed_sensors.implausible_rate")
         assert "row(s) 1 " in alarm.message
     span = max(arrivals) - min(arrivals)
@@ -229,7 +227,7 @@ def test_gpio_edges_with_kernel_stamps_meet_the_same_limit(tmp_path: Path) -> No
         noise = [falling(5, 100.0 + k * 1e-5) for k in range(5000)]  # 5 000 edges in 50 ms
         seeds = [falling(6, 100.0 + k / 40.0) for k in range(10)]
         gpio.handle_events(sorted(noise + seeds, key=lambda e: e.timestamp_ns))
-        recorder._position_queued()
+        recorder.flush()  # what the recorder's tick does
         kept_row1 = 5000 - recorder.plausibility.implausible[1]
         assert DEFAULT_MAX_SEEDS_PER_S_PER_ROW <= kept_row1 <= DEFAULT_MAX_SEEDS_PER_S_PER_ROW + 11
         assert recorder.plausibility.implausible.get(2, 0) == 0

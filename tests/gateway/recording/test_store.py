@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import sqlite3
@@ -19,6 +20,7 @@ import pytest
 from gateway.core.records import AlarmEvent, SeedDrop, SeedRecord, utc_to_us
 from gateway.link.payloads import SeedBatch
 from gateway.recording.store import MAX_OUTBOX_LIMIT, RecordStore, StoreError
+from tests.helpers import eventually
 
 T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
 REPO = Path(__file__).resolve().parents[3]
@@ -37,6 +39,12 @@ def drops(n: int, start: datetime = T0, row: int = 1) -> list[SeedDrop]:
 
 def alarm(code: str = "radar.lost", active: bool = True) -> AlarmEvent:
     return AlarmEvent(code=code, active=active, message="radar not answering", utc=T0)
+
+
+def sql(store: RecordStore, query: str) -> list[tuple[Any, ...]]:
+    """What SQLite holds for ``store``, read on a connection of its own (as an export does)."""
+    with contextlib.closing(sqlite3.connect(store.path)) as db:
+        return db.execute(query).fetchall()
 
 
 @pytest.fixture
@@ -192,30 +200,20 @@ async def test_run_sleeps_while_nothing_is_written_and_fsyncs_only_after_writes(
 
     monkeypatch.setattr(store_module, "SYNC_INTERVAL_S", 0.05)
     store.commit_interval_s = 0.05
-    checkpoints: list[float] = []
-    checkpoint = store._checkpoint
-
-    def counted() -> None:
-        checkpoints.append(time.monotonic())
-        checkpoint()
-
-    monkeypatch.setattr(store, "_checkpoint", counted)
     task = asyncio.create_task(store.run(), name="store-run")
     try:
         await asyncio.sleep(0.3)  # the prune at start commits, and is fsynced, once
-        idle = len(checkpoints)
+        idle = store.checkpoints
         assert idle <= 1
         await asyncio.sleep(0.3)
-        assert len(checkpoints) == idle  # nothing written since: no commit, no fsync
+        assert store.checkpoints == idle  # nothing written since: no commit, no fsync
         store.add_seeds(drops(2))
-        for _ in range(100):
-            if len(checkpoints) > idle:
-                break
-            await asyncio.sleep(0.01)
+        await eventually(lambda: store.checkpoints > idle, 1.0, "the fsync after the commit",
+                         interval=0.01)
         assert len(store.pending_seeds(10)) == 2  # committed
-        assert len(checkpoints) == idle + 1  # and fsynced
+        assert store.checkpoints == idle + 1  # and fsynced
         await asyncio.sleep(0.3)
-        assert len(checkpoints) == idle + 1  # quiet again
+        assert store.checkpoints == idle + 1  # quiet again
     finally:
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
@@ -352,10 +350,8 @@ async def test_run_prunes_at_start_and_raises_an_old_backlog(tmp_path: Path) -> 
         store.run(utcnow=lambda: T0 + timedelta(days=41)), name="store-run"
     )
     try:
-        for _ in range(100):
-            if calls and len(list(store.query_seeds())) == 12:
-                break
-            await asyncio.sleep(0.02)
+        await eventually(lambda: calls and len(list(store.query_seeds())) == 12, 2.0,
+                         "the backlog call after the prune", interval=0.02)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
@@ -444,7 +440,7 @@ def test_acknowledgements_in_any_order_are_kept_as_a_few_ranges(tmp_path: Path) 
     with RecordStore(path, "m") as s:
         assert [r.id for r in s.pending_seeds(10)] == [9, 10]
         assert s.backlog() == 2
-        assert s._db.execute("SELECT tbl, lo, hi FROM delivered").fetchall() == [("seeds", 1, 8)]
+        assert sql(s, "SELECT tbl, lo, hi FROM delivered") == [("seeds", 1, 8)]
 
 
 OLD_SCHEMA = """
@@ -483,16 +479,14 @@ def test_a_store_from_an_older_version_keeps_its_delivery_marks(tmp_path: Path) 
         assert [r.id for r in s.pending_seeds(100)] == [5, 6, 8, 9, 10]
         assert [a.id for a in s.pending_alarms(10)] == [2]
         assert s.backlog() == 6
-        assert not s._has_column("seeds", "delivered")
+        assert "delivered" not in [c[1] for c in sql(s, "PRAGMA table_info(seeds)")]
         s.mark_seeds_delivered([5, 6])
         assert s.prune(datetime(1970, 1, 3, tzinfo=UTC)) == 5 + 1  # seeds 3-7, alarm 1
         assert [r.id for r in s.query_seeds()] == [8, 9, 10]
         assert list(s.append_seeds(drops(1))) == [11]
     with RecordStore(path, "m") as s:
         assert [r.id for r in s.pending_seeds(100)] == [8, 9, 10, 11]
-        assert s._db.execute(
-            "SELECT name FROM sqlite_master WHERE name LIKE '%pending'"
-        ).fetchall() == []
+        assert sql(s, "SELECT name FROM sqlite_master WHERE name LIKE '%pending'") == []
 
 
 class _CommitFailsAndRollsBack:
@@ -589,10 +583,8 @@ def test_time_queries_find_seeds_through_the_spans_of_their_batches(store: Recor
     store.append_seeds(drops(5, start=T0 + timedelta(hours=1)))  # ids 6-10
     store.append_seeds(drops(5, start=T0 - timedelta(hours=1)))  # ids 11-15: time stepped back
     store.flush()
-    assert not store._db.execute(
-        "SELECT 1 FROM sqlite_master WHERE type = 'index' AND tbl_name = 'seeds'"
-    ).fetchall()
-    assert store._db.execute("SELECT * FROM seed_spans ORDER BY first_id").fetchall() == [
+    assert not sql(store, "SELECT 1 FROM sqlite_master WHERE type = 'index' AND tbl_name = 'seeds'")
+    assert sql(store, "SELECT * FROM seed_spans ORDER BY first_id") == [
         (1, 5, utc_to_us(T0), utc_to_us(T0) + 40_000),
         (6, 10, utc_to_us(T0) + 3_600_000_000, utc_to_us(T0) + 3_600_040_000),
         (11, 15, utc_to_us(T0) - 3_600_000_000, utc_to_us(T0) - 3_599_960_000),
@@ -620,12 +612,10 @@ def test_a_store_with_the_older_per_seed_time_index_gets_one_span_for_its_rows(
     db.commit()
     db.close()
     with RecordStore(path, "m") as s:
-        assert s._db.execute("SELECT * FROM seed_spans").fetchall() == [
+        assert sql(s, "SELECT * FROM seed_spans") == [
             (1, 6, utc_to_us(T0), utc_to_us(T0) + 50_000)
         ]
-        assert s._db.execute(
-            "SELECT 1 FROM sqlite_master WHERE name = 'seeds_utc'"
-        ).fetchone() is None
+        assert sql(s, "SELECT 1 FROM sqlite_master WHERE name = 'seeds_utc'") == []
         s.append_seeds(drops(2, start=T0 + timedelta(seconds=1)))
         s.flush()
         got = [r.id for r in s.query_seeds(T0 + timedelta(milliseconds=30), None)]
@@ -640,5 +630,5 @@ def test_pruning_drops_the_spans_of_batches_it_removed(tmp_path: Path) -> None:
         s.mark_seeds_delivered(list(old))
         s.flush()
         assert s.prune(T0 + timedelta(days=3)) == 4
-        assert s._db.execute("SELECT first_id, last_id FROM seed_spans").fetchall() == [(5, 7)]
+        assert sql(s, "SELECT first_id, last_id FROM seed_spans") == [(5, 7)]
         assert [r.id for r in s.query_seeds(T0 + timedelta(days=2), None)] == [5, 6, 7]

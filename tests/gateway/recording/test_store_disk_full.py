@@ -25,7 +25,8 @@ from gateway.core.records import AlarmEvent, SeedDrop, drop_row
 from gateway.link.mqtt import MqttLink
 from gateway.recording.health import RecordingHealth
 from gateway.recording.store import MAX_HELD_RECORDS, RecordStore, StoreError
-from tests.gateway.link.test_mqtt import MACHINE, StubController, eventually, make_settings
+from tests.gateway.link.test_mqtt import MACHINE, StubController, make_settings
+from tests.helpers import eventually
 from tests.mosquitto import Mosquitto
 from tests.tiny_disk import fill, grow, may_mount, run_in_mount_namespace, tiny_tmpfs
 

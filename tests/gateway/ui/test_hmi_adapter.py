@@ -3,39 +3,46 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from drivers.hmi_link import HmiLink
 from drivers.tasks import cancel_and_wait
 from gateway.app.daemon import Daemon
 from gateway.config import parse_config
 from simulator.pty_link import PtyPair
+from tests.helpers import eventually
+
+
+@contextlib.asynccontextmanager
+async def open_link(hmi: dict[str, Any], tmp_path: Path) -> AsyncIterator[HmiLink]:
+    """The screen link the daemon builds from ``[hmi]``, running and open for the block."""
+    daemon = Daemon(parse_config({"hmi": hmi}), tmp_path / "state")
+    assert daemon.hmi is not None
+    link = daemon.hmi.link
+    task = asyncio.create_task(link.run())
+    try:
+        await eventually(lambda: link.available, what="the HMI port to open")
+        yield link
+    finally:
+        await cancel_and_wait(task)
 
 
 async def test_hmi_write_timeout_from_the_config_is_what_the_link_waits(tmp_path: Path) -> None:
     """``hmi.write_timeout_s`` was accepted but the link kept its built-in 0.5 s."""
     with PtyPair() as pair:  # nobody reads the screen's end: every write waits it out
-        settings = parse_config(
-            {"hmi": {"port": pair.device_path, "write_timeout_s": 2.0, "reconnect_max_s": 1.0}}
-        )
-        daemon = Daemon(settings, tmp_path / "state")
-        assert daemon.hmi is not None
-        link = daemon.hmi.link
-        task = asyncio.create_task(link.run())
-        try:
-            deadline = time.monotonic() + 5.0
-            while not link.available:
-                assert time.monotonic() < deadline, "HMI port never opened"
-                await asyncio.sleep(0.02)
+        hmi = {"port": pair.device_path, "write_timeout_s": 2.0, "reconnect_max_s": 1.0}
+        async with open_link(hmi, tmp_path) as link:
             page = {f"t{i}": "x" * 250 for i in range(3000)}  # far more than a pty buffers
             started = time.monotonic()
             await link.show_many(page)
             waited = time.monotonic() - started
-        finally:
-            await cancel_and_wait(task)
     assert 1.8 <= waited < 4.0
 
 
@@ -61,25 +68,12 @@ async def test_a_storm_of_bad_frames_costs_a_few_log_lines_and_is_counted_per_re
     from simulator.hmi_peer import HmiPeer
 
     caplog.set_level(logging.INFO)
-    async with HmiPeer() as screen:
-        settings = parse_config({"hmi": {"port": screen.device_path}})
-        daemon = Daemon(settings, tmp_path / "state")
-        assert daemon.hmi is not None
-        link = daemon.hmi.link
-        task = asyncio.create_task(link.run())
-        try:
-            deadline = time.monotonic() + 5.0
-            while not link.available:
-                assert time.monotonic() < deadline, "HMI port never opened"
-                await asyncio.sleep(0.02)
-            bad_frames = 500
-            screen.send_raw(b"\x55\x55\x09\x00\x00\x00\x0d\x0a" * bad_frames)
-            screen.send_raw(b"\x55\x55\x05\x07\x00\x00\x0d\x0a" * 3)  # seed-level flag 7
-            while link.stats.rejected < bad_frames + 3:
-                assert time.monotonic() < deadline + 5.0, "bad frames never all arrived"
-                await asyncio.sleep(0.02)
-        finally:
-            await cancel_and_wait(task)
+    async with HmiPeer() as screen, open_link({"port": screen.device_path}, tmp_path) as link:
+        bad_frames = 500
+        screen.send_raw(b"\x55\x55\x09\x00\x00\x00\x0d\x0a" * bad_frames)
+        screen.send_raw(b"\x55\x55\x05\x07\x00\x00\x0d\x0a" * 3)  # seed-level flag 7
+        await eventually(lambda: link.stats.rejected >= bad_frames + 3,
+                         what="every bad frame")
     assert link.stats.rejected_by_reason == {"unknown_function": bad_frames, "bad_field": 3}
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert 1 <= len(warnings) <= 4, [r.getMessage() for r in warnings]
