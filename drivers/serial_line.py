@@ -114,8 +114,9 @@ class SerialLine:
         self._silence_reconnect_s = silence_reconnect_s
         self._drain = drain
         self._read_chunk_bytes = read_chunk_bytes
-        # exclusive: an advisory lock (flock), so a second program cannot read the same port
-        self._open_options = {"exclusive": True} if exclusive else {}
+        # True: an advisory lock (flock), so a second program cannot use the same port; None
+        # leaves pyserial's default (no lock, none taken away)
+        self._exclusive: bool | None = True if exclusive else None
         self._backoff = backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0)
         self._clock = clock
         self._log = logger
@@ -136,7 +137,7 @@ class SerialLine:
         while True:
             try:
                 reader, writer = await open_serial_connection(
-                    url=self.port, baudrate=self.baudrate, **self._open_options
+                    url=self.port, baudrate=self.baudrate, exclusive=self._exclusive
                 )
             except OPEN_ERRORS as exc:
                 self.stats.open_failures += 1
