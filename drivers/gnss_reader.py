@@ -21,13 +21,12 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime, timedelta
 from datetime import time as dtime
-from types import TracebackType
 from typing import Final, Literal
 
 from drivers.backoff import Backoff
 from drivers.log_limit import RateLimitedLog
 from drivers.serial_line import SerialLine
-from drivers.tasks import cancel_and_wait
+from drivers.tasks import StartClose, cancel_and_wait
 from protocol.gnss import REASON_UNKNOWN, GnssEvent, GnssLineDecoder, Rejected
 from protocol.nmea import Gga, Hdt, Rmc, Ths, Vtg
 from protocol.unicore import GPS_UTC_LEAP_S, Heading
@@ -279,7 +278,7 @@ class GnssStats:
     discarded_bytes: int = 0
 
 
-class GnssReader:
+class GnssReader(StartClose):
     """Reads the receiver's port forever (reconnecting) and hands complete epochs to a callback.
 
     ``on_epoch`` runs in the event loop; keep it short (append to a buffer, set an event).
@@ -366,21 +365,10 @@ class GnssReader:
             raise RuntimeError("GnssReader already started")
         self._task = asyncio.create_task(self._line.run(), name=f"gnss-reader:{self.port}")
 
-    async def stop(self) -> None:
+    async def close(self) -> None:
+        """Stop reading and close the port (what was half-read is delivered first)."""
         await cancel_and_wait(self._task)
         self._task = None
-
-    async def __aenter__(self) -> GnssReader:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.stop()
 
     # -- I/O ---------------------------------------------------------------------------------
 

@@ -23,10 +23,9 @@ import random
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from types import TracebackType
 from typing import Any
 
-from drivers.tasks import cancel_and_wait
+from drivers.tasks import StartClose, cancel_and_wait
 from gateway.config.machine import MachineSection
 from gateway.config.recording import (
     DEFAULT_FALL_TIME_TABLE,
@@ -175,7 +174,7 @@ def plan_seeds(
 
 
 @dataclass
-class SeedTubeEmulator:
+class SeedTubeEmulator(StartClose):
     """Writes a seed plan to a pty in real time; ``truth`` lists the seeds actually written.
 
     ``model`` may be a daemon's ``PositioningSection``: the planter it describes is used.
@@ -194,7 +193,7 @@ class SeedTubeEmulator:
     _task: asyncio.Task[None] | None = field(default=None, init=False, repr=False)
     _plan: list[SeedTruth] = field(default_factory=list, init=False, repr=False)
 
-    async def __aenter__(self) -> SeedTubeEmulator:
+    async def start(self) -> None:
         if isinstance(self.model, PositioningSection):
             self.model = PlanterModel.from_positioning(self.model)
         self._plan = plan_seeds(self.drive, self.model, seed=self.seed, t_end=self.t_end)
@@ -202,14 +201,8 @@ class SeedTubeEmulator:
         if self.t0_mono is None:
             self.t0_mono = self.clock()
         self._task = asyncio.create_task(self._run(), name="seed-tube-emulator")
-        return self
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    async def close(self) -> None:
         await cancel_and_wait(self._task)
         self._task = None
         if self._pair is not None:
