@@ -320,7 +320,7 @@ class GnssReader(StartClose):
             idle_after_s=epoch_max_wait_s,
             silence_reconnect_s=silence_reconnect_s,
             read_chunk_bytes=READ_CHUNK_BYTES,
-            backoff=backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0),
+            backoff=backoff,  # None: SerialLine's default, 0.1 s doubling to 5 s
             clock=clock,
         )
         self.latest: GnssEpoch | None = None

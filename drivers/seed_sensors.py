@@ -161,7 +161,7 @@ class SerialSeedSensors:
             on_open=self._opened,
             drain=Drain(quiet_s=DRAIN_QUIET_S, timeout_s=DRAIN_TIMEOUT_S),
             read_chunk_bytes=READ_CHUNK_BYTES,
-            backoff=backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0),
+            backoff=backoff,  # None: SerialLine's default, 0.1 s doubling to 5 s
             clock=clock,
         )
 

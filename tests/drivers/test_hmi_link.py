@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -24,6 +23,7 @@ from protocol.hmi import (
 )
 from simulator.hmi_peer import HmiPeer
 from simulator.pty_link import PtyPair
+from tests.drivers.helpers import running
 
 WAIT_S = 5.0  # generous: two cores shared by many test runs
 
@@ -38,18 +38,6 @@ async def wait_until(condition: Callable[[], bool], what: str) -> None:
 
 def fast_backoff() -> Backoff:
     return Backoff(initial_s=0.02, cap_s=0.1)
-
-
-@contextlib.asynccontextmanager
-async def running(link: HmiLink) -> AsyncIterator[asyncio.Task[None]]:
-    """Run the link's read loop for the duration of the block, then cancel it cleanly."""
-    task = asyncio.create_task(link.run(), name="hmi-link-run")
-    try:
-        yield task
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
 
 
 @pytest.fixture

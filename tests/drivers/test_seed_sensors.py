@@ -26,19 +26,9 @@ from drivers.seed_sensors import (
     gpiod_request,
 )
 from simulator.pty_link import PtyPair
+from tests.drivers.helpers import wait_for
 
 FAST = Backoff(initial_s=0.02, cap_s=0.05)
-
-
-WAIT_S = 3.0
-
-
-async def wait_for(cond: Callable[[], bool]) -> None:
-    deadline = time.monotonic() + WAIT_S
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.01)
 
 
 @contextlib.asynccontextmanager

@@ -5,8 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -14,20 +13,11 @@ import pytest
 from drivers.backoff import Backoff
 from drivers.serial_line import Drain, SerialLine
 from simulator.pty_link import PtyPair
-
-WAIT_S = 3.0
+from tests.drivers.helpers import running, wait_for
 
 
 def fast() -> Backoff:
     return Backoff(initial_s=0.02, cap_s=0.05)
-
-
-async def wait_for(cond: Callable[[], bool]) -> None:
-    deadline = time.monotonic() + WAIT_S
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.01)
 
 
 class Recorder:
@@ -52,17 +42,6 @@ class Recorder:
 
     def on_close(self) -> None:
         self.calls.append("close")
-
-
-@contextlib.asynccontextmanager
-async def running(line: SerialLine) -> AsyncIterator[asyncio.Task[None]]:
-    task = asyncio.create_task(line.run(), name="serial-line-under-test")
-    try:
-        yield task
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
 
 
 @pytest.fixture
