@@ -279,7 +279,8 @@ class GnssStats:
 
 
 class GnssReader(StartClose):
-    """Reads the receiver's port forever (reconnecting) and hands complete epochs to a callback.
+    """Reads the receiver's port forever (reopened by ``drivers.serial_line.SerialLine``) and
+    hands complete epochs to a callback.
 
     ``on_epoch`` runs in the event loop; keep it short (append to a buffer, set an event).
     """

@@ -15,7 +15,8 @@ One interface (:class:`SeedSensorSource`), two sources, chosen by ``seed_sensors
   (2 ms is 7 mm at 12 km/h).
 
 Both deliver :class:`SeedEdgeEvent` to ``on_edge`` inside the event loop and keep going on any
-bad input; a vanished port or chip is retried with ``drivers.backoff.Backoff``.
+bad input; a vanished port (``drivers.serial_line``) or chip is retried with
+``drivers.backoff.Backoff``.
 
 Cancelling ``run`` is the daemon's graceful stop, and a seed the module has already reported
 is a seed that fell: before honouring the cancel, both sources hand over what has already
