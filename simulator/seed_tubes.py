@@ -25,7 +25,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivers.tasks import StartClose, cancel_and_wait
+from drivers.tasks import StartClose
 from gateway.config.machine import MachineSection
 from gateway.config.recording import (
     DEFAULT_FALL_TIME_TABLE,
@@ -34,7 +34,7 @@ from gateway.config.recording import (
 )
 from protocol.seed_line import encode_seed_line
 from simulator.plant import Drive, Pose
-from simulator.pty_link import PtyPair
+from simulator.pty_link import PtyPair, unplug
 
 PLAN_STEP_S = 0.002  # distance integration step: 6.7 mm at 12 km/h
 MIN_SOWING_KMH = 1.0  # the metering drive stops below this
@@ -203,11 +203,8 @@ class SeedTubeEmulator(StartClose):
         self._task = asyncio.create_task(self._run(), name="seed-tube-emulator")
 
     async def close(self) -> None:
-        await cancel_and_wait(self._task)
-        self._task = None
-        if self._pair is not None:
-            self._pair.close()
-            self._pair = None
+        await unplug(self._task, self._pair)
+        self._task, self._pair = None, None
 
     @property
     def device_path(self) -> str:

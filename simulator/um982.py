@@ -29,10 +29,10 @@ from typing import Final, Literal, Protocol
 
 import pymap3d
 
-from drivers.tasks import StartClose, cancel_and_wait
+from drivers.tasks import StartClose
 from protocol.nmea import KMH_PER_KNOT, encode_nmea
 from protocol.unicore import GPS_UTC_LEAP_S, encode_headinga, utc_to_gps
-from simulator.pty_link import PtyPair
+from simulator.pty_link import PtyPair, unplug
 
 Fix = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
 
@@ -225,11 +225,8 @@ class Um982Emulator(StartClose):
         self._task = asyncio.create_task(self._run(), name="um982-emulator")
 
     async def close(self) -> None:
-        await cancel_and_wait(self._task)
-        self._task = None
-        if self._pair is not None:
-            self._pair.close()
-            self._pair = None
+        await unplug(self._task, self._pair)
+        self._task, self._pair = None, None
 
     @property
     def device_path(self) -> str:
