@@ -4,8 +4,8 @@
 bus fails (socketcan interface down, USB adapter unplugged) it is torn down and reopened with
 the shared capped ``Backoff``, so a brown-out on the implement harness costs a few frames, not
 the daemon. ``MeteringCanLink`` speaks the metering controllers' DBC; ``IsobusListener``
-keeps the tractor's latest speed and hitch state and forgets them after 300 ms, because a
-speed that stopped arriving must not keep the meters turning.
+keeps the tractor's latest speed and hitch messages with the time each arrived (which of them
+the machine acts on, and for how long, is ``gateway.metering.isobus``'s to decide).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Generic, TypeVar
 
 import can
 
@@ -29,7 +29,6 @@ log = logging.getLogger(__name__)
 
 RX_BUFFER_MAX = 1024  # frames held between the notifier and the consumer; oldest dropped
 NOTIFIER_POLL_S = 0.1  # notifier thread wake-up; bounds how long close() blocks the loop
-ISOBUS_STALE_S = 0.3  # ISO 11783-7 sends speed every 100 ms; three misses = gone
 
 Clock = Callable[[], float]
 
@@ -348,39 +347,31 @@ class MeteringCanLink:
             tg.create_task(self._rx_loop(on_status), name="metering-can-rx")
 
 
-SpeedSource = Literal["machine_selected", "ground", "wheel"]
-SOURCE_PGN: dict[str, int] = {
-    "machine_selected": isobus.PGN_MACHINE_SELECTED_SPEED,
-    "ground": isobus.PGN_GROUND_SPEED,
-    "wheel": isobus.PGN_WHEEL_SPEED,
-}
+M = TypeVar("M")
 
 
 @dataclass(frozen=True)
-class TractorSpeed:
-    source: str
-    speed_kmh: float  # 0 when the tractor reports reverse: a seeder never meters backwards
-    direction: isobus.Direction
-    age_s: float
+class Heard(Generic[M]):
+    """A decoded ISOBUS message and the local monotonic time its frame arrived."""
+
+    message: M
+    at: float
 
 
 @dataclass
 class IsobusListener:
-    """Latest tractor speed (by source priority) and rear hitch status from the ISOBUS."""
+    """The tractor's latest ISOBUS speed message per PGN and rear hitch status, each with the
+    time its frame arrived.
+
+    Decoding only: which speed source the machine follows, how old a reading may be and when
+    the hitch means "in work" are the machine's decisions (``gateway.metering.isobus``).
+    """
 
     bus: CanBus | None = None
-    priority: Sequence[str] = ("machine_selected", "ground", "wheel")
-    stale_after_s: float = ISOBUS_STALE_S
-    hitch_in_work_below_pct: float | None = None
     clock: Clock = time.monotonic
-    _speeds: dict[int, tuple[isobus.SpeedMessage, float]] = field(default_factory=dict)
-    _hitch: tuple[isobus.HitchStatus, float] | None = None
+    _speeds: dict[int, Heard[isobus.SpeedMessage]] = field(default_factory=dict)
+    _hitch: Heard[isobus.HitchStatus] | None = None
     bad_frames: int = 0
-
-    def __post_init__(self) -> None:
-        unknown = [p for p in self.priority if p not in SOURCE_PGN]
-        if unknown or not self.priority:
-            raise DriverError(f"unknown ISOBUS speed source(s) {unknown}; use {list(SOURCE_PGN)}")
 
     def feed(self, msg: can.Message, now: float | None = None) -> None:
         if not msg.is_extended_id:
@@ -393,52 +384,18 @@ class IsobusListener:
             log.debug("bad ISOBUS frame 0x%08X: %s", msg.arbitration_id, exc)
             return
         if isinstance(decoded, isobus.SpeedMessage):
-            self._speeds[decoded.pgn] = (decoded, t)
+            self._speeds[decoded.pgn] = Heard(decoded, t)
         elif isinstance(decoded, isobus.HitchStatus):
-            self._hitch = (decoded, t)
+            self._hitch = Heard(decoded, t)
 
-    def speed(self, now: float | None = None) -> TractorSpeed | None:
-        """Best fresh, valid speed in priority order; None if every source is stale/invalid."""
-        t = self.clock() if now is None else now
-        for source in self.priority:
-            entry = self._speeds.get(SOURCE_PGN[source])
-            if entry is None:
-                continue
-            msg, at = entry
-            age = t - at
-            if age > self.stale_after_s or msg.speed_kmh is None:
-                continue
-            # direction "error"/"n/a" with a valid speed is still used: many tractors send 11
-            kmh = 0.0 if msg.direction is isobus.Direction.REVERSE else msg.speed_kmh
-            return TractorSpeed(source, kmh, msg.direction, age)
-        return None
+    def latest_speed(self, pgn: int) -> Heard[isobus.SpeedMessage] | None:
+        """The latest speed message of ``pgn`` (``protocol.isobus.PGN_*_SPEED``), however old;
+        None if none came yet."""
+        return self._speeds.get(pgn)
 
-    def speed_kmh(self) -> float | None:
-        s = self.speed()
-        return None if s is None else s.speed_kmh
-
-    def hitch(self, now: float | None = None) -> isobus.HitchStatus | None:
-        t = self.clock() if now is None else now
-        if self._hitch is None or t - self._hitch[1] > self.stale_after_s:
-            return None
-        return self._hitch[0]
-
-    def hitch_received_at(self) -> float | None:
-        """Local time the latest rear hitch message arrived (None: never)."""
-        return None if self._hitch is None else self._hitch[1]
-
-    def working(self, now: float | None = None) -> bool | None:
-        """In work from the hitch: the in-work bits, else position below the threshold."""
-        h = self.hitch(now)
-        if h is None:
-            return None
-        if h.in_work is isobus.InWork.IN_WORK:
-            return True
-        if h.in_work is isobus.InWork.OUT_OF_WORK:
-            return False
-        if self.hitch_in_work_below_pct is not None and h.position_pct is not None:
-            return h.position_pct < self.hitch_in_work_below_pct
-        return None
+    def latest_hitch(self) -> Heard[isobus.HitchStatus] | None:
+        """The latest rear hitch status, however old; None if none came yet."""
+        return self._hitch
 
     async def run(self) -> None:
         """Consume frames until cancelled; the bus must be open (``async with bus``)."""

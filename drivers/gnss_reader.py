@@ -14,7 +14,6 @@ counted as ``late`` and dropped, so consumers see each UTC instant at most once,
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import time
 from collections import Counter
@@ -22,16 +21,12 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime, timedelta
 from datetime import time as dtime
-from types import TracebackType
 from typing import Final, Literal
 
-from serial import SerialException
-from serial_asyncio_fast import open_serial_connection
-
 from drivers.backoff import Backoff
-from drivers.errors import DeviceUnavailable
 from drivers.log_limit import RateLimitedLog
-from drivers.tasks import cancel_and_wait
+from drivers.serial_line import SerialLine
+from drivers.tasks import StartClose, cancel_and_wait
 from protocol.gnss import REASON_UNKNOWN, GnssEvent, GnssLineDecoder, Rejected
 from protocol.nmea import Gga, Hdt, Rmc, Ths, Vtg
 from protocol.unicore import GPS_UTC_LEAP_S, Heading
@@ -283,8 +278,9 @@ class GnssStats:
     discarded_bytes: int = 0
 
 
-class GnssReader:
-    """Reads the receiver's port forever (reconnecting) and hands complete epochs to a callback.
+class GnssReader(StartClose):
+    """Reads the receiver's port forever (reopened by ``drivers.serial_line.SerialLine``) and
+    hands complete epochs to a callback.
 
     ``on_epoch`` runs in the event loop; keep it short (append to a buffer, set an event).
     """
@@ -308,15 +304,26 @@ class GnssReader:
         self._on_epoch = on_epoch
         self.stale_after_s = stale_after_s
         self._epoch_max_wait_s = epoch_max_wait_s
-        self._silence_reconnect_s = silence_reconnect_s
         self._clock = clock
-        self._backoff = backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0)
         self._decoder = GnssLineDecoder()
         self._assembler = EpochAssembler(required, heading_offset_deg=heading_offset_deg)
         self._task: asyncio.Task[None] | None = None
-        self._connected = False
-        self._connects = 0
-        self._last_error: str | None = None
+        # the receiver talks 10+ times a second: a port silent for ``silence_reconnect_s`` is
+        # a wedged adapter or a receiver that rebooted, and is reopened
+        self._line = SerialLine(
+            port,
+            baudrate,
+            label="GNSS",
+            logger=log,
+            on_data=self._received,
+            on_idle=self._quiet,
+            on_close=self._closed,
+            idle_after_s=epoch_max_wait_s,
+            silence_reconnect_s=silence_reconnect_s,
+            read_chunk_bytes=READ_CHUNK_BYTES,
+            backoff=backoff,  # None: SerialLine's default, 0.1 s doubling to 5 s
+            clock=clock,
+        )
         self.latest: GnssEpoch | None = None
         self.last_rejected: Rejected | None = None
         self._log = RateLimitedLog(log, LOG_EVERY_S, clock=clock)
@@ -340,15 +347,15 @@ class GnssReader:
 
     @property
     def stats(self) -> GnssStats:
-        counts = self._decoder.counts
+        counts, line = self._decoder.counts, self._line.stats
         return GnssStats(
             sentences_ok=counts["ok"],
             rejected={k: v for k, v in counts.items() if k != "ok"},
             epochs=self._assembler.counts["epochs"],
             late=self._assembler.counts["late"],
-            reconnects=max(0, self._connects - 1),
-            connected=self._connected,
-            last_error=self._last_error,
+            reconnects=line.reconnects,
+            connected=line.connected,
+            last_error=line.last_error,
             discarded_bytes=self._decoder.discarded_bytes,
         )
 
@@ -357,78 +364,28 @@ class GnssReader:
     async def start(self) -> None:
         if self._task is not None:
             raise RuntimeError("GnssReader already started")
-        self._task = asyncio.create_task(self._run(), name=f"gnss-reader:{self.port}")
+        self._task = asyncio.create_task(self._line.run(), name=f"gnss-reader:{self.port}")
 
-    async def stop(self) -> None:
+    async def close(self) -> None:
+        """Stop reading and close the port (what was half-read is delivered first)."""
         await cancel_and_wait(self._task)
         self._task = None
 
-    async def __aenter__(self) -> GnssReader:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.stop()
-
     # -- I/O ---------------------------------------------------------------------------------
 
-    async def _run(self) -> None:
-        while True:
-            try:
-                reader, writer = await open_serial_connection(url=self.port, baudrate=self.baudrate)
-            except (OSError, SerialException) as exc:
-                self._failed(f"cannot open {self.port}: {exc}")
-                await asyncio.sleep(self._backoff.next_delay())
-                continue
-            self._connected = True
-            self._connects += 1
-            log.info("GNSS port %s open (connection %d)", self.port, self._connects)
-            try:
-                await self._pump(reader)
-                self._failed(f"{self.port}: port closed")
-            except (OSError, SerialException, DeviceUnavailable) as exc:
-                self._failed(f"{self.port}: {exc}")
-            finally:
-                self._connected = False
-                writer.close()
-                with contextlib.suppress(Exception):
-                    await writer.wait_closed()
-                self._dispatch(self._decoder.flush(), self._clock())
-                self._deliver(self._assembler.flush())
-            await asyncio.sleep(self._backoff.next_delay())
+    def _received(self, data: bytes, t_arrival: float) -> None:
+        """One chunk from the port; ``t_arrival`` stamps every line it completes."""
+        self._dispatch(self._decoder.feed(data), t_arrival)
+        self._deliver(self._assembler.expire(t_arrival - self._epoch_max_wait_s))
 
-    def _failed(self, message: str) -> None:
-        if message != self._last_error:
-            log.warning("GNSS: %s", message)
-        self._last_error = message
+    def _quiet(self, now: float) -> None:
+        """Nothing arrived for ``epoch_max_wait_s``: emit the epochs that waited long enough."""
+        self._deliver(self._assembler.expire(now - self._epoch_max_wait_s))
 
-    async def _pump(self, reader: asyncio.StreamReader) -> None:
-        last_data = self._clock()
-        while True:
-            try:
-                data = await asyncio.wait_for(
-                    reader.read(READ_CHUNK_BYTES), timeout=self._epoch_max_wait_s
-                )
-            except TimeoutError:
-                now = self._clock()
-                self._deliver(self._assembler.expire(now - self._epoch_max_wait_s))
-                if now - last_data > self._silence_reconnect_s:
-                    raise DeviceUnavailable(
-                        f"no data for {self._silence_reconnect_s:.1f} s"
-                    ) from None
-                continue
-            if not data:
-                return
-            now = self._clock()  # the arrival stamp of every line completed by this chunk
-            last_data = now
-            self._backoff.reset()
-            self._dispatch(self._decoder.feed(data), now)
-            self._deliver(self._assembler.expire(now - self._epoch_max_wait_s))
+    def _closed(self) -> None:
+        """The port closed: what was half-read is all there will be of it."""
+        self._dispatch(self._decoder.flush(), self._clock())
+        self._deliver(self._assembler.flush())
 
     def _dispatch(self, items: list[GnssEvent | Rejected], t_mono: float) -> None:
         for item in items:

@@ -9,17 +9,16 @@ when the screen is gone -- the next periodic update repaints everything anyway.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import serial
-import serial_asyncio_fast
 
 from drivers.backoff import Backoff
 from drivers.log_limit import RateLimitedLog
+from drivers.serial_line import SerialLine
 from protocol.hmi import (
     HmiDecoder,
     HmiEvent,
@@ -39,7 +38,6 @@ IDLE_FLUSH_S = 0.25
 # Unsent instructions allowed to queue while the screen does not read (e.g. its UART is hung
 # while the port stays open). Beyond this, updates are dropped: stale text is worthless.
 MAX_WRITE_BACKLOG = 4096
-CLOSE_TIMEOUT_S = 2.0
 LOG_EVERY_S = 10.0  # at most one warning per kind per this interval under a storm of errors
 
 
@@ -87,12 +85,26 @@ class HmiLink:
         self._on_event = on_event
         self._write_timeout_s = write_timeout_s
         self._idle_flush_s = idle_flush_s
-        self._backoff = backoff or Backoff(initial_s=0.1, cap_s=reconnect_max_s)
         self._writer: asyncio.StreamWriter | None = None
-        self._ever_connected = False
+        self._decoder = HmiDecoder()
         self._log = RateLimitedLog(log, LOG_EVERY_S, clock=clock)
-        self.stats = HmiLinkStats()
+        self._stats = HmiLinkStats()
         self.last_screen_error: ScreenError | None = None
+        self._line = SerialLine(
+            port,
+            baudrate,
+            label="HMI",
+            logger=log,
+            on_data=self._received,
+            on_open=self._opened,
+            on_idle=self._quiet,
+            on_close=self._closed,
+            idle_after_s=self._flush_after_s,
+            read_chunk_bytes=READ_CHUNK,
+            exclusive=True,
+            backoff=backoff or Backoff(initial_s=0.1, cap_s=reconnect_max_s),
+            clock=clock,
+        )
 
     @property
     def available(self) -> bool:
@@ -106,68 +118,42 @@ class HmiLink:
         writer = self._writer
         return 0 if writer is None else writer.transport.get_write_buffer_size()
 
+    @property
+    def stats(self) -> HmiLinkStats:
+        # the connection's counters are the line's; shown here under the link's own names
+        line, stats = self._line.stats, self._stats
+        stats.connects, stats.open_failures = line.connects, line.open_failures
+        stats.disconnects = line.disconnects
+        stats.reconnects = line.open_failures + line.disconnects
+        return stats
+
     # -- reading ------------------------------------------------------------------------------
 
     async def run(self) -> None:
         """Read forever, reopening the port after any failure. Only cancellation ends it."""
-        while True:
-            try:
-                reader, writer = await serial_asyncio_fast.open_serial_connection(
-                    url=self.port,
-                    baudrate=self.baudrate,
-                    bytesize=serial.EIGHTBITS,
-                    parity=serial.PARITY_NONE,
-                    stopbits=serial.STOPBITS_ONE,
-                    exclusive=True,
-                )
-            except (serial.SerialException, OSError, ValueError) as exc:
-                self.stats.open_failures += 1
-                self._log.warning("open", "HMI port %s cannot be opened: %s", self.port, exc)
-            else:
-                await self._serve(reader, writer)
-            self.stats.reconnects += 1
-            await asyncio.sleep(self._backoff.next_delay())
+        await self._line.run()
 
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self.stats.connects += 1
-        self._log.reset("open")
-        log.info(
-            "HMI port %s %s at %d baud",
-            self.port,
-            "reopened" if self._ever_connected else "opened",
-            self.baudrate,
-        )
-        self._ever_connected = True
+    def _opened(self, writer: asyncio.StreamWriter) -> None:
         self._writer = writer
-        decoder = HmiDecoder()
-        try:
-            while True:
-                try:
-                    async with asyncio.timeout(self._idle_flush_s if decoder.pending else None):
-                        data = await reader.read(READ_CHUNK)
-                except TimeoutError:
-                    self._dispatch(decoder.flush())
-                    continue
-                if not data:
-                    raise ConnectionResetError("port closed")
-                self._backoff.reset()  # the link has proved itself
-                self._dispatch(decoder.feed(data))
-        except (serial.SerialException, OSError) as exc:
-            self.stats.disconnects += 1
-            self._log.warning("lost", "HMI port %s lost: %s", self.port, exc)
-        finally:
-            self._writer = None
-            if not writer.is_closing():
-                # abort, not close: unsent display text is worthless and must not hold the fd
-                writer.transport.abort()
-            with contextlib.suppress(Exception):
-                # waits for the transport to close the fd (done in an executor thread)
-                await asyncio.wait_for(writer.wait_closed(), CLOSE_TIMEOUT_S)
+        self._decoder = HmiDecoder()  # a fresh connection starts a fresh frame
+
+    def _closed(self) -> None:
+        self._writer = None
+
+    def _flush_after_s(self) -> float | None:
+        """Wait with a timeout only while part of a frame is held."""
+        return self._idle_flush_s if self._decoder.pending else None
+
+    def _received(self, data: bytes, _t_arrival: float) -> None:
+        self._dispatch(self._decoder.feed(data))
+
+    def _quiet(self, _now: float) -> None:
+        self._dispatch(self._decoder.flush())
 
     def _dispatch(self, events: list[HmiEvent]) -> None:
         for event in events:
             if isinstance(event, ScreenError):
-                self.stats.screen_errors += 1
+                self._stats.screen_errors += 1
                 self.last_screen_error = event
                 self._log.warning(
                     "screen", "HMI on %s reports %s (0x%02X)", self.port, event.meaning, event.code
@@ -177,8 +163,8 @@ class HmiLink:
                 log.debug("HMI on %s replied 0x%02X %s", self.port, event.code, event.data.hex())
                 continue
             if isinstance(event, Rejected):
-                self.stats.rejected += 1
-                by_reason = self.stats.rejected_by_reason
+                self._stats.rejected += 1
+                by_reason = self._stats.rejected_by_reason
                 by_reason[event.kind] = by_reason.get(event.kind, 0) + 1
                 self._log.warning(
                     f"rejected:{event.kind}",
@@ -188,12 +174,12 @@ class HmiLink:
                     event.raw[:32].hex(" "),
                 )
             else:
-                self.stats.frames_ok += 1
+                self._stats.frames_ok += 1
                 log.info("HMI on %s: %s", self.port, event)
             try:
                 self._on_event(event)
             except Exception:
-                self.stats.callback_errors += 1
+                self._stats.callback_errors += 1
                 log.exception("HMI event handler failed on %r", event)
 
     # -- writing ------------------------------------------------------------------------------
@@ -220,7 +206,7 @@ class HmiLink:
         if self.write_backlog > MAX_WRITE_BACKLOG:
             return self._drop(count, "screen is not reading")
         writer.write(payload)
-        self.stats.writes += count
+        self._stats.writes += count
         try:
             await asyncio.wait_for(writer.drain(), self._write_timeout_s)
         except TimeoutError:
@@ -234,6 +220,6 @@ class HmiLink:
         return True
 
     def _drop(self, count: int, why: str) -> bool:
-        self.stats.dropped_writes += count
+        self._stats.dropped_writes += count
         log.debug("HMI port %s: update dropped, %s", self.port, why)
         return False

@@ -25,7 +25,6 @@ import os
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from types import TracebackType
 from typing import Any
 
 from pymodbus.client import AsyncModbusSerialClient
@@ -34,7 +33,7 @@ from pymodbus.framer import FramerType
 
 from drivers.backoff import Backoff
 from drivers.errors import DeviceRejected, DeviceUnavailable, DriverError
-from drivers.tasks import cancel_and_wait
+from drivers.tasks import StartClose, cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +105,7 @@ class DeviceStats:
         return self.timeouts + self.garbled + self.exceptions + self.port_errors
 
 
-class ModbusBus:
+class ModbusBus(StartClose):
     """The RS485 master shared by the radar, inclinometer and PWM module."""
 
     def __init__(
@@ -209,18 +208,6 @@ class ModbusBus:
         self._connected_event.clear()
         self._started = False
         self._port_error = "bus closed"
-
-    async def __aenter__(self) -> ModbusBus:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
 
     async def wait_connected(self, timeout_s: float) -> bool:
         """True once the port is open (for start-up sequencing and tests)."""

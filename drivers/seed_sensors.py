@@ -15,7 +15,8 @@ One interface (:class:`SeedSensorSource`), two sources, chosen by ``seed_sensors
   (2 ms is 7 mm at 12 km/h).
 
 Both deliver :class:`SeedEdgeEvent` to ``on_edge`` inside the event loop and keep going on any
-bad input; a vanished port or chip is retried with ``drivers.backoff.Backoff``.
+bad input; a vanished port (``drivers.serial_line``) or chip is retried with
+``drivers.backoff.Backoff``.
 
 Cancelling ``run`` is the daemon's graceful stop, and a seed the module has already reported
 is a seed that fell: before honouring the cancel, both sources hand over what has already
@@ -34,12 +35,10 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Protocol
 
-from serial import SerialException
-from serial_asyncio_fast import open_serial_connection
-
 from drivers.backoff import Backoff
 from drivers.errors import DeviceUnavailable
 from drivers.log_limit import RateLimitedLog
+from drivers.serial_line import Drain, SerialLine
 from drivers.ticks import next_tick
 from protocol.seed_line import Rejected, SeedLineDecoder
 
@@ -150,78 +149,43 @@ class SerialSeedSensors:
         self.port = port
         self.baudrate = baudrate
         self.rows = rows
-        SeedLineDecoder(rows)  # validates the row count now, not at first connect
+        self._decoder = SeedLineDecoder(rows)  # validates the row count now, not at first connect
         self._on_edge = on_edge
-        self._clock = clock
-        self._backoff = backoff if backoff is not None else Backoff(initial_s=0.1, cap_s=5.0)
-        self._connected = False
         self._stats = SeedSensorStats()
         self._log = RateLimitedLog(log, LOG_EVERY_S, clock=clock)
+        self._line = SerialLine(
+            port,
+            baudrate,
+            label="seed sensors",
+            logger=log,
+            on_data=self._feed,
+            on_open=self._opened,
+            drain=Drain(quiet_s=DRAIN_QUIET_S, timeout_s=DRAIN_TIMEOUT_S),
+            read_chunk_bytes=READ_CHUNK_BYTES,
+            backoff=backoff,  # None: SerialLine's default, 0.1 s doubling to 5 s
+            clock=clock,
+        )
 
     @property
     def available(self) -> bool:
-        return self._connected
+        return self._line.connected
 
     @property
     def stats(self) -> SeedSensorStats:
+        # the connection's counters are the line's; shown here under the sources' common names
+        line = self._line.stats
+        self._stats.connects, self._stats.last_error = line.connects, line.last_error
         return self._stats
 
     async def run(self) -> None:
-        while True:
-            try:
-                reader, writer = await open_serial_connection(url=self.port, baudrate=self.baudrate)
-            except (SerialException, OSError) as exc:
-                self._failed(f"cannot open {self.port}: {exc}")
-                await asyncio.sleep(self._backoff.next_delay())
-                continue
-            self._connected = True
-            self._stats.connects += 1
-            try:
-                await self._pump(reader)
-                self._failed(f"{self.port} closed")
-            except (SerialException, OSError) as exc:
-                self._failed(f"{self.port} read failed: {exc}")
-            finally:
-                self._connected = False
-                writer.close()
-                with contextlib.suppress(Exception):
-                    await writer.wait_closed()
-            await asyncio.sleep(self._backoff.next_delay())
+        await self._line.run()
 
-    async def _pump(self, reader: asyncio.StreamReader) -> None:
-        decoder = SeedLineDecoder(self.rows)  # a fresh connection starts a fresh line
-        while True:
-            try:
-                data = await reader.read(READ_CHUNK_BYTES)
-            except asyncio.CancelledError:
-                await self._drain(reader, decoder)
-                raise
-            if not data:
-                return
-            self._feed(decoder, data)
+    def _opened(self, _writer: asyncio.StreamWriter) -> None:
+        self._decoder = SeedLineDecoder(self.rows)  # a fresh connection starts a fresh line
 
-    async def _drain(self, reader: asyncio.StreamReader, decoder: SeedLineDecoder) -> None:
-        """After a cancel: lines already sent (in the kernel, the transport or ``decoder``) are
-        still delivered; reading stops once the port is quiet or ``DRAIN_TIMEOUT_S`` is up."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + DRAIN_TIMEOUT_S
-        with contextlib.suppress(SerialException, OSError):  # a dead port has no more to give
-            while (left := deadline - loop.time()) > 0:
-                try:
-                    data = await asyncio.wait_for(
-                        reader.read(READ_CHUNK_BYTES), min(DRAIN_QUIET_S, left)
-                    )
-                except TimeoutError:
-                    return
-                if not data:
-                    return
-                self._feed(decoder, data)
-
-    def _feed(self, decoder: SeedLineDecoder, data: bytes) -> None:
-        """Decode one chunk; every line it completes is stamped with this arrival time."""
-        t_arrival = self._clock()
-        self._backoff.reset()
-        for item in decoder.feed(data):
+    def _feed(self, data: bytes, t_arrival: float) -> None:
+        """Decode one chunk; every line it completes is stamped with its arrival time."""
+        for item in self._decoder.feed(data):
             if isinstance(item, Rejected):
                 self._reject(item)
                 continue
@@ -237,11 +201,6 @@ class SerialSeedSensors:
             item.kind, "seed sensor line on %s rejected (%s): %r", self.port, item.reason,
             item.line,
         )
-
-    def _failed(self, message: str) -> None:
-        if message != self._stats.last_error:
-            log.warning("seed sensors: %s", message)
-        self._stats.last_error = message
 
 
 # ---------------------------------------------------------------- gpio

@@ -15,7 +15,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Iterable
-from typing import Any
+from types import TracebackType
+from typing import Any, Self
 
 # How long a cancelled task may take to clean up (close a port, flush a file) before it is
 # assumed to have swallowed the cancellation and is cancelled again.
@@ -74,3 +75,27 @@ async def cancel_and_wait(
     await cancel_all([task], recancel_after_s=recancel_after_s)
     with contextlib.suppress(asyncio.CancelledError):
         await task
+
+
+class StartClose:
+    """``async with part:`` means ``await part.start()`` on the way in and ``await
+    part.close()`` on the way out, even after an error: for every part that owns a port, a
+    task or a server (the drivers, and the simulator's devices on their ptys)."""
+
+    async def start(self) -> None:
+        """Nothing to start unless the part says otherwise."""
+
+    async def close(self) -> None:
+        raise NotImplementedError
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()

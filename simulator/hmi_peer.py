@@ -15,8 +15,8 @@ import contextlib
 import os
 import time
 from collections.abc import Callable, Iterable
-from types import TracebackType
 
+from drivers.tasks import StartClose
 from protocol.hmi import (
     INSTRUCTION_END,
     EmptySeed,
@@ -37,7 +37,7 @@ KEEP_INSTRUCTIONS = 1000  # most recent raw instructions kept for inspection
 INVALID_VARIABLE_REPLY = b"\x1a" + INSTRUCTION_END
 
 
-class HmiPeer:
+class HmiPeer(StartClose):
     """One simulated screen. Create it inside a running event loop; ``await close()`` it."""
 
     def __init__(
@@ -183,14 +183,3 @@ class HmiPeer:
 
     async def close(self) -> None:
         self.vanish()
-
-    async def __aenter__(self) -> HmiPeer:
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()

@@ -14,10 +14,9 @@ import contextlib
 import random
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
-from drivers.tasks import cancel_and_wait
+from drivers.tasks import StartClose, cancel_and_wait
 from gateway.config import Settings, parse_config
 from simulator.hmi_peer import HmiPeer
 from simulator.modbus_devices import Rs485Simulator
@@ -84,7 +83,7 @@ class Truth:
 
 
 @dataclass
-class SimulatedMachine:
+class SimulatedMachine(StartClose):
     drive: Drive = field(default_factory=demo_drive)
     crop: str = "rapeseed"
     noise: SensorNoise = field(default_factory=SensorNoise)
@@ -172,7 +171,7 @@ class SimulatedMachine:
             )
 
     # ---- lifecycle -----------------------------------------------------------------------------
-    async def __aenter__(self) -> SimulatedMachine:
+    async def start(self) -> None:
         self._t0 = asyncio.get_running_loop().time()
         try:
             self.rs485 = await self._stack.enter_async_context(
@@ -193,7 +192,6 @@ class SimulatedMachine:
         except BaseException:
             await self._stack.aclose()
             raise
-        return self
 
     async def _start_gnss(self) -> None:
         from simulator.um982 import Um982Emulator
@@ -219,12 +217,7 @@ class SimulatedMachine:
             SeedTubeEmulator(self.drive, positioning, seed=self.seed + 4, t0_mono=self._t0)
         )
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    async def close(self) -> None:
         await cancel_and_wait(self._task)
         await self._stack.aclose()
 

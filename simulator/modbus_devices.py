@@ -38,7 +38,6 @@ import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from types import TracebackType
 from typing import Literal, get_args
 
 from pymodbus.constants import ExcCodes
@@ -46,6 +45,7 @@ from pymodbus.framer import FramerRTU, FramerType
 from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from drivers.tasks import StartClose
 from gateway.config.machine import ActuatorsSection, InclinometerSection, RadarSection
 from protocol.errors import ProtocolError
 from protocol.registers import (
@@ -74,7 +74,7 @@ NOISE_BYTES = 5  # line noise put before every reply under a "noise" fault
 WATCHDOG_CHECK_S = 0.05  # how often the simulated PWM module looks at its watchdog
 
 
-class Rs485Simulator:
+class Rs485Simulator(StartClose):
     """Radar, WitMotion inclinometer and PWM module on one simulated RS485 bus.
 
     Use as ``async with Rs485Simulator(...) as sim:`` and point the daemon at
@@ -204,18 +204,6 @@ class Rs485Simulator:
         if self._tmpdir is not None:
             shutil.rmtree(self._tmpdir, ignore_errors=True)
             self._tmpdir = None
-
-    async def __aenter__(self) -> Rs485Simulator:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
 
     # -------------------------------------------------------------------------------------
     # fault injection

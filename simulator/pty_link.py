@@ -17,11 +17,14 @@ daemon's config keeps pointing at the same file, as a udev symlink would on the 
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import tty
 from pathlib import Path
 from types import TracebackType
+
+from drivers.tasks import cancel_and_wait
 
 
 class PtyPair:
@@ -90,3 +93,11 @@ class PtyPair:
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"PtyPair({self.device_path!r} -> {self.slave_path!r}, {state})"
+
+
+async def unplug(task: asyncio.Task[None] | None, pair: PtyPair | None) -> None:
+    """Stop the task that plays a device on ``pair``, then close the pair: in that order, so
+    the task never writes to a closed fd. Either may be None (never started)."""
+    await cancel_and_wait(task)
+    if pair is not None:
+        pair.close()

@@ -23,10 +23,9 @@ import random
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from types import TracebackType
 from typing import Any
 
-from drivers.tasks import cancel_and_wait
+from drivers.tasks import StartClose
 from gateway.config.machine import MachineSection
 from gateway.config.recording import (
     DEFAULT_FALL_TIME_TABLE,
@@ -35,7 +34,7 @@ from gateway.config.recording import (
 )
 from protocol.seed_line import encode_seed_line
 from simulator.plant import Drive, Pose
-from simulator.pty_link import PtyPair
+from simulator.pty_link import PtyPair, unplug
 
 PLAN_STEP_S = 0.002  # distance integration step: 6.7 mm at 12 km/h
 MIN_SOWING_KMH = 1.0  # the metering drive stops below this
@@ -175,7 +174,7 @@ def plan_seeds(
 
 
 @dataclass
-class SeedTubeEmulator:
+class SeedTubeEmulator(StartClose):
     """Writes a seed plan to a pty in real time; ``truth`` lists the seeds actually written.
 
     ``model`` may be a daemon's ``PositioningSection``: the planter it describes is used.
@@ -194,7 +193,7 @@ class SeedTubeEmulator:
     _task: asyncio.Task[None] | None = field(default=None, init=False, repr=False)
     _plan: list[SeedTruth] = field(default_factory=list, init=False, repr=False)
 
-    async def __aenter__(self) -> SeedTubeEmulator:
+    async def start(self) -> None:
         if isinstance(self.model, PositioningSection):
             self.model = PlanterModel.from_positioning(self.model)
         self._plan = plan_seeds(self.drive, self.model, seed=self.seed, t_end=self.t_end)
@@ -202,19 +201,10 @@ class SeedTubeEmulator:
         if self.t0_mono is None:
             self.t0_mono = self.clock()
         self._task = asyncio.create_task(self._run(), name="seed-tube-emulator")
-        return self
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await cancel_and_wait(self._task)
-        self._task = None
-        if self._pair is not None:
-            self._pair.close()
-            self._pair = None
+    async def close(self) -> None:
+        await unplug(self._task, self._pair)
+        self._task, self._pair = None, None
 
     @property
     def device_path(self) -> str:

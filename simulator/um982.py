@@ -25,15 +25,14 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
-from types import TracebackType
 from typing import Final, Literal, Protocol
 
 import pymap3d
 
-from drivers.tasks import cancel_and_wait
+from drivers.tasks import StartClose
 from protocol.nmea import KMH_PER_KNOT, encode_nmea
 from protocol.unicore import GPS_UTC_LEAP_S, encode_headinga, utc_to_gps
-from simulator.pty_link import PtyPair
+from simulator.pty_link import PtyPair, unplug
 
 Fix = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
 
@@ -158,7 +157,7 @@ def corrupt_checksum(line: str) -> str:
     return line[:-1] + swapped
 
 
-class Um982Emulator:
+class Um982Emulator(StartClose):
     """Writes a noisy view of ``pose_at`` as UM982 output to a pty, 10 times a second.
 
     ``pose_at`` is called with the trajectory time ``t_sim = t_mono - t0_mono``: pass the same
@@ -215,18 +214,6 @@ class Um982Emulator:
 
     # -- lifecycle ---------------------------------------------------------------------------
 
-    async def __aenter__(self) -> Um982Emulator:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
-
     async def start(self) -> None:
         if self._task is not None:
             raise RuntimeError("emulator already started")
@@ -238,11 +225,8 @@ class Um982Emulator:
         self._task = asyncio.create_task(self._run(), name="um982-emulator")
 
     async def close(self) -> None:
-        await cancel_and_wait(self._task)
-        self._task = None
-        if self._pair is not None:
-            self._pair.close()
-            self._pair = None
+        await unplug(self._task, self._pair)
+        self._task, self._pair = None, None
 
     @property
     def device_path(self) -> str:

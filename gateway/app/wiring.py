@@ -27,6 +27,7 @@ from gateway.ui.touchscreen import HmiAdapter
 if TYPE_CHECKING:
     from drivers.gnss_reader import GnssEpoch
     from gateway.link.payloads import StatePayload
+    from gateway.metering.isobus import TractorInputs
     from gateway.state import MachineState
 
 log = logging.getLogger(__name__)
@@ -403,19 +404,19 @@ def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None
 ISOBUS_PUMP_S = 0.05  # half the tractor's 100 ms, so a value reaches the controller young
 
 
-def isobus_pump_step(daemon: Daemon, listener: Any, fed: dict[str, float]) -> None:
+def isobus_pump_step(daemon: Daemon, tractor: TractorInputs, fed: dict[str, float]) -> None:
     """Hand the controller each new ISOBUS speed and hitch value once, stamped with the time
     its frame arrived, so the controller's own staleness check (``isobus.stale_after_s``,
     300 ms) runs from the frame and not from this pump."""
     now = daemon.clock()
-    speed = listener.speed(now)
+    speed = tractor.speed(now)
     if speed is not None:
         at = now - speed.age_s
         if at > fed.get("speed", float("-inf")):
             fed["speed"] = at
             daemon.controller.on_speed("isobus", speed.speed_kmh, at)
-    working = listener.working(now)
-    at_hitch = listener.hitch_received_at()
+    working = tractor.working(now)
+    at_hitch = tractor.hitch_received_at()
     if working is not None and at_hitch is not None and at_hitch > fed.get("hitch", float("-inf")):
         fed["hitch"] = at_hitch
         daemon.controller.on_hitch(working, at_hitch)
@@ -423,13 +424,15 @@ def isobus_pump_step(daemon: Daemon, listener: Any, fed: dict[str, float]) -> No
 
 def _attach_isobus(daemon: Daemon) -> None:
     from drivers.can_bus import CanBus, IsobusListener
+    from gateway.metering.isobus import TractorInputs
 
     cfg = daemon.settings.isobus
-    listener = IsobusListener(
-        priority=cfg.speed_priority,
+    listener = IsobusListener(clock=daemon.clock)
+    tractor = TractorInputs(
+        listener,
+        speed_priority=cfg.speed_priority,
         stale_after_s=cfg.stale_after_s,
         hitch_in_work_below_pct=cfg.hitch_in_work_below_pct,
-        clock=daemon.clock,
     )
     daemon.parts.isobus = listener
 
@@ -437,7 +440,7 @@ def _attach_isobus(daemon: Daemon) -> None:
         fed: dict[str, float] = {}
         while True:
             await asyncio.sleep(ISOBUS_PUMP_S)
-            isobus_pump_step(daemon, listener, fed)
+            isobus_pump_step(daemon, tractor, fed)
 
     async def run() -> None:
         async with CanBus(cfg.interface, cfg.channel) as bus:

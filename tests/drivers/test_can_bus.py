@@ -1,4 +1,6 @@
-"""CAN driver on python-can's virtual interface: frames, timeouts, reconnects, ISOBUS state."""
+"""CAN driver on python-can's virtual interface: frames, timeouts, reconnects, ISOBUS decoding.
+
+Which ISOBUS reading the machine acts on is tested in tests/gateway/metering/test_isobus.py."""
 
 from __future__ import annotations
 
@@ -153,42 +155,21 @@ def hitch_msg(raw_pos: int, in_work_bits: int) -> can.Message:
                        is_extended_id=True)
 
 
-def test_isobus_speed_goes_stale_after_300_ms() -> None:
-    lis = IsobusListener()
+def test_isobus_listener_keeps_each_sources_latest_message_with_its_arrival_time() -> None:
+    """Decoding only: every source is kept, however old; which one counts is the gateway's."""
+    lis = IsobusListener(clock=lambda: 99.0)
     lis.feed(speed_msg(65097, 1389), now=10.0)
-    s = lis.speed(now=10.25)
-    assert s is not None and s.source == "ground" and s.speed_kmh == pytest.approx(5.0, abs=0.01)
-    assert lis.speed(now=10.31) is None
-
-
-def test_isobus_speed_falls_back_by_priority() -> None:
-    """Machine-selected first; when it stops, ground-based; invalid raw values are skipped."""
-    lis = IsobusListener(priority=("machine_selected", "ground", "wheel"))
-    lis.feed(speed_msg(61474, 2000), now=0.0)
-    lis.feed(speed_msg(65097, 0xFE00), now=0.0)  # radar error
-    lis.feed(speed_msg(65096, 1000), now=0.2)
-    s = lis.speed(now=0.1)
-    assert s is not None and s.source == "machine_selected"
-    s = lis.speed(now=0.4)
-    assert s is not None and s.source == "wheel" and s.speed_kmh == pytest.approx(3.6)
-
-
-def test_isobus_reverse_counts_as_zero_speed() -> None:
-    lis = IsobusListener()
-    lis.feed(speed_msg(61474, 1500, direction=0), now=0.0)
-    s = lis.speed(now=0.0)
-    assert s is not None and s.speed_kmh == 0.0 and s.direction is ib.Direction.REVERSE
-
-
-def test_isobus_hitch_gives_work_state() -> None:
-    lis = IsobusListener(hitch_in_work_below_pct=30.0)
-    lis.feed(hitch_msg(20, 0b01), now=0.0)
-    assert lis.working(now=0.1) is True
-    lis.feed(hitch_msg(200, 0b00), now=0.2)
-    assert lis.working(now=0.3) is False
-    lis.feed(hitch_msg(50, 0b11), now=0.4)  # in-work n/a: position 20 % < 30 % threshold
-    assert lis.working(now=0.5) is True
-    assert lis.working(now=1.0) is None  # stale
+    lis.feed(speed_msg(65097, 1500), now=10.1)  # a newer ground-based speed replaces the old
+    lis.feed(speed_msg(61474, 0xFE00), now=10.2)  # an error value is kept as what was said
+    lis.feed(hitch_msg(20, 0b01))  # stamped by the listener's clock
+    ground = lis.latest_speed(ib.PGN_GROUND_SPEED)
+    assert ground is not None and ground.at == 10.1
+    assert ground.message.speed_kmh == pytest.approx(5.4)
+    selected = lis.latest_speed(ib.PGN_MACHINE_SELECTED_SPEED)
+    assert selected is not None and selected.at == 10.2 and selected.message.speed_kmh is None
+    assert lis.latest_speed(ib.PGN_WHEEL_SPEED) is None
+    hitch = lis.latest_hitch()
+    assert hitch is not None and hitch.at == 99.0 and hitch.message.in_work is ib.InWork.IN_WORK
 
 
 def test_isobus_listener_ignores_garbage_and_standard_frames() -> None:
@@ -196,12 +177,8 @@ def test_isobus_listener_ignores_garbage_and_standard_frames() -> None:
     lis.feed(can.Message(arbitration_id=ib.build_can_id(65097, 1), data=bytes(3),
                          is_extended_id=True), now=0.0)
     lis.feed(can.Message(arbitration_id=0x201, data=bytes(8), is_extended_id=False), now=0.0)
-    assert lis.bad_frames == 1 and lis.speed(now=0.0) is None
-
-
-def test_isobus_unknown_priority_source_is_rejected() -> None:
-    with pytest.raises(DriverError, match="radar"):
-        IsobusListener(priority=("radar",))
+    assert lis.bad_frames == 1
+    assert lis.latest_speed(ib.PGN_GROUND_SPEED) is None and lis.latest_hitch() is None
 
 
 async def test_isobus_listener_runs_on_the_bus(bus: CanBus, peer: CanBus) -> None:
@@ -210,11 +187,13 @@ async def test_isobus_listener_runs_on_the_bus(bus: CanBus, peer: CanBus) -> Non
     try:
         msg = speed_msg(65097, 2500)
         await peer.send(msg.arbitration_id, bytes(msg.data), extended=True)
-        await eventually(lambda: lis.speed_kmh() is not None, 1.0, "the speed", interval=0.005)
+        await eventually(lambda: lis.latest_speed(ib.PGN_GROUND_SPEED) is not None, 1.0,
+                         "the speed", interval=0.005)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
-    assert lis.speed_kmh() == pytest.approx(9.0)
+    heard = lis.latest_speed(ib.PGN_GROUND_SPEED)
+    assert heard is not None and heard.message.speed_kmh == pytest.approx(9.0)
 
 
 async def test_send_on_a_failed_bus_reports_unavailable_then_recovers(

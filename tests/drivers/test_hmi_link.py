@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -24,23 +23,12 @@ from protocol.hmi import (
 )
 from simulator.hmi_peer import HmiPeer
 from simulator.pty_link import PtyPair
+from tests.drivers.helpers import running
 from tests.helpers import eventually
 
 
 def fast_backoff() -> Backoff:
     return Backoff(initial_s=0.02, cap_s=0.1)
-
-
-@contextlib.asynccontextmanager
-async def running(link: HmiLink) -> AsyncIterator[asyncio.Task[None]]:
-    """Run the link's read loop for the duration of the block, then cancel it cleanly."""
-    task = asyncio.create_task(link.run(), name="hmi-link-run")
-    try:
-        yield task
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
 
 
 @pytest.fixture

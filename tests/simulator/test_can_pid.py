@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 import uuid
 from collections.abc import AsyncIterator
 
@@ -10,6 +11,7 @@ import pytest
 
 from drivers.backoff import Backoff
 from drivers.can_bus import CanBus, IsobusListener, MeteringCanLink
+from gateway.metering.isobus import TractorInputs
 from protocol.can_metering import FaultCode, MeterStatus
 from protocol.isobus import InWork
 from simulator.can_pid import (
@@ -128,15 +130,20 @@ async def test_tractor_simulator_feeds_the_isobus_listener(buses: tuple[CanBus, 
     tractor = TractorSimulator(tractor_bus, speed_kmh=5.0, hitch_pct=10.0,
                                in_work=InWork.IN_WORK)
     lis = IsobusListener(implement_bus)
+    inputs = TractorInputs(lis)  # the daemon's reading of them: priority, 300 ms staleness
     async with asyncio.TaskGroup() as tg:
         t1 = tg.create_task(tractor.run(), name="tractor")
         t2 = tg.create_task(lis.run(), name="isobus")
-        await eventually(lambda: lis.speed_kmh() is not None and lis.working() is not None,
-                         2.0, "speed and work state from the tractor", interval=0.02)
-        speed, working = lis.speed(), lis.working()
+        await eventually(
+            lambda: inputs.speed(time.monotonic()) is not None
+            and inputs.working(time.monotonic()) is not None,
+            2.0, "speed and work state from the tractor", interval=0.02,
+        )
+        now = time.monotonic()
+        speed, working = inputs.speed(now), inputs.working(now)
         tractor.silent = True
         await asyncio.sleep(0.5)
-        stale = lis.speed()
+        stale = inputs.speed(time.monotonic())
         t1.cancel()
         t2.cancel()
     assert speed is not None and speed.source == "machine_selected"

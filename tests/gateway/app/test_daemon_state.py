@@ -24,7 +24,7 @@ def test_state_reports_the_screen_and_the_seed_sensors_as_devices(tmp_path: Path
         devices = state_payload(daemon).devices
         # nothing opened yet: each is listed, and as not answering
         assert devices == {"gnss": False, "hmi": False, "seed_sensors": False}
-        daemon.parts.seed_sensors._connected = True  # what run() sets once open
+        daemon.parts.seed_sensors._line.stats.connected = True  # what run() sets once open
         assert state_payload(daemon).devices["seed_sensors"] is True
     finally:
         for close in daemon.closers:
@@ -100,7 +100,6 @@ def test_state_carries_rejected_input_per_device_and_reason(tmp_path: Path) -> N
     """Rejected input was counted inside the drivers only, invisible to the farm."""
     from drivers.seed_sensors import SeedEdgeEvent
     from protocol.hmi import Rejected as HmiRejected
-    from protocol.seed_line import SeedLineDecoder
 
     settings = parse_config({"gnss": {"enabled": True}, "seed_sensors": {"enabled": True},
                              "mqtt": {"enabled": True}})
@@ -112,7 +111,7 @@ def test_state_carries_rejected_input_per_device_and_reason(tmp_path: Path) -> N
             "gnss": {}, "gnss_discarded_bytes": 0, "hmi": {}, "seed_sensors": {}
         }
         gnss._dispatch(gnss._decoder.feed(b"\xb5\x62" * 1000 + b"$GNRMC,1*00\r\nnoise\n"), 1.0)
-        sensors._feed(SeedLineDecoder(6), b"D,9\r\nD,9\r\nX\r\n")  # what a read hands over
+        sensors._feed(b"D,9\r\nD,9\r\nX\r\n", 1.0)  # what a read hands over
         assert daemon.hmi is not None
         daemon.hmi.link._dispatch([HmiRejected("noise", b"\x00", "garbage")])
         for k in range(1000):  # far beyond any seed meter, all at once on row 2

@@ -15,6 +15,7 @@ from gateway.config import ConfigError, parse_config
 from gateway.control.controller import Controller
 from gateway.core import commands as cmd
 from gateway.core.alarms import AlarmBoard
+from gateway.metering.isobus import TractorInputs
 from protocol import isobus as ib
 
 LOWERED_RAW = -6.25
@@ -175,12 +176,13 @@ def test_pump_stamps_values_with_their_frame_time_so_they_expire_300_ms_after_it
     )
     daemon = SimpleNamespace(clock=lambda: now[0], controller=c)
     listener = IsobusListener(clock=lambda: now[0])
+    tractor = TractorInputs(listener)
     fed: dict[str, float] = {}
     listener.feed(_speed_frame(7.2))
     listener.feed(_hitch_frame(ib.InWork.IN_WORK))
     for step in range(6):  # pump at 0, 50, ..., 250 ms; no new frames after t = 0
         now[0] = step * 0.05
-        isobus_pump_step(daemon, listener, fed)  # type: ignore[arg-type]
+        isobus_pump_step(daemon, tractor, fed)  # type: ignore[arg-type]
     assert c.speed(0.25) == (pytest.approx(7.2), "isobus")
     assert len(c.sources["isobus"].filter) == 1  # fed once, not once per pump
     c.on_tilt(RAISED_RAW, 0.31)
