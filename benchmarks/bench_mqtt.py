@@ -410,6 +410,7 @@ async def _daemon_child(config: Path, state_dir: Path, run_s: float,
     # driver reading the edges and handing them on, and the recorder, are counted.
     making = {"cpu_s": 0.0, "seeds": 0.0}
     if seeds_per_s > 0:
+        assert daemon.parts.store is not None, "the bench config has MQTT on, so a store"
         recorder = SeedRecorder(settings, daemon.parts.store)
         field = SyntheticField(t0_mono=time.monotonic(), seeds_per_s=seeds_per_s)
         lines = SyntheticLines(field, making)
