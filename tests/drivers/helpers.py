@@ -1,26 +1,16 @@
-"""What several driver tests need: run a read loop for a block, wait for a condition."""
+"""What several driver tests need: run a read loop for the duration of a block (waiting for a
+condition is ``tests.helpers.eventually``)."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
-from collections.abc import AsyncIterator, Callable, Coroutine
+from collections.abc import AsyncIterator, Coroutine
 from typing import Any, Protocol
-
-WAIT_S = 3.0
 
 
 class Runs(Protocol):
     def run(self) -> Coroutine[Any, Any, None]: ...
-
-
-async def wait_for(cond: Callable[[], bool], wait_s: float = WAIT_S) -> None:
-    deadline = time.monotonic() + wait_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.01)
 
 
 @contextlib.asynccontextmanager
@@ -33,3 +23,4 @@ async def running(part: Runs) -> AsyncIterator[asyncio.Task[None]]:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+        await asyncio.sleep(0.05)  # let a serial transport close its fd

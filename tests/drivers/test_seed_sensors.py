@@ -8,7 +8,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import AsyncIterator, Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -26,21 +26,10 @@ from drivers.seed_sensors import (
     gpiod_request,
 )
 from simulator.pty_link import PtyPair
+from tests.drivers.helpers import running
 from tests.helpers import eventually
 
 FAST = Backoff(initial_s=0.02, cap_s=0.05)
-
-
-@contextlib.asynccontextmanager
-async def running(source: SeedSensorSource) -> AsyncIterator[None]:
-    task = asyncio.create_task(source.run(), name="seed-sensors-under-test")
-    try:
-        yield
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
-        await asyncio.sleep(0.05)  # let the serial transport close its fd
 
 
 @pytest.fixture

@@ -13,7 +13,8 @@ import pytest
 from drivers.backoff import Backoff
 from drivers.serial_line import Drain, SerialLine
 from simulator.pty_link import PtyPair
-from tests.drivers.helpers import running, wait_for
+from tests.drivers.helpers import running
+from tests.helpers import eventually
 
 
 def fast() -> Backoff:
@@ -68,12 +69,12 @@ async def test_bytes_reach_the_driver_stamped_by_the_injected_clock(pty: PtyPair
     ticks = iter(range(1000, 100000))
     line = line_for(pty.device_path, rec, clock=lambda: float(next(ticks)))
     async with running(line):
-        await wait_for(lambda: line.connected)
+        await eventually(lambda: line.connected)
         assert line.writer is not None and rec.calls == ["open"]
         os.write(pty.master_fd, b"hello")
-        await wait_for(lambda: rec.data == b"hello")
+        await eventually(lambda: rec.data == b"hello")
         os.write(pty.master_fd, b" world")
-        await wait_for(lambda: rec.data == b"hello world")
+        await eventually(lambda: rec.data == b"hello world")
     stamps = [t for _, t in rec.chunks]
     assert stamps == sorted(stamps) and all(t >= 1000.0 for t in stamps)
     assert line.stats.connects == 1 and line.stats.reconnects == 0
@@ -84,7 +85,7 @@ async def test_the_writer_sends_to_the_device(pty: PtyPair) -> None:
     rec = Recorder()
     line = line_for(pty.device_path, rec)
     async with running(line):
-        await wait_for(lambda: line.writer is not None)
+        await eventually(lambda: line.writer is not None)
         assert line.writer is not None
         line.writer.write(b"ping")
         got = b""
@@ -95,7 +96,7 @@ async def test_the_writer_sends_to_the_device(pty: PtyPair) -> None:
                 got += os.read(pty.master_fd, 64)
             return got == b"ping"
 
-        await wait_for(arrived)
+        await eventually(arrived)
 
 
 async def test_a_missing_port_is_retried_until_it_appears(tmp_path: Path) -> None:
@@ -103,12 +104,12 @@ async def test_a_missing_port_is_retried_until_it_appears(tmp_path: Path) -> Non
     rec = Recorder()
     line = line_for(str(link), rec)
     async with running(line) as task:
-        await wait_for(lambda: line.stats.open_failures >= 3)
+        await eventually(lambda: line.stats.open_failures >= 3)
         assert not line.connected and not task.done() and line.writer is None
         assert line.stats.last_error is not None
         assert line.stats.last_error.startswith(f"cannot open {link}")
         with PtyPair(link):  # plugged in late
-            await wait_for(lambda: line.connected)
+            await eventually(lambda: line.connected)
     assert line.stats.connects == 1 and rec.calls == ["open", "close"]
 
 
@@ -117,7 +118,7 @@ async def test_a_setting_the_port_refuses_is_retried_not_fatal(pty: PtyPair) -> 
     rec = Recorder()
     line = SerialLine(pty.device_path, -1, label="test", on_data=rec.on_data, backoff=fast())
     async with running(line) as task:
-        await wait_for(lambda: line.stats.open_failures >= 2)
+        await eventually(lambda: line.stats.open_failures >= 2)
         assert not task.done() and not line.connected
     assert "cannot open" in (line.stats.last_error or "")
 
@@ -129,15 +130,15 @@ async def test_a_vanished_port_is_closed_and_reopened_when_it_returns(tmp_path: 
     line = line_for(str(link), rec)
     try:
         async with running(line):
-            await wait_for(lambda: line.connected)
+            await eventually(lambda: line.connected)
             first.close()  # unplugged
-            await wait_for(lambda: not line.connected)
+            await eventually(lambda: not line.connected)
             assert line.stats.disconnects == 1 and rec.calls == ["open", "close"]
             assert line.writer is None and line.stats.last_error is not None
             with PtyPair(link) as second:  # plugged back in
-                await wait_for(lambda: line.connected)
+                await eventually(lambda: line.connected)
                 os.write(second.master_fd, b"back")
-                await wait_for(lambda: rec.data == b"back")
+                await eventually(lambda: rec.data == b"back")
     finally:
         first.close()
     assert line.stats.connects == 2 and line.stats.reconnects == 1
@@ -148,7 +149,7 @@ async def test_a_silent_port_is_reopened(pty: PtyPair) -> None:
     rec = Recorder()
     line = line_for(pty.device_path, rec, silence_reconnect_s=0.1)
     async with running(line):
-        await wait_for(lambda: line.stats.connects >= 2)
+        await eventually(lambda: line.stats.connects >= 2)
     assert line.stats.disconnects >= 1
     assert line.stats.last_error == f"{pty.device_path}: no data for 0.1 s"
     assert rec.calls[:3] == ["open", "close", "open"]
@@ -158,7 +159,7 @@ async def test_bytes_keep_a_port_with_a_silence_limit_open(pty: PtyPair) -> None
     rec = Recorder()
     line = line_for(pty.device_path, rec, silence_reconnect_s=0.2)
     async with running(line):
-        await wait_for(lambda: line.connected)
+        await eventually(lambda: line.connected)
         for _ in range(8):  # 0.4 s of talk, a byte every 50 ms
             os.write(pty.master_fd, b".")
             await asyncio.sleep(0.05)
@@ -170,12 +171,12 @@ async def test_idle_is_called_only_while_the_driver_asks_for_it(pty: PtyPair) ->
     wanted: list[float | None] = [None]
     line = line_for(pty.device_path, rec, on_idle=rec.on_idle, idle_after_s=lambda: wanted[0])
     async with running(line):
-        await wait_for(lambda: line.connected)
+        await eventually(lambda: line.connected)
         await asyncio.sleep(0.15)
         assert "idle" not in rec.calls  # the driver holds nothing: no timeout at all
         wanted[0] = 0.03
         os.write(pty.master_fd, b"x")  # the next read asks again
-        await wait_for(lambda: rec.calls.count("idle") >= 2)
+        await eventually(lambda: rec.calls.count("idle") >= 2)
     assert line.connected is False and line.stats.disconnects == 0  # idle is not a loss
 
 
@@ -183,7 +184,7 @@ async def test_a_cancel_closes_the_port_and_tells_the_driver(pty: PtyPair) -> No
     rec = Recorder()
     line = line_for(pty.device_path, rec)
     async with running(line) as task:
-        await wait_for(lambda: line.connected)
+        await eventually(lambda: line.connected)
     assert task.cancelled()
     assert rec.calls == ["open", "close"]
     assert not line.connected and line.writer is None
@@ -195,7 +196,7 @@ async def test_with_drain_a_cancel_first_hands_over_what_was_already_sent(pty: P
     line = line_for(pty.device_path, rec, drain=Drain(quiet_s=0.05, timeout_s=0.3))
     payload = bytes(range(256)) * 8
     task = asyncio.create_task(line.run(), name="serial-line-under-test")
-    await wait_for(lambda: line.connected)
+    await eventually(lambda: line.connected)
     os.write(pty.master_fd, payload)
     task.cancel()  # no await between: the line has not read the bytes yet
     with contextlib.suppress(asyncio.CancelledError):
@@ -208,7 +209,7 @@ async def test_without_drain_a_cancel_is_honoured_at_once(pty: PtyPair) -> None:
     rec = Recorder()
     line = line_for(pty.device_path, rec)
     task = asyncio.create_task(line.run(), name="serial-line-under-test")
-    await wait_for(lambda: line.connected)
+    await eventually(lambda: line.connected)
     os.write(pty.master_fd, b"late")
     task.cancel()
     with contextlib.suppress(asyncio.CancelledError):
@@ -226,7 +227,7 @@ async def test_a_bug_in_the_driver_on_close_still_closes_the_port(pty: PtyPair) 
         backoff=fast(),
     )
     task = asyncio.create_task(line.run(), name="serial-line-under-test")
-    await wait_for(lambda: line.connected)
+    await eventually(lambda: line.connected)
     writer = line.writer
     task.cancel()
     with pytest.raises(RuntimeError, match="driver bug"):
