@@ -5,7 +5,9 @@ sensor (the metering follows ground speed, so seeds are spaced in distance, with
 the occasional miss and double, only while the implement is lowered and moving) and where
 that seed really lands: the row outlet's position at ``t_edge + fall_time(speed)`` — the same
 fall-time law the position model uses (paper C, Table 1), plus optional fall-time scatter and
-bounce along the furrow. Benchmarks use it in simulated time.
+bounce along the furrow. Because that truth is the position model's own law, it only checks
+plumbing (integration tests: every seed positioned, stored, published); the positioning benchmark
+judges accuracy against ``simulator.field_truth`` instead, which shares nothing with the model.
 
 ``SeedTubeEmulator`` plays a plan in real time on a pty as the edge-capture module would,
 ``D,<row>\\r\\n`` per seed at its edge instant, on the shared time line
