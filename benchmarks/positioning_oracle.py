@@ -1,85 +1,71 @@
-"""The positioning oracle: the landing point the best possible method would report.
+"""The positioning oracle: where a method that knew every parameter of the field would put a seed.
 
-``oracle_landing`` knows the true trajectory and the true landing instant, and adds exactly
-the GNSS error the receiver made (position and heading noise of the bracketing epochs,
-linearly interpolated to the landing instant). Its error is the receiver's noise through the
-lever arm, nothing else: the floor against which ``bench_positioning`` measures paper C's
-method and the interpolated one.
+``bench_positioning`` judges sowgate and paper C's method against an independent truth
+(``simulator.field_truth``). The oracle is the floor for any method using the same receiver:
+it knows the true lever arm, latencies, antenna height and attitude, the implement's
+articulation and this seed lot's mean flight and slide (the truth's ``expected_*`` point of each
+seed), but not what is random per seed (its size, its bounce) nor the receiver's error, which
+it takes exactly as the receiver made it: the position and heading error of the epochs
+bracketing the landing instant, interpolated linearly as an interpolating method would see
+them. So its error is the seed's own scatter plus the receiver's noise, nothing else.
 
-It lives here, not in ``gateway/``, because only the benchmarks and their tests use it: the
-daemon never knows the truth. It shares the product's geometry (lever arm, heading
-arithmetic) so that the comparison is between methods, not between conventions.
+Plain arithmetic on plain values: it shares nothing with ``gateway/`` (no lever-arm or heading
+helpers), so the floor does not inherit a convention error of the code it judges.
 """
 
 from __future__ import annotations
 
 import bisect
-from collections.abc import Callable, Sequence
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
-
-from gateway.recording.positioning import RowOffset, heading_diff, rotate_offset, wrap_deg
-
-
-class PoseLike(Protocol):
-    """A true antenna pose in local ENU (``simulator.plant.Pose``)."""
-
-    @property
-    def east(self) -> float: ...
-    @property
-    def north(self) -> float: ...
-    @property
-    def heading_deg(self) -> float: ...
 
 
 @dataclass(frozen=True)
-class MeasuredEpoch:
-    """A receiver epoch at its TRUE instant, in the same local ENU as the ground truth."""
+class EpochError:
+    """The receiver's error at one epoch instant (reported minus true), in local ENU."""
 
-    t_true: float
-    east: float
-    north: float
-    heading_deg: float
+    t: float
+    east_m: float
+    north_m: float
+    heading_deg: float  # machine heading error, clockwise positive
+
+
+def interpolated_error(t: float, errors: Sequence[EpochError]) -> tuple[float, float, float]:
+    """(east, north, heading) error at ``t``: linear between the bracketing epochs, the
+    nearest epoch's outside their range. ``errors`` sorted by time."""
+    if not errors:
+        raise ValueError("oracle needs at least one epoch")
+    times = [x.t for x in errors]
+    i = bisect.bisect_right(times, t)
+    if i == 0 or i >= len(errors):
+        x = errors[0 if i == 0 else -1]
+        return x.east_m, x.north_m, x.heading_deg
+    a, b = errors[i - 1], errors[i]
+    w = 0.0 if b.t <= a.t else (t - a.t) / (b.t - a.t)
+    return (
+        a.east_m + w * (b.east_m - a.east_m),
+        a.north_m + w * (b.north_m - a.north_m),
+        a.heading_deg + w * (b.heading_deg - a.heading_deg),
+    )
 
 
 def oracle_landing(
-    offset: RowOffset,
-    t_land: float,
-    true_pose_at: Callable[[float], PoseLike],
-    epochs: Sequence[MeasuredEpoch],
+    expected: tuple[float, float],
+    pivot: tuple[float, float],
+    t: float,
+    errors: Sequence[EpochError],
 ) -> tuple[float, float]:
-    """The landing point the best possible method would report with this receiver.
+    """The oracle's landing point for one seed.
 
-    Definition: for each epoch k the receiver's error is ``measured_k − true(t_k)`` in east,
-    north and heading (wrapped). The oracle takes the TRUE antenna pose at the TRUE landing
-    instant, adds the error linearly interpolated between the epochs bracketing ``t_land``
-    (the nearest epoch's error outside the range), and applies the row's lever arm with the
-    erroneous heading. It has no timing error and no trajectory-model error; what remains is
-    the GNSS noise as an interpolating method would see it. ``epochs`` must be sorted by time.
+    ``expected``: where a mean seed of the lot comes to rest (true parameters, no per-seed
+    randomness); ``pivot``: the antenna's reference point on the ground at ``t`` (what the
+    receiver's position error moves, and what a heading error turns the outlets around);
+    ``t``: the seed's expected landing instant. The vector pivot → expected is turned by the
+    interpolated heading error (clockwise), then the whole is shifted by the interpolated
+    position error.
     """
-    if not epochs:
-        raise ValueError("oracle needs at least one measured epoch")
-    times = [ep.t_true for ep in epochs]
-    i = bisect.bisect_right(times, t_land)
-    if i == 0:
-        ks, a = (0, 0), 0.0
-    elif i >= len(epochs):
-        ks, a = (len(epochs) - 1, len(epochs) - 1), 0.0
-    else:
-        t0, t1 = times[i - 1], times[i]
-        ks, a = (i - 1, i), (0.0 if t1 <= t0 else (t_land - t0) / (t1 - t0))
-
-    def error(k: int) -> tuple[float, float, float]:
-        ep = epochs[k]
-        truth = true_pose_at(ep.t_true)
-        return (
-            ep.east - truth.east,
-            ep.north - truth.north,
-            heading_diff(truth.heading_deg, ep.heading_deg),
-        )
-
-    e0, e1 = error(ks[0]), error(ks[1])
-    err = [x0 + a * (x1 - x0) for x0, x1 in zip(e0, e1, strict=True)]
-    truth = true_pose_at(t_land)
-    de, dn = rotate_offset(offset, wrap_deg(truth.heading_deg + err[2]))
-    return truth.east + err[0] + de, truth.north + err[1] + dn
+    de, dn, dh = interpolated_error(t, errors)
+    ve, vn = expected[0] - pivot[0], expected[1] - pivot[1]
+    c, s = math.cos(math.radians(dh)), math.sin(math.radians(dh))
+    return pivot[0] + ve * c + vn * s + de, pivot[1] - ve * s + vn * c + dn

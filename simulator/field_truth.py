@@ -536,6 +536,7 @@ class Seed:
     speed_kmh: float  # ground speed at the edge
     articulation_deg: float  # implement heading minus tractor heading at touchdown
     roll_deg: float  # tractor roll at touchdown
+    slide_m: float  # how far it slid forward in the furrow after touchdown (before bounce)
 
 
 @dataclass
@@ -779,7 +780,7 @@ def simulate(cfg: FieldConfig | None = None) -> FieldRun:
                        0.0, 1.5)
     frng = _rng(cfg.seed, "furrow")
     retained = frng.uniform(*cfg.furrow.retained, len(t_edge))
-    t_land, east, north, hi, v_edge, _slide = _land(
+    t_land, east, north, hi, v_edge, slide = _land(
         cfg, drive, t_edge, rows, diameter, friction, retained * retained
     )
     psi = np.radians(hi)
@@ -809,6 +810,7 @@ def simulate(cfg: FieldConfig | None = None) -> FieldRun:
             expected_north=float(x_north[i]), pass_index=int(passes[i]),
             speed_kmh=float(v_edge[i] * KMH_PER_MS),
             articulation_deg=float(hi_land[i] - h_land[i]), roll_deg=float(roll[i]),
+            slide_m=float(slide[i]),
         )
         for i in np.flatnonzero(keep)
     ]
