@@ -56,6 +56,7 @@ from simulator.field_truth import (
     FLAT,
     Configured,
     FieldConfig,
+    FieldDrive,
     FieldRun,
     FitterErrors,
     Furrow,
@@ -277,8 +278,6 @@ def survey_pairs(
 def field_config(seed: int = 1) -> FieldConfig:
     """The benchmark's field: defaults of ``simulator.field_truth``, a 6 s float period in
     the 8 km/h pass and a 1.5 s dropout in the 12 km/h pass."""
-    from simulator.field_truth import FieldDrive
-
     base = FieldConfig(seed=seed)
     drive = FieldDrive(base.drive, base.machine)
     (a1, b1), (a2, b2) = drive.pass_times[1], drive.pass_times[2]
