@@ -270,6 +270,10 @@ class WeightFormat:
     def encode_kg(self, kg: float) -> list[int]:
         """Registers a transmitter of this format holds at ``kg`` (integers rounded)."""
         raw = kg * 1000.0 / self.grams_per_count
+        if self.data_type == "float32" and not math.isfinite(raw):
+            # what a faulty transmitter sends (NaN on a broken cell): the simulator's fault
+            words = [int.from_bytes(struct.pack(">f", raw)[i : i + 2], "big") for i in (0, 2)]
+            return words[::-1] if self.word_order == "little" else words
         if self.data_type != "float32":
             if not math.isfinite(raw):
                 raise FieldError(f"{self.data_type}: cannot encode {kg} kg")

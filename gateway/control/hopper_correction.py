@@ -29,9 +29,11 @@ The estimate
     * Evidence is pooled across windows and lines as one weighted least-squares slope with a
       separate intercept per line (the sums of each line, centred, added), with exponential
       forgetting (time constant ``FORGET_S``): recursive least squares with forgetting, so a
-      seed lot that drifts is followed. One slope over a long line is worth far more than the
-      mean of short windows: its standard error falls as T^-1.5 (the spread of ``x`` grows
-      with T), a mean of window slopes only as T^-0.5.
+      seed lot that drifts is followed, about 2 × ``FORGET_S`` behind (a shorter memory
+      follows faster and is noisier: the standard error grows as memory^-1.5). One slope
+      over a long line is worth far more than the mean of short windows: its standard
+      error falls as T^-1.5 (the spread of ``x`` grows with T), a mean of window slopes
+      only as T^-0.5.
 
 How much evidence before it is applied
     The standard error of ``k`` is ``σ / sqrt(Sxx)`` (σ the scale's noise estimated from the
@@ -62,7 +64,8 @@ FORGET_S = 900.0  # evidence older than this weighs e^-1 (follows a drifting see
 OUTLIER_SIGMAS = 3.5  # a reading this many robust σ off its window's line is dropped
 ROBUST_ITERATIONS = 3
 MIN_WINDOW_SAMPLES = 10  # a window with fewer inliers adds nothing
-JUMP_MEDIAN_N = 5  # readings in each median of the jump (refill) detector
+JUMP_MEDIAN_N = 10  # readings in each median of the jump (refill) detector: a knock of a
+# few readings does not move a median of 10, a refill (a step that stays) does
 REFILL_MIN_KG = 10.0  # no jump below this counts as a refill, whatever the noise
 JUMP_SIGMAS = 5.0  # ... nor below this many σ of the difference of the two medians
 DEFAULT_SIGMA_KG = 2.0  # the noise assumed until the residuals give it
