@@ -24,6 +24,7 @@ PRESENT_WITHOUT_ENABLED: dict[str, dict[str, Any]] = {
     "isobus": {"channel": "can1"},
     "gnss": {"port": "/dev/ttyUSB1"},
     "prescription": {"path": "/srv/map.geojson"},
+    "hopper_scale": {"device_id": 5},
 }
 
 
@@ -44,7 +45,8 @@ def test_absent_tables_are_off_except_the_bus_and_the_screen() -> None:
     is off until its table is written."""
     s = parse_config({})
     assert s.rs485.enabled and s.hmi.enabled
-    for part in ("mqtt", "can", "isobus", "gnss", "seed_sensors", "prescription"):
+    for part in ("mqtt", "can", "isobus", "gnss", "seed_sensors", "prescription",
+                 "hopper_scale"):
         assert getattr(s, part).enabled is False, part
 
 
