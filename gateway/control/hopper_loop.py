@@ -30,6 +30,9 @@ log = logging.getLogger(__name__)
 
 MASS_MEDIAN_N = 5  # readings in the shown hopper mass (vibration is at the kg level)
 MASS_FRESH_S = 5.0  # a mass older than this is not shown
+# calibration.json is looked at this often for a new rotation test (saved by the CLI or the
+# touchscreen while the daemon runs): the old correction must not stay on a new fit
+IDENTITY_CHECK_S = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,6 +59,8 @@ class HopperLoop:
         self.calibrations = calibrations
         self.store = None if calibrations is None else HopperStore(calibrations.path.parent)
         self._extra_keys = rotation_keys or []
+        self.seed_lot = DEFAULT_SEED_LOT
+        self._identity_checked_at: float | None = None
         self.gate = SteadyGate()
         self.model_kg = 0.0  # cumulative discharge the uncorrected model predicted
         self._q_model = 0.0  # g/min at the duty in effect since the last tick
@@ -69,7 +74,7 @@ class HopperLoop:
     # ---- identity and persistence --------------------------------------------------------------
     def _identity(self, crop: str) -> Identity:
         keys = [f"rotation.{crop}", *self._extra_keys]
-        return Identity(crop, DEFAULT_SEED_LOT, rotation_saved_at(self.calibrations, keys))
+        return Identity(crop, self.seed_lot, rotation_saved_at(self.calibrations, keys))
 
     def _fresh(self, identity: Identity) -> HopperCorrection:
         saved = self.store.load(identity) if self.store is not None else None
@@ -83,10 +88,14 @@ class HopperLoop:
             log.info("hopper correction for %s restored: x%.4f", identity.crop, est.factor)
         return est
 
-    def set_crop(self, crop: str, rotation_keys: list[str] | None = None) -> None:
-        """Another crop (or calibration) is sown: its own correction, or 1.0."""
+    def set_crop(self, crop: str, rotation_keys: list[str] | None = None,
+                 seed_lot: str | None = None) -> None:
+        """Another crop, seed lot (named: seed lots are kept per crop) or calibration is
+        sown: its own correction, or 1.0."""
         if rotation_keys is not None:
             self._extra_keys = rotation_keys
+        if seed_lot is not None:
+            self.seed_lot = seed_lot
         self._check_identity(crop)
 
     def _check_identity(self, crop: str) -> None:
@@ -127,6 +136,11 @@ class HopperLoop:
         self._flow_g_min = self._q_model * self.estimator.factor
         if pooled:
             self._after_window()
+        elif self.calibrations is not None and (
+            self._identity_checked_at is None or now - self._identity_checked_at >= IDENTITY_CHECK_S
+        ):
+            self._identity_checked_at = now
+            self._check_identity(self.identity.crop)
         self._mass_alarm(now)
 
     def _after_window(self) -> None:

@@ -262,7 +262,7 @@ def test_a_new_rotation_test_resets_the_correction(tmp_path: Path) -> None:
     restarted = HopperLoop(_section(), AlarmBoard(), "wheat", calibrations=store)
     assert restarted.factor == 1.0
     assert restarted.identity.rotation_saved_at == "2026-11-24T10:00:00+00:00"
-    # while running: noticed at the next pooled window, and learnt again from there
+    # while running: noticed within IDENTITY_CHECK_S, and learnt again from there
     windows = loop.estimator.windows
     _learn(loop, 1.5, t0=360.0)
     assert loop.factor == 1.0
@@ -279,6 +279,9 @@ def test_another_seed_lot_or_crop_has_its_own_correction(tmp_path: Path) -> None
     loop.set_crop("wheat")
     assert loop.factor == pytest.approx(wheat)
     assert HopperStore(tmp_path).load(Identity("wheat", seed_lot="lot-7")) is None
+    loop.set_crop("wheat", seed_lot="lot-7")  # a new seed lot: its own evidence from 1.0
+    assert loop.factor == 1.0
+    assert loop.identity == Identity("wheat", "lot-7", None)
 
 
 def test_an_unreadable_file_starts_at_one(tmp_path: Path) -> None:
