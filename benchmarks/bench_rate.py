@@ -692,7 +692,9 @@ def hopper_markdown(errs: dict[str, dict[tuple[str, ...], list[float]]],
                     for c, a in both_end.items())
         + "; with the drift happening during those minutes (the estimate follows about "
         "2 × 15 min behind): " + "; ".join(f"{c} {a:.2f} %" for c, a in both_during.items())
-        + "."
+        + ". Rapeseed's drift is invisible to a σ 2 kg scale (its correction is never "
+        "applied, see below): for rapeseed only a new rotation test with the new lot removes "
+        "it."
     )
     parts.append(
         f"- rapeseed: {rape_none:.2f} % mean |error| after 20 minutes without a scale; with it "
