@@ -1,4 +1,4 @@
-"""Typed calls for the three devices on the RS485 bus: the daemon asks for km/h, degrees and
+"""Typed calls for the devices on the RS485 bus: the daemon asks for km/h, degrees, kg and
 duty percent, never for registers.
 
 Each wrapper is built from its config section (``gateway.config.RadarSection`` etc., passed
@@ -16,6 +16,7 @@ from drivers.modbus_bus import ModbusBus
 from protocol.errors import FieldError, ProtocolError
 from protocol.registers import (
     RadarFormat,
+    WeightFormat,
     decode_angle,
     decode_comm_timeout,
     decode_duty,
@@ -87,6 +88,38 @@ class Inclinometer:
         )
         try:
             return decode_angle(registers, self.layout)  # type: ignore[arg-type]
+        except ProtocolError as exc:
+            raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
+
+
+class HopperScale:
+    """Gross mass on the hopper's load cells in kg, from a Modbus weight transmitter."""
+
+    def __init__(self, bus: ModbusBus, section: Any, *, name: str = "hopper_scale") -> None:
+        self.bus = bus
+        self.name = name
+        self.device_id: int = section.device_id
+        self.address: int = section.address
+        try:
+            self.format = WeightFormat(
+                data_type=section.data_type,
+                word_order=section.word_order,
+                grams_per_count=section.scale,
+                capacity_kg=section.capacity_kg,
+            )
+        except ProtocolError as exc:
+            raise FieldError(f"{self.name}: {exc}") from exc
+
+    @property
+    def available(self) -> bool:
+        return self.bus.available(self.name)
+
+    async def read(self) -> float:
+        registers = await self.bus.read_holding(
+            self.name, self.device_id, self.address, self.format.count
+        )
+        try:
+            return self.format.decode_kg(registers)
         except ProtocolError as exc:
             raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
 

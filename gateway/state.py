@@ -19,6 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 
+from gateway.control.hopper_loop import HopperState
 from gateway.core.records import AlarmSeverity, FixQuality
 from gateway.metering.channels import ChannelStatus, MeteringStatus
 from gateway.metering.pwm_channel import PwmChannelState
@@ -29,6 +30,7 @@ from gateway.recording.store import StoreState
 __all__ = [
     "ActiveAlarmState",
     "ChannelStatus",
+    "HopperState",
     "MachineState",
     "MeteringStatus",
     "PwmChannelState",
@@ -91,3 +93,4 @@ class MachineState:
     metering: MeteringStatus | None = None
     pwm_channel: PwmChannelState | None = None
     rejected: RejectedCounts | None = None  # None without a device that can reject input
+    hopper: HopperState | None = None  # None without [hopper_scale]

@@ -223,6 +223,65 @@ class RadarFormat:
 
 
 # ---------------------------------------------------------------------------------------------
+# Hopper scale (Modbus weight transmitter)
+
+WeightDataType = Literal["int32", "uint16", "int16", "float32"]
+WEIGHT_MIN_FRACTION = -0.05  # below -5 % of capacity a load cell is faulty, not light
+WEIGHT_MAX_FRACTION = 1.2  # above 120 % of capacity: overload or a bad reading
+
+
+@dataclass(frozen=True)
+class WeightFormat:
+    """How a weight transmitter holds the gross weight: one number in 1 or 2 holding
+    registers (``int32`` high word first is the common default), ``raw * grams_per_count``
+    grams. A reading outside -5 %..120 % of ``capacity_kg`` does not come from a working
+    load cell (a transmitter reporting 0x7FFFFFFF on overload, an unwired channel)."""
+
+    data_type: WeightDataType = "int32"
+    word_order: WordOrder = "big"
+    grams_per_count: float = 1.0
+    capacity_kg: float = 3000.0
+
+    def __post_init__(self) -> None:
+        registers_needed(self.data_type)
+        if not math.isfinite(self.grams_per_count) or self.grams_per_count <= 0:
+            raise FieldError(
+                f"weight scale must be finite and positive (got {self.grams_per_count})"
+            )
+
+    @property
+    def count(self) -> int:
+        return registers_needed(self.data_type)
+
+    def decode_kg(self, registers: Sequence[int]) -> float:
+        """The hopper mass in kg; FieldError for a value no working scale reports."""
+        raw = decode_number(registers, self.data_type, self.word_order)
+        if not math.isfinite(raw):
+            raise FieldError(f"weight is a non-finite {self.data_type} ({raw})")
+        kg = raw * self.grams_per_count / 1000.0
+        lo, hi = WEIGHT_MIN_FRACTION * self.capacity_kg, WEIGHT_MAX_FRACTION * self.capacity_kg
+        if not lo <= kg <= hi:
+            raise FieldError(
+                f"weight {kg:.1f} kg outside the plausible {lo:g}..{hi:g} kg "
+                f"(capacity {self.capacity_kg:g} kg)"
+            )
+        return kg
+
+    def encode_kg(self, kg: float) -> list[int]:
+        """Registers a transmitter of this format holds at ``kg`` (integers rounded)."""
+        raw = kg * 1000.0 / self.grams_per_count
+        if self.data_type == "float32" and not math.isfinite(raw):
+            # what a faulty transmitter sends (NaN on a broken cell): the simulator's fault
+            words = [int.from_bytes(struct.pack(">f", raw)[i : i + 2], "big") for i in (0, 2)]
+            return words[::-1] if self.word_order == "little" else words
+        if self.data_type != "float32":
+            if not math.isfinite(raw):
+                raise FieldError(f"{self.data_type}: cannot encode {kg} kg")
+            raw = float(round(raw))
+        return encode_number(raw, self.data_type, self.word_order)
+
+
+# ---------------------------------------------------------------------------------------------
 # WitMotion inclinometer
 
 

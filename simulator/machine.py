@@ -20,7 +20,7 @@ from drivers.tasks import StartClose, cancel_and_wait
 from gateway.config import Settings, parse_config
 from simulator.hmi_peer import HmiPeer
 from simulator.modbus_devices import Rs485Simulator
-from simulator.plant import Drive, MeteringPlant, Pose, SensorNoise, demo_drive
+from simulator.plant import Drive, HopperTruth, MeteringPlant, Pose, SensorNoise, demo_drive
 
 PLANT_STEP_S = 0.01
 GNSS_OUTPUT_LATENCY_S = 0.02  # the emulated UM982's delay from epoch to sentence
@@ -93,6 +93,8 @@ class SimulatedMachine(StartClose):
     with_seed_tubes: bool = False
     discharge_bias: float = 0.0  # plant discharge off the fitted model by this fraction
     pwm_watchdog: bool = True  # False: a PWM module without a comm-loss timeout register
+    # a hopper on load cells, read by a weight transmitter on the RS485 bus ([hopper_scale])
+    hopper: HopperTruth | None = None
     settings_overrides: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -147,6 +149,11 @@ class SimulatedMachine(StartClose):
             + self.rng.gauss(0.0, self.noise.tilt_sigma_deg)
         )
 
+    def hopper_reading_kg(self) -> float:
+        """What the weight transmitter reads now: the true hopper mass plus vibration."""
+        assert self.hopper is not None
+        return self.hopper.reading_kg(self.now(), self.plant.mass_g / 1000.0)
+
     def on_duty(self, channel: str, pct: float) -> None:
         if channel == "motor":
             self.plant.duty_pct = pct
@@ -181,6 +188,8 @@ class SimulatedMachine(StartClose):
                     on_duty=self.on_duty,
                     rng=random.Random(self.seed + 2),
                     pwm_watchdog=self.pwm_watchdog,
+                    hopper_kg=self.hopper_reading_kg if self.hopper is not None else None,
+                    hopper=self.base_settings.hopper_scale,
                 )
             )
             self.hmi = await self._stack.enter_async_context(HmiPeer())
@@ -231,6 +240,8 @@ class SimulatedMachine(StartClose):
             "hmi": {"port": self.hmi.device_path},
             "control": {"crop": self.crop, "rate_kg_ha": model.default_rate_kg_ha},
         }
+        if self.hopper is not None:
+            data["hopper_scale"] = {"enabled": True}
         if self.gnss is not None:
             data["gnss"] = {"enabled": True, "port": self.gnss.device_path}
             data["speed"] = {"source": "radar_then_gnss"}

@@ -1,5 +1,6 @@
-"""The RS485 bus of paper A's seeder in software: radar, inclinometer and PWM module as ONE
-pymodbus RTU server, reachable by the daemon on a pty, with the faults a real bus produces.
+"""The RS485 bus of paper A's seeder in software: radar, inclinometer, PWM module (and, when
+given, the hopper scale's weight transmitter) as ONE pymodbus RTU server, reachable by the
+daemon on a pty, with the faults a real bus produces.
 
 Wiring (two pty pairs, bytes pumped by :class:`Rs485Simulator`)::
 
@@ -46,11 +47,17 @@ from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.tasks import StartClose
-from gateway.config.machine import ActuatorsSection, InclinometerSection, RadarSection
+from gateway.config.machine import (
+    ActuatorsSection,
+    HopperScaleSection,
+    InclinometerSection,
+    RadarSection,
+)
 from protocol.errors import ProtocolError
 from protocol.registers import (
     WITMOTION_ANGLE_BASE,
     RadarFormat,
+    WeightFormat,
     decode_comm_timeout,
     decode_duty,
     encode_angle,
@@ -95,11 +102,18 @@ class Rs485Simulator(StartClose):
         baudrate: int = 9600,
         rng: random.Random | None = None,
         pwm_watchdog: bool = True,
+        hopper_kg: Callable[[], float] | None = None,
+        hopper: HopperScaleSection | None = None,
     ) -> None:
         self.radar = radar or RadarSection()
+        # the hopper's weight transmitter, only when ``hopper_kg`` says what it weighs
+        self.hopper = (hopper or HopperScaleSection()) if hopper_kg is not None else None
+        self._hopper_kg = hopper_kg
         self.inclinometer = inclinometer or InclinometerSection()
         self.actuators = actuators or ActuatorsSection()
         ids = [self.radar.device_id, self.inclinometer.device_id, self.actuators.device_id]
+        if self.hopper is not None:
+            ids.append(self.hopper.device_id)
         if len(set(ids)) != len(ids):
             raise ValueError(f"RS485 device ids must be distinct (radar, incl., pwm = {ids})")
         self._radar_kmh = radar_kmh
@@ -111,6 +125,12 @@ class Rs485Simulator(StartClose):
             scale=self.radar.scale,
             unit=self.radar.unit,
             mount_angle_deg=self.radar.mount_angle_deg,
+        )
+        self._weight_format = None if self.hopper is None else WeightFormat(
+            data_type=self.hopper.data_type,
+            word_order=self.hopper.word_order,
+            grams_per_count=self.hopper.scale,
+            capacity_kg=self.hopper.capacity_kg,
         )
         self._baudrate = baudrate
         self._rng = rng or random.Random()
@@ -153,11 +173,14 @@ class Rs485Simulator(StartClose):
 
     @property
     def device_ids(self) -> dict[str, int]:
-        return {
+        ids = {
             "radar": self.radar.device_id,
             "inclinometer": self.inclinometer.device_id,
             "pwm": self.actuators.device_id,
         }
+        if self.hopper is not None:
+            ids["hopper_scale"] = self.hopper.device_id
+        return ids
 
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -425,7 +448,20 @@ class Rs485Simulator(StartClose):
                 )
             )
         pwm_regs.sort(key=lambda d: d.address)
+        hopper: list[SimDevice] = []
+        if self.hopper is not None and self._weight_format is not None:
+            scale_regs = SimData(
+                self.hopper.address,
+                count=self._weight_format.count,
+                values=0,
+                datatype=DataType.REGISTERS,
+                readonly=True,
+            )
+            hopper.append(
+                SimDevice(self.hopper.device_id, simdata=[scale_regs], action=self._scale_action)
+            )
         return [
+            *hopper,
             SimDevice(self.radar.device_id, simdata=[radar_regs], action=self._radar_action),
             SimDevice(
                 self.inclinometer.device_id, simdata=[incl_regs], action=self._incl_action
@@ -452,6 +488,28 @@ class Rs485Simulator(StartClose):
             log.warning("simulated radar cannot encode its speed: %s", exc)
             return ExcCodes.DEVICE_FAILURE
         offset = self.radar.address - start_address
+        registers[offset : offset + len(words)] = words
+        return None
+
+    async def _scale_action(
+        self,
+        func_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        if self.hopper is None or self._hopper_kg is None or self._weight_format is None:
+            return ExcCodes.DEVICE_FAILURE
+        if self.hopper.device_id in self._silent or set_values is not None:
+            return None
+        try:
+            words = self._weight_format.encode_kg(self._hopper_kg())
+        except (ProtocolError, ArithmeticError, ValueError) as exc:
+            log.warning("simulated hopper scale cannot encode its weight: %s", exc)
+            return ExcCodes.DEVICE_FAILURE
+        offset = self.hopper.address - start_address
         registers[offset : offset + len(words)] = words
         return None
 

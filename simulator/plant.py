@@ -213,3 +213,27 @@ class MeteringPlant:
         grams = self.discharge_g_min(self.rpm) * (1.0 + self._noise) * dt / 60.0
         self.mass_g += grams
         return grams
+
+
+@dataclass
+class HopperTruth:
+    """The seed hopper on its load cells: what a weight transmitter under it reads.
+
+    The mass is the initial fill, plus each refill from its time on, minus what the meter
+    really discharged (the plant's truth, not the controller's model). Each reading carries
+    vibration noise: independent per reading (a transmitter read at a few Hz samples a
+    machine shaking at tens of Hz), σ ``noise_kg``, kilograms on a moving seeder.
+    """
+
+    initial_kg: float = 800.0
+    noise_kg: float = 2.0
+    refills: tuple[tuple[float, float], ...] = ()  # (time s, kg added)
+    rng: random.Random = field(default_factory=lambda: random.Random(11))
+
+    def mass_kg(self, t: float, discharged_kg: float) -> float:
+        added = sum(kg for at, kg in self.refills if t >= at)
+        return self.initial_kg + added - discharged_kg
+
+    def reading_kg(self, t: float, discharged_kg: float) -> float:
+        return self.mass_kg(t, discharged_kg) + self.rng.gauss(0.0, self.noise_kg)
+

@@ -39,7 +39,7 @@ from typing import Any
 
 from drivers.errors import DeviceRejected, DriverError
 from drivers.modbus_bus import ModbusBus
-from drivers.rs485_devices import Channel, Inclinometer, PwmModule, Radar
+from drivers.rs485_devices import Channel, HopperScale, Inclinometer, PwmModule, Radar
 from drivers.tasks import cancel_all
 from gateway.app import wiring
 from gateway.app.calibration_check import working_speed_problem
@@ -128,6 +128,10 @@ class Daemon:
         self.radar = Radar(self.bus, settings.radar)
         self.inclinometer = Inclinometer(self.bus, settings.inclinometer)
         self.pwm = PwmModule(self.bus, settings.actuators)
+        self.hopper_scale = (
+            HopperScale(self.bus, settings.hopper_scale)
+            if self.rs485 and settings.hopper_scale.enabled else None
+        )
         self.latencies_s: deque[float] = deque(maxlen=LATENCY_SAMPLES)
         self.outputs: ControlOutputs | None = None
         self._written: dict[str, float] = {}
@@ -368,6 +372,11 @@ class Daemon:
                     self.controller.on_tilt(tilt, reply_t)
                 except DriverError:
                     pass
+                if self.hopper_scale is not None:  # lost: the controller keeps its factor
+                    kg: float | None = None
+                    with contextlib.suppress(DriverError):
+                        kg = await self.hopper_scale.read()
+                    self.controller.on_hopper_weight(kg, self.clock())
             out = self.controller.tick(self.clock())
             self.outputs = out
             await self._write_outputs(out.motor_pct, out.fan_pct, reply_t=reply_t)
@@ -458,11 +467,10 @@ class Daemon:
         if not self.rs485:
             return
         now = self.clock()
-        for name, label in (
-            ("radar", "radar"),
-            ("inclinometer", "inclinometer"),
-            ("pwm", "PWM module"),
-        ):
+        devices = [("radar", "radar"), ("inclinometer", "inclinometer"), ("pwm", "PWM module")]
+        if self.hopper_scale is not None:
+            devices.append(("hopper_scale", "hopper scale"))
+        for name, label in devices:
             st = self.bus.stats.get(name)
             lost = False
             if st is not None and st.available:
@@ -473,7 +481,9 @@ class Daemon:
             self.alarms.set(
                 f"{name}.unavailable",
                 lost,
-                f"{label} not answering on RS485: {st.last_error if st else ''}",
+                f"{label} not answering on RS485: {st.last_error if st else ''}"
+                + ("; sowing on the model with the last correction"
+                   if name == "hopper_scale" else ""),
                 "critical" if name == "pwm" else "warning",
             )
 
@@ -528,6 +538,7 @@ class Daemon:
             metering=parts.metering.status() if parts.metering is not None else None,
             pwm_channel=parts.pwm_channel.state() if parts.pwm_channel is not None else None,
             rejected=parts.rejected.counts() if parts.rejected is not None else None,
+            hopper=c.hopper.state(self.clock()) if c.hopper is not None else None,
         )
 
 async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:

@@ -26,9 +26,9 @@ from gateway.ui.touchscreen import HmiAdapter
 
 if TYPE_CHECKING:
     from drivers.gnss_reader import GnssEpoch
-    from gateway.link.payloads import StatePayload
+    from gateway.link.payloads import HopperInfo, StatePayload
     from gateway.metering.isobus import TractorInputs
-    from gateway.state import MachineState
+    from gateway.state import HopperState, MachineState
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +117,27 @@ def state_payload(daemon: Daemon) -> StatePayload:
             hmi=dict(rejected.hmi),
             seed_sensors=dict(rejected.seed_sensors),
         ),
+        hopper=None if state.hopper is None else _hopper_info(state.hopper),
+    )
+
+
+def _hopper_info(h: HopperState) -> HopperInfo:
+    """``HopperInfo`` at the published resolution (0.1 kg, 4 decimals for factors)."""
+    from gateway.link.payloads import HopperInfo
+
+    def r(value: float | None, digits: int) -> float | None:
+        return None if value is None else round(value, digits)
+
+    return HopperInfo(
+        mass_kg=r(h.mass_kg, 1),
+        time_to_empty_min=r(h.time_to_empty_min, 1),
+        discharge_correction=round(h.discharge_correction, 4),
+        correction_estimate=r(h.correction_estimate, 4),
+        correction_standard_error=r(h.correction_standard_error, 4),
+        correction_applied=h.correction_applied,
+        scale_sigma_kg=r(h.scale_sigma_kg, 2),
+        windows=h.windows,
+        refills=h.refills,
     )
 
 

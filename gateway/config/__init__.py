@@ -25,6 +25,7 @@ from gateway.config.machine import (
     ControlSection,
     CropModel,
     HmiSection,
+    HopperScaleSection,
     InclinometerSection,
     MachineSection,
     RadarSection,
@@ -70,6 +71,7 @@ __all__ = [
     "CropModel",
     "GnssSection",
     "HmiSection",
+    "HopperScaleSection",
     "InclinometerSection",
     "IsobusSection",
     "MachineSection",
@@ -128,6 +130,7 @@ class Settings(BaseSettings):
     channel: list[ChannelSection] = Field(default_factory=list)
     isobus: IsobusSection = Field(default_factory=IsobusSection)
     prescription: PrescriptionSection = Field(default_factory=PrescriptionSection)
+    hopper_scale: HopperScaleSection = Field(default_factory=HopperScaleSection)
 
     @classmethod
     def settings_customise_sources(
@@ -210,13 +213,15 @@ class Settings(BaseSettings):
             "inclinometer": self.inclinometer.device_id,
             "actuators": self.actuators.device_id,
         }
+        if self.hopper_scale.enabled:
+            bus["hopper_scale"] = self.hopper_scale.device_id
         seen: dict[int, str] = {}
         for section, device_id in bus.items():
             if device_id in seen:
                 raise FieldProblem(
                     f"{section}.device_id",
-                    f"same as {seen[device_id]}.device_id; radar, inclinometer and actuators "
-                    "share one RS485 bus and each needs its own id",
+                    f"same as {seen[device_id]}.device_id; radar, inclinometer, actuators "
+                    "(and hopper_scale) share one RS485 bus and each needs its own id",
                     device_id,
                 )
             seen[device_id] = section
@@ -246,6 +251,8 @@ class Settings(BaseSettings):
                 uses.append("speed.source includes radar")
             if "inclinometer" in self.isobus.work_state_source:
                 uses.append("isobus.work_state_source includes inclinometer")
+            if self.hopper_scale.enabled:
+                uses.append("hopper_scale is enabled")
             uses += [f"channel {c.name} is pwm_modbus" for c in self.channel
                      if c.drive == "pwm_modbus"]
             if uses:

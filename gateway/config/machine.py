@@ -112,6 +112,37 @@ class ActuatorsSection(Section):
         return self
 
 
+class HopperScaleSection(OptionalPart):
+    """A Modbus weight transmitter under the seed hopper, on the RS485 bus with the radar.
+
+    It is read once per poll, with the radar and the inclinometer. While the drill sows
+    steadily, the mass that left the hopper is compared with the mass the discharge model
+    predicted, and the model is corrected by the factor found
+    (``gateway.control.hopper_correction``). ``scale`` is grams per count of the raw value.
+    """
+
+    model_config = ConfigDict(validate_by_name=True, validate_by_alias=True)
+
+    device_id: int = Field(4, ge=1, le=247)
+    # `register` in the file, as for the radar
+    address: int = Field(0, ge=0, le=65535, alias="register")
+    # int32 (two holding registers) is the common weight-transmitter format
+    data_type: Literal["int32", "uint16", "int16", "float32"] = "int32"
+    word_order: Literal["big", "little"] = "big"  # big: high word first
+    scale: float = Field(1.0, gt=0, le=1e6)  # grams per count
+    # a reading outside -5 % .. 120 % of this is a transmitter fault, not a mass
+    capacity_kg: float = Field(3000.0, gt=0, le=100000)
+    # seconds of steady seeding per regression window (evidence is pooled across windows)
+    window_s: float = Field(120.0, ge=5, le=3600)
+    # the correction is kept within 1 +/- this (alarm hopper_scale.at_bound when it is held)
+    max_correction_pct: float = Field(20.0, gt=0, le=50)
+    # a window whose scale-measured factor is this far from the applied one (and beyond its
+    # own noise) raises hopper_scale.disagrees
+    disagree_pct: float = Field(10.0, gt=0, le=100)
+    # hopper_scale.low below this mass (time to empty is in the state payload)
+    warn_below_kg: float = Field(50.0, ge=0, le=100000)
+
+
 class HmiObjects(Section):
     """TJC/Nextion object names the daemon writes to (``obj.txt="..."``)."""
 
@@ -122,6 +153,8 @@ class HmiObjects(Section):
     rate: str = "t_rate"
     alarm: str = "t_alarm"
     message: str = "t_msg"
+    # written only when [hopper_scale] is on: hopper mass, time to empty, correction
+    hopper: str = "t_hopper"
 
 
 class HmiSection(OptionalPart):

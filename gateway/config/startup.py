@@ -37,6 +37,7 @@ def _part_details(settings: Settings) -> dict[str, str]:
         "can": f"{s.can.interface} {s.can.channel}",
         "isobus": f"{s.isobus.interface} {s.isobus.channel}",
         "prescription": s.prescription.path or "no path",
+        "hopper_scale": f"RS485 id {s.hopper_scale.device_id}",
     }
 
 

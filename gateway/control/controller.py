@@ -16,6 +16,7 @@ from gateway.calibration import fits as cal
 from gateway.config import ChannelSection, CropModel, Settings
 from gateway.control.attitude import Attitude as AttitudeBand
 from gateway.control.attitude import zeroed_tilt
+from gateway.control.hopper_loop import HopperLoop
 from gateway.control.rate_model import flow_at, omega_for_duty, plan_duty, rate_for_flow
 from gateway.control.speed import Hysteresis, MovingAverage, TrendFilter
 from gateway.control.work_state import (
@@ -161,8 +162,25 @@ class Controller:
         self._last_tick: float | None = None
         self._message: str | None = None
         self.last: ControlOutputs | None = None
+        # the hopper scale's correction of the discharge model (true / model), if fitted
+        self.hopper: HopperLoop | None = None
+        if s.hopper_scale.enabled:
+            self.hopper = HopperLoop(s.hopper_scale, self.alarms, self.crop,
+                                     calibrations=self.calibrations,
+                                     rotation_keys=self._rotation_keys(self.crop))
         if s.control.start_working:  # the operator's start, given at power-up
             self._change_mode(ModeEvent.START)
+
+    def _rotation_keys(self, crop: str) -> list[str]:
+        """calibration.json keys of the rotation test that fits ``crop`` (a pwm_modbus
+        channel's test is stored under the channel's name)."""
+        return [f"rotation.{c.name}" for c in self.settings.channel
+                if c.drive == "pwm_modbus" and c.product == crop]
+
+    @property
+    def discharge_correction(self) -> float:
+        """true / model discharge: 1.0 without a hopper scale or before it has evidence."""
+        return 1.0 if self.hopper is None else self.hopper.factor
 
     # ---- inputs -------------------------------------------------------------------------
     @property
@@ -203,6 +221,11 @@ class Controller:
         self._tilt_t = t
         self._tilt_recent.append((t, raw_deg))
 
+    def on_hopper_weight(self, kg: float | None, t: float) -> None:
+        """One hopper scale reading (None: the scale did not answer this poll)."""
+        if self.hopper is not None:
+            self.hopper.on_weight(kg, t)
+
     def on_hitch(self, in_work: bool, t: float) -> None:
         """ISOBUS rear hitch in-work flag, an alternative attitude source."""
         self._hitch_working = in_work
@@ -242,6 +265,8 @@ class Controller:
                         f"{m.rate_min_kg_ha:g}-{m.rate_max_kg_ha:g} kg/ha"
                     )
                 self.crop, self.rate_kg_ha = crop, rate
+                if self.hopper is not None:
+                    self.hopper.set_crop(crop, self._rotation_keys(crop))
                 reply = f"{crop} {rate:g} kg/ha"
             case cmd.Start():
                 self._change_mode(ModeEvent.START)
@@ -431,8 +456,10 @@ class Controller:
         motor = 0.0
         commanded_rate = 0.0
         too_fast = outside = False
+        k = self.discharge_correction  # the model delivers Q/k where the drill delivers Q
+        q_model = 0.0  # what the uncorrected model predicts at the duty commanded
         if out.motor is Motor.FOLLOW and speed is not None:
-            plan = plan_duty(target_rate, self.settings.machine.working_width_m, speed, model)
+            plan = plan_duty(target_rate / k, self.settings.machine.working_width_m, speed, model)
             motor = plan.duty_pct
             too_fast = isinstance(plan.problem, TooFastError)
             outside = isinstance(plan.problem, OutsideCalibrationError)
@@ -441,7 +468,8 @@ class Controller:
             elif outside:
                 self._outside_calibration(now, str(plan.problem))
             self.alarms.set("rate.low_duty", plan.warning is not None, plan.warning or "", "info")
-            q = flow_at(omega_for_duty(motor, model), model) if motor > 0 else 0.0
+            q_model = flow_at(omega_for_duty(motor, model), model) if motor > 0 else 0.0
+            q = q_model * k
             commanded_rate = rate_for_flow(q, self.settings.machine.working_width_m, speed)
             self.counters.seed_mass_g += max(0.0, q) * dt / 60.0
             self.counters.area_m2 += self.settings.machine.working_width_m * speed / 3.6 * dt
@@ -456,6 +484,10 @@ class Controller:
             self.alarms.clear("rate.low_duty")
         if speed is not None:
             self.counters.distance_m += speed / 3.6 * dt
+        if self.hopper is not None:
+            self.hopper.tick(now, q_model_g_min=q_model, seeding=out.state is WorkState.SEEDING
+                             and out.motor is Motor.FOLLOW and motor > 0, speed_kmh=speed,
+                             modelled=out.motor is not Motor.EMPTY)
         fan = {Fan.OFF: 0.0, Fan.LOW: model.fan_low_pct, Fan.HIGH: model.fan_high_pct}[out.fan]
         self.last = ControlOutputs(
             state=out.state,

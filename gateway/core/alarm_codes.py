@@ -73,6 +73,31 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "check the inclinometer's cable, power and Modbus address",
     ),
     AlarmCode(
+        "hopper_scale.unavailable", ("warning",),
+        "the hopper scale does not answer on RS485: the rate runs on the discharge model with "
+        "the last correction (kept), hopper mass and time to empty are not known",
+        "check the weight transmitter's cable, power and Modbus address",
+    ),
+    AlarmCode(
+        "hopper_scale.at_bound", ("warning",),
+        "the hopper scale finds the drill's discharge more than `hopper_scale."
+        "max_correction_pct` off its model: the correction is held at that bound",
+        "do a rotation test (`sowgate calibrate rotation`) for this crop and seed lot",
+    ),
+    AlarmCode(
+        "hopper_scale.disagrees", ("warning",),
+        "over the last window the scale's discharge differs from the corrected model by more "
+        "than `hopper_scale.disagree_pct` and beyond its noise (a blocked outlet, a bridged "
+        "hopper, a load-cell fault)",
+        "check the outlets, the seed flow in the hopper and the scale",
+    ),
+    AlarmCode(
+        "hopper_scale.low", ("warning",),
+        "hopper mass below `hopper_scale.warn_below_kg`; the message gives the time to empty "
+        "at the current rate",
+        "refill the hopper",
+    ),
+    AlarmCode(
         "pwm.unavailable", ("critical",),
         "the motor/fan PWM module does not answer",
         "stop; check the PWM module's cable, power and Modbus address",

@@ -40,6 +40,7 @@ __all__ = [
     "AlarmEvent",
     "CommandAck",
     "EmptyCommand",
+    "HopperInfo",
     "RateCommand",
     "RejectedInput",
     "SeedBatch",
@@ -95,6 +96,35 @@ class RejectedInput(_Payload):
         "unknown_line (GPIO), implausible_rate (edges faster than "
         "seed_sensors.max_seeds_per_s_per_row: not stored as seeds)",
     )
+
+
+class HopperInfo(_Payload):
+    """The hopper scale and the discharge correction it found (only with ``[hopper_scale]``).
+
+    ``discharge_correction`` = true / model discharge, the factor the rate model is corrected
+    by; 1.0 until the evidence is enough (``correction_applied``). Its confidence is
+    ``correction_standard_error``; it is kept across restarts and while the scale is silent,
+    and starts again at 1.0 after a rotation test or with another seed lot."""
+
+    mass_kg: float | None = Field(
+        None, description="hopper mass, median of the last readings, 0.1 kg; null while the "
+        "scale does not answer")
+    time_to_empty_min: float | None = Field(
+        None, ge=0, description="minutes until the hopper is empty at the current discharge; "
+        "null when not discharging or no mass")
+    discharge_correction: float = Field(
+        1.0, gt=0, description="applied factor true / model discharge (4 decimals)")
+    correction_estimate: float | None = Field(
+        None, description="pooled scale estimate of true / model before the confidence "
+        "weighting and the max_correction_pct clamp")
+    correction_standard_error: float | None = Field(
+        None, ge=0, description="standard error of correction_estimate (0.01 = 1 %)")
+    correction_applied: bool = Field(
+        False, description="the evidence was enough (standard error below 3 %) to apply it")
+    scale_sigma_kg: float | None = Field(
+        None, ge=0, description="scale noise (vibration) seen in the regression residuals")
+    windows: int = Field(0, ge=0, description="regression windows pooled since start or reset")
+    refills: int = Field(0, ge=0, description="refills (weight jumps) seen since start")
 
 
 # Decimals each state value is published with: its sensor's (or actuator's) resolution. A
@@ -157,6 +187,9 @@ class StatePayload(_Payload):
         default_factory=RejectedInput,
         description="input received and not used, per device and reason (totals since start; "
         "published at state_hz, a new count alone does not trigger a message)",
+    )
+    hopper: HopperInfo | None = Field(
+        None, description="hopper scale and discharge correction; null without [hopper_scale]"
     )
 
     @field_validator(*STATE_DECIMALS, mode="after")

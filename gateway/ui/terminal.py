@@ -137,6 +137,18 @@ def _main_grid(state: MachineState, truth: dict[str, Any] | None) -> Table:
     main.add_row(
         "area", f"{state.area_ha:.4f} ha", "seed", f"{state.seed_mass_kg:.3f} kg"
     )
+    hopper = state.hopper
+    if hopper is not None:
+        se = hopper.correction_standard_error
+        tte = hopper.time_to_empty_min
+        main.add_row(
+            "hopper",
+            _fmt(hopper.mass_kg, ".1f", " kg") + ("" if tte is None else f", {tte:.0f} min left"),
+            "correction",
+            f"x{hopper.discharge_correction:.4f}"
+            + ("" if se is None else f" (SE {se * 100:.2f} %)")
+            + ("" if hopper.correction_applied else " not applied yet"),
+        )
     if truth:
         sown = truth.get("sown_m")
         applied = truth.get("applied_kg_ha")

@@ -15,7 +15,7 @@ from drivers.hmi_link import LOG_EVERY_S, HmiLink
 from drivers.log_limit import RateLimitedLog
 from gateway.config import CropModel, HmiSection
 from gateway.core import commands as cmd
-from gateway.state import MachineState
+from gateway.state import HopperState, MachineState
 from protocol import hmi
 
 log = logging.getLogger(__name__)
@@ -32,6 +32,17 @@ DEFAULT_STATE_LABELS = {
     "paused": "PAUSED",
     "emptying": "EMPTYING",
 }
+
+
+def hopper_text(h: HopperState) -> str:
+    """``412 kg 2.3 h x1.080`` (mass, time to empty, correction; ``~`` before the factor
+    while the evidence is not enough to apply it)."""
+    mass = "-- kg" if h.mass_kg is None else f"{h.mass_kg:.0f} kg"
+    tte = h.time_to_empty_min
+    empty = "" if tte is None else (f" {tte:.0f} min" if tte < 120 else f" {tte / 60:.1f} h")
+    mark = "x" if h.correction_applied else "~x"
+    est = h.discharge_correction if h.correction_applied else (h.correction_estimate or 1.0)
+    return f"{mass}{empty} {mark}{est:.3f}"
 
 
 class HmiAdapter:
@@ -113,7 +124,7 @@ class HmiAdapter:
         tilt = state.tilt_deg
         # the alarms come oldest first: min keeps the oldest of the most severe
         top = min(state.alarms, key=lambda a: _SEVERITY_ORDER.get(a.severity, 3), default=None)
-        return {
+        texts = {
             o.speed: "--" if speed is None else f"{speed:.1f} km/h",
             o.tilt: "--" if tilt is None else f"{tilt:+.1f} deg",
             o.state: labels.get(state.work_state, state.work_state),
@@ -122,6 +133,9 @@ class HmiAdapter:
             o.alarm: top.message if top is not None else "",
             o.message: self.last_message,
         }
+        if state.hopper is not None:  # only a screen for a machine with a hopper scale
+            texts[o.hopper] = hopper_text(state.hopper)
+        return texts
 
     async def refresh_loop(self) -> None:
         period = 1.0 / self.section.update_hz

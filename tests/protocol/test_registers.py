@@ -1,4 +1,4 @@
-"""Register codecs of the radar, the WitMotion inclinometer and the PWM module."""
+"""Register codecs of the radar, the WitMotion inclinometer, the PWM module and the hopper scale."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from protocol.errors import FieldError, ProtocolError
 from protocol.registers import (
     RadarFormat,
+    WeightFormat,
     decode_angle,
     decode_duty,
     decode_number,
@@ -285,3 +286,31 @@ def test_out_of_range_comm_loss_timeout_register_raises() -> None:
 
     with pytest.raises(FieldError, match="comm-loss timeout register 6001"):
         decode_comm_timeout(6001)
+
+
+# -- hopper scale (weight transmitter) ----------------------------------------------------------
+
+
+@given(
+    kg=st.floats(-100.0, 3500.0),
+    data_type=st.sampled_from(["int32", "float32"]),
+    word_order=st.sampled_from(["big", "little"]),
+)
+def test_weight_round_trips_through_its_registers(
+    kg: float, data_type: str, word_order: str
+) -> None:
+    fmt = WeightFormat(data_type=data_type, word_order=word_order,  # type: ignore[arg-type]
+                       grams_per_count=1.0, capacity_kg=3000.0)
+    assert fmt.decode_kg(fmt.encode_kg(kg)) == pytest.approx(kg, abs=1e-3, rel=1e-6)
+
+
+def test_weight_int32_is_high_word_first_by_default() -> None:
+    assert WeightFormat().encode_kg(70.0) == [0x0001, 0x1170]  # 70 000 g
+    assert WeightFormat(word_order="little").decode_kg([0x1170, 0x0001]) == 70.0
+
+
+@pytest.mark.parametrize("registers", [[0x7FC0, 0x0000], [0x7F80, 0x0000], [0x4974, 0x2400]])
+def test_weight_that_no_load_cell_reports_is_refused(registers: list[int]) -> None:
+    fmt = WeightFormat(data_type="float32", grams_per_count=1.0, capacity_kg=500.0)
+    with pytest.raises(FieldError, match="weight"):
+        fmt.decode_kg(registers)  # NaN, +inf, 1e6 g = 1000 kg above 120 % of 500 kg

@@ -24,6 +24,7 @@ PRESENT_WITHOUT_ENABLED: dict[str, dict[str, Any]] = {
     "isobus": {"channel": "can1"},
     "gnss": {"port": "/dev/ttyUSB1"},
     "prescription": {"path": "/srv/map.geojson"},
+    "hopper_scale": {"device_id": 5},
 }
 
 
@@ -44,7 +45,8 @@ def test_absent_tables_are_off_except_the_bus_and_the_screen() -> None:
     is off until its table is written."""
     s = parse_config({})
     assert s.rs485.enabled and s.hmi.enabled
-    for part in ("mqtt", "can", "isobus", "gnss", "seed_sensors", "prescription"):
+    for part in ("mqtt", "can", "isobus", "gnss", "seed_sensors", "prescription",
+                 "hopper_scale"):
         assert getattr(s, part).enabled is False, part
 
 
@@ -87,7 +89,7 @@ def test_the_parts_summary_names_every_part_and_how_it_is_reached() -> None:
     assert parts_summary(s) == (
         "parts: rs485 on (/dev/ttyUSB0), hmi off, gnss on (/dev/ttyUSB1), seed_sensors off, "
         "mqtt on (broker.example:8883 TLS), can off, isobus off, prescription off, "
-        "channel seed off (can_pid, but can is off)"
+        "hopper_scale off, channel seed off (can_pid, but can is off)"
     )
 
 

@@ -16,6 +16,8 @@ from drivers.hmi_link import HmiLink
 from drivers.tasks import cancel_and_wait
 from gateway.app.daemon import Daemon
 from gateway.config import parse_config
+from gateway.state import HopperState
+from gateway.ui.touchscreen import hopper_text
 from simulator.pty_link import PtyPair
 from tests.helpers import eventually
 
@@ -77,3 +79,27 @@ async def test_a_storm_of_bad_frames_costs_a_few_log_lines_and_is_counted_per_re
     assert link.stats.rejected_by_reason == {"unknown_function": bad_frames, "bad_field": 3}
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert 1 <= len(warnings) <= 4, [r.getMessage() for r in warnings]
+
+
+def test_the_hopper_line_is_written_only_on_a_machine_with_a_hopper_scale(tmp_path: Path) -> None:
+    with PtyPair() as pair:
+        plain = Daemon(parse_config({"hmi": {"port": pair.device_path}}), tmp_path / "a")
+        assert plain.hmi is not None
+        assert "t_hopper" not in plain.hmi.screen_texts()  # a screen without the object
+        daemon = Daemon(parse_config({"hmi": {"port": pair.device_path}, "hopper_scale": {}}),
+                        tmp_path / "b")
+        assert daemon.hmi is not None and daemon.controller.hopper is not None
+        assert daemon.hmi.screen_texts()["t_hopper"] == "-- kg ~x1.000"  # nothing known yet
+        hopper = daemon.controller.hopper
+        hopper.on_weight(412.4, daemon.clock())
+        hopper.tick(daemon.clock(), q_model_g_min=3000.0, seeding=True, speed_kmh=5.0,
+                    modelled=True)
+        # 412 kg at 3 kg/min; "~": the correction is not applied yet (too little evidence)
+        assert daemon.hmi.screen_texts()["t_hopper"] == "412 kg 2.3 h ~x1.000"
+
+
+def test_the_hopper_line_shows_an_applied_correction_and_minutes_near_empty() -> None:
+    state = HopperState(mass_kg=61.7, time_to_empty_min=19.4, discharge_correction=1.0791,
+                        correction_estimate=1.08, correction_standard_error=0.006,
+                        correction_applied=True, scale_sigma_kg=2.0, windows=5, refills=0)
+    assert hopper_text(state) == "62 kg 19 min x1.079"

@@ -13,6 +13,7 @@ from gateway.metering.channels import AlarmKind
 from gateway.state import (
     ActiveAlarmState,
     ChannelStatus,
+    HopperState,
     MachineState,
     MeteringStatus,
     PwmChannelState,
@@ -230,3 +231,17 @@ def test_rate_error_is_a_dash_until_something_has_been_sown() -> None:
     text = "\n".join(_screen(100, 40, DEMO_STATE, truth_report(truth, 6.0)))
     applied = _line(text, "applied")
     assert "-100" not in applied and applied.count("–") == 2, applied
+
+
+def test_the_hopper_scale_row_shows_mass_and_the_correction_with_its_confidence() -> None:
+    hopper = HopperState(mass_kg=412.3, time_to_empty_min=131.5, discharge_correction=1.0791,
+                         correction_estimate=1.08, correction_standard_error=0.0061,
+                         correction_applied=True, scale_sigma_kg=2.0, windows=5, refills=1)
+    console = Console(width=100, record=True)
+    console.print(render(replace(STATE, hopper=hopper)))
+    text = console.export_text()
+    assert "412.3 kg, 132 min left" in text
+    assert "x1.0791 (SE 0.61 %)" in text
+    console = Console(width=100, record=True)
+    console.print(render(STATE))
+    assert "hopper" not in console.export_text()
