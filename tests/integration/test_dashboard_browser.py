@@ -1,0 +1,129 @@
+"""The dashboard in a real browser: headless Debian chromium (Playwright) on the page of the real
+``sowgate dashboard`` process, subscribed to a real mosquitto, where the real daemon on the
+simulated planter publishes. What the page shows must be what the daemon published."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from simulator.machine import SimulatedMachine
+from simulator.plant import Drive, Leg
+from tests.browser import DashboardProcess, browser_page, dashboard_process
+from tests.helpers import eventually
+from tests.integration.conftest import Rig, running
+from tests.integration.test_recording_end_to_end import all_delivered, stored_ids
+from tests.mosquitto import Mosquitto, Subscriber, subscriber
+
+BASE = "sowgate/seeder-01"
+REPO = Path(__file__).resolve().parents[2]
+SCREENSHOT = REPO / "docs" / "img" / "dashboard.png"
+WAIT_S = 20.0
+STANDING_S = 3.0
+
+
+@dataclass
+class Scene:
+    broker: Mosquitto
+    sub: Subscriber
+    rig: Rig
+    dash: DashboardProcess
+    page: Any
+
+    async def text(self, element_id: str) -> str:
+        return str(await self.page.locator(f"#{element_id}").inner_text())
+
+    async def until_text(self, element_id: str, wanted: str, timeout: float = WAIT_S) -> None:
+        """Wait until the element's text contains ``wanted`` (Playwright's own retrying)."""
+        from playwright.async_api import expect
+
+        await expect(self.page.locator(f"#{element_id}")).to_contain_text(
+            wanted, timeout=timeout * 1000
+        )
+
+    async def until_exact(self, element_id: str, wanted: str, timeout: float = WAIT_S) -> None:
+        from playwright.async_api import expect
+
+        await expect(self.page.locator(f"#{element_id}")).to_have_text(
+            wanted, timeout=timeout * 1000
+        )
+
+    def published_ids(self) -> set[int]:
+        return set(self.sub.seed_ids())
+
+    def last_state(self) -> dict[str, Any]:
+        return dict(json.loads(self.sub.on("state")[-1]))
+
+
+def sowing(seconds: float, kmh: float = 8.0) -> Drive:
+    """Stand, sow for ``seconds``, stand (seeds stop, so every count can settle)."""
+    return Drive(legs=[Leg(STANDING_S, 0.0), Leg(seconds, kmh), Leg(600.0, 0.0)], dt=0.02)
+
+
+@contextlib.asynccontextmanager
+async def scene(
+    tmp_path: Path, drive: Drive, commands: list[str] | None = None
+) -> AsyncIterator[Scene]:
+    """Broker, a subscriber that records what the daemon published, the daemon on the
+    simulated planter, the dashboard process (same config file) and a browser on its page."""
+    with Mosquitto(persistent=True) as broker:
+        async with subscriber(broker.port, BASE, client_id="test-recorder") as sub:
+            machine = SimulatedMachine(drive=drive, with_gnss=True, with_seed_tubes=True)
+            overrides: dict[str, Any] = {
+                "mqtt": {"enabled": True, "port": broker.port, "keepalive": 5,
+                         "reconnect_max_s": 1.0},
+                "control": {"start_working": True},
+                "commands": {"enabled": commands or []},
+            }
+            async with running(tmp_path, machine, **overrides) as rig:
+                config = machine.write_config(tmp_path / "sowgate.toml", **overrides)
+                async with (
+                    dashboard_process(config, tmp_path / "dashboard.log") as dash,
+                    browser_page(dash.url) as page,
+                ):
+                    yield Scene(broker, sub, rig, dash, page)
+
+
+async def test_the_page_shows_what_the_daemon_published_and_sends_commands(
+    tmp_path: Path,
+) -> None:
+    sow_s = 12.0
+    async with scene(tmp_path, sowing(sow_s), commands=["start", "stop", "rate"]) as s:
+        await s.until_text("status", "online")
+        # the tractor sows, then stands: once every stored seed has been published, the page
+        # counts exactly the distinct records the daemon published (duplicates dropped)
+        db = tmp_path / "state" / "records.sqlite3"
+        machine = s.rig.machine
+        await eventually(lambda: machine.pose().t > STANDING_S + sow_s + 0.5, 60.0, "sowing done")
+        await eventually(lambda: all_delivered(db, s.sub), WAIT_S, "every seed published")
+        published = len(s.published_ids())
+        assert published == len(stored_ids(db)) > 200
+        await s.until_exact("seed-count", str(published))
+        # live values are those of the latest retained state
+        state = s.last_state()
+        assert await s.text("crop") == state["crop"]
+        assert (await s.text("work-state")) == state["work_state"]
+        assert (await s.text("target-rate")).startswith(f"{state['target_rate_kg_ha']:.1f}")
+        assert "radar" in await s.text("devices")
+        rows = await s.page.locator("#rows tbody tr[data-row]").count()
+        assert rows == s.rig.daemon.settings.machine.rows
+
+        SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+        await s.page.locator("#fit").click()
+        await s.page.screenshot(path=str(SCREENSHOT), full_page=True)
+
+        # a command from the page reaches the daemon, and its ack is shown
+        await s.page.locator("#cmd-stop").click()
+        await s.until_text("cmd-log", "stop: done")
+        await s.rig.until(lambda: s.rig.state() is not None and s.rig.state().value == "stopped",
+                          what="the daemon stopped")
+        await s.until_text("work-state", "stopped")
+        await s.page.locator("#rate-crop").fill("wheat")
+        await s.page.locator("#rate-value").fill("999")
+        await s.page.locator("#cmd-rate").click()
+        await s.until_text("cmd-log", "rate: refused")
+
