@@ -91,3 +91,5 @@ class MachineState:
     metering: MeteringStatus | None = None
     pwm_channel: PwmChannelState | None = None
     rejected: RejectedCounts | None = None  # None without a device that can reject input
+    # critical alarms not acknowledged yet (active or cleared), oldest first: code -> message
+    unacknowledged: tuple[tuple[str, str], ...] = ()

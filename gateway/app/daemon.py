@@ -528,6 +528,7 @@ class Daemon:
             metering=parts.metering.status() if parts.metering is not None else None,
             pwm_channel=parts.pwm_channel.state() if parts.pwm_channel is not None else None,
             rejected=parts.rejected.counts() if parts.rejected is not None else None,
+            unacknowledged=tuple((a.code, a.message) for a in self.alarms.unacknowledged),
         )
 
 async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:

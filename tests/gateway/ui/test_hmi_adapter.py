@@ -16,6 +16,7 @@ from drivers.hmi_link import HmiLink
 from drivers.tasks import cancel_and_wait
 from gateway.app.daemon import Daemon
 from gateway.config import parse_config
+from gateway.core.commands import AckAlarm
 from simulator.pty_link import PtyPair
 from tests.helpers import eventually
 
@@ -58,6 +59,13 @@ def test_the_alarm_line_shows_the_most_severe_alarm_not_the_oldest(tmp_path: Pat
         daemon.alarms.raise_("gnss.heading_invalid", "no dual-antenna heading", "info")
         assert daemon.hmi.screen_texts()[line] == "record store cannot write"
         daemon.alarms.clear("records.store_failed")
+        # a critical alarm keeps the line, cleared, until the operator acknowledges it
+        assert daemon.hmi.screen_texts()[line] == (
+            "cleared, acknowledge: record store cannot write"
+        )
+        assert daemon.execute(AckAlarm("records.store_failed"), "mqtt") == (
+            "acknowledged: records.store_failed"
+        )
         assert daemon.hmi.screen_texts()[line] == "GNSS fix is rtk_float"
 
 
