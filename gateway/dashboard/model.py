@@ -299,9 +299,17 @@ class Fleet:
         lat0, lon0 = self.origin
         k = math.pi / 180.0 * EARTH_RADIUS_M
         kx = k * self._cos_lat
+        records = sorted(batch.records, key=lambda r: r.id)
+        fresh = [r for r in records if r.id not in view.seen and r.id > view.id_floor]
+        if view.x_ref_m is None:  # the batch's own spacings count for its reference
+            for rec in fresh:
+                if rec.spacing_m is not None:
+                    view.recent.setdefault(rec.row, deque(maxlen=QUALITY_WINDOW)).append(
+                        rec.spacing_m
+                    )
         refs: dict[int, float | None] = {}
         out = self._new_seeds.setdefault(machine_id, [])
-        for rec in sorted(batch.records, key=lambda r: r.id):
+        for rec in records:
             row = rec.row
             if row not in refs:
                 refs[row] = view.spacing_ref(row)
@@ -317,10 +325,6 @@ class Fleet:
                     acc = view.quality[row] = RowQualityAccumulator(view.x_ref_m)
                 with contextlib.suppress(ValueError):
                     acc.add(rec.spacing_m)
-                if view.x_ref_m is None:
-                    view.recent.setdefault(row, deque(maxlen=QUALITY_WINDOW)).append(
-                        rec.spacing_m
-                    )
         self._dirty.add(machine_id)
         return True
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,3 +128,65 @@ async def test_the_page_shows_what_the_daemon_published_and_sends_commands(
         await s.page.locator("#cmd-rate").click()
         await s.until_text("cmd-log", "rate: refused")
 
+
+
+async def test_a_critical_alarm_appears_clears_and_stays_until_acknowledged_from_the_page(
+    tmp_path: Path,
+) -> None:
+    async with scene(tmp_path, sowing(120.0), commands=["ack_alarm"]) as s:
+        await s.until_text("status", "online")
+        # no operation controls offered (only ack_alarm is enabled)
+        assert not await s.page.locator("#cmd-stop").is_visible()
+        rs485 = s.rig.machine.rs485
+        assert rs485 is not None
+        rs485.set_silent(rs485.device_ids["pwm"], True)  # the PWM module stops answering
+        row = s.page.locator('#alarms tr[data-code="pwm.unavailable"]')
+        await _expect(row, "to_contain_text", "active")
+        await _expect(row, "to_contain_text", "critical")
+        await _expect(s.page.locator("#devices"), "to_contain_text", "pwm (not answering)")
+        rs485.set_silent(rs485.device_ids["pwm"], False)
+        await s.rig.until(lambda: not s.rig.daemon.alarms.is_active("pwm.unavailable"),
+                          timeout=WAIT_S, what="the alarm cleared on the box")
+        # cleared, with its time, and still waiting for the operator
+        await _expect(row, "to_have_class", re.compile(r"\bcleared\b.*\bunacked\b"))
+        assert "active" not in await row.locator("td").nth(3).inner_text()
+        assert [a.code for a in s.rig.daemon.alarms.unacknowledged] == ["pwm.unavailable"]
+        await row.locator("button.ack-alarm").click()
+        await s.until_text("cmd-log", "ack_alarm: done: acknowledged: pwm.unavailable")
+        assert s.rig.daemon.alarms.unacknowledged == []
+        await _expect(row, "not_to_have_class", re.compile(r"\bunacked\b"))
+        await _expect(row.locator("button.ack-alarm"), "to_have_count", 0)
+
+
+async def test_the_page_says_the_broker_is_lost_and_refills_the_map_after_it_returns(
+    tmp_path: Path,
+) -> None:
+    sow_s = 25.0
+    db = tmp_path / "state" / "records.sqlite3"
+    async with scene(tmp_path, sowing(sow_s)) as s:
+        await s.until_text("status", "online")
+        await _expect(s.page.locator("#broker"), "to_be_hidden")
+        await eventually(lambda: len(s.published_ids()) > 100, WAIT_S, "seeds published")
+        s.broker.stop()
+        await _expect(s.page.locator("#broker"), "to_contain_text",
+                      "MQTT broker connection lost")
+        shown = int(await s.text("seed-count"))
+        # the daemon keeps recording into its store while the broker is away
+        await eventually(lambda: len(stored_ids(db)) > shown + 200, WAIT_S, "seeds recorded")
+        assert int(await s.text("seed-count")) == shown  # nothing arrives meanwhile
+        s.broker.start()
+        await _expect(s.page.locator("#broker"), "to_be_hidden")
+        machine = s.rig.machine
+        await eventually(lambda: machine.pose().t > STANDING_S + sow_s + 0.5, 60.0, "sowing done")
+        await eventually(lambda: all_delivered(db, s.sub), WAIT_S, "every seed published")
+        # every stored seed on the map, once: the redelivered ones were deduplicated
+        await s.until_exact("seed-count", str(len(stored_ids(db))))
+        health = await s.page.evaluate("fetch('/api/health').then(r => r.json())")
+        assert health["broker_connected"] is True
+
+
+async def _expect(locator: Any, check: str, *args: Any) -> None:
+    """Playwright's retrying assertion ``check`` on ``locator`` (a condition, not a sleep)."""
+    from playwright.async_api import expect
+
+    await getattr(expect(locator), check)(*args, timeout=WAIT_S * 1000)
