@@ -68,14 +68,18 @@ function applyMachine(msg, replaceSeeds) {
   if (msg.seeds && msg.seeds.length) addSeeds(m, msg.seeds);
   const { seeds, ...summary } = msg;
   m.summary = summary;
-  if (!app.selected) select(app.config.machine_id && app.machines.has(app.config.machine_id)
-    ? app.config.machine_id : msg.machine_id);
+  if (!app.selected) {
+    // ?machine=ID picks one (a bookmark per seeder); else the config's own, else the first
+    const wanted = new URLSearchParams(location.search).get("machine");
+    if (wanted && wanted !== msg.machine_id && !app.machines.has(wanted)) return;
+    select(wanted || (app.config.machine_id && app.machines.has(app.config.machine_id)
+      ? app.config.machine_id : msg.machine_id));
+  }
   app.dirty = true;
 }
 
 function select(id) {
   app.selected = id;
-  app.view.fit = false;
   renderMachineTabs();
   renderAll();
 }
@@ -344,7 +348,8 @@ function draw() {
   const w = canvas.clientWidth, h = canvas.clientHeight;
   if (!w || !h) return;
   if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
-  const ctx = canvas.getContext("2d");
+  const started = performance.now();
+  const ctx = canvas.getContext("2d", { willReadFrequently: true });
   const v = app.view;
   if (v.fit) fitView(m, w, h);
   else if (v.follow && m.n) { v.cx = m.xs[m.n - 1]; v.cy = m.ys[m.n - 1]; }
@@ -377,7 +382,8 @@ function draw() {
     ctx.beginPath(); ctx.arc(x, y, 7, 0, 2 * Math.PI); ctx.stroke();
   }
   renderLegend(m);
-  app.draws.push({ seeds: n, t: performance.now() });
+  const t = performance.now();
+  app.draws.push({ seeds: n, t, ms: t - started });
   if (app.draws.length > 100) app.draws.shift();
 }
 
@@ -453,5 +459,6 @@ function setupMap() {
 }
 
 setupMap();
+if (new URLSearchParams(location.search).get("view") === "field") $("fit").click();
 connect();
 requestAnimationFrame(draw);
