@@ -36,7 +36,9 @@ chromium:
 	    { echo "chromium is needed for the dashboard's browser tests: apt-get install -y chromium" >&2; exit 1; }; }
 
 demo: $(STAMP)
-	$(BIN)/sowgate demo
+	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || \
+	  echo "note: without mosquitto (make mosquitto) the demo runs without its web dashboard" >&2
+	$(BIN)/sowgate demo --dashboard
 
 test: $(STAMP) mosquitto chromium
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks

@@ -76,7 +76,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
         log.warning("[mqtt] is off in %s: the dashboard connects to %s:%s all the same",
                     args.config, settings.mqtt.host, settings.mqtt.port)
     config = uvicorn.Config(
-        app, host=d.host, port=d.port, ws="websockets", lifespan="on",
+        app, host=d.host, port=d.port, ws="websockets-sansio", lifespan="on",
         log_level="debug" if args.verbose else "warning", access_log=False,
     )
     server = uvicorn.Server(config)
