@@ -67,13 +67,14 @@ def sowing(seconds: float, kmh: float = 8.0) -> Drive:
 
 @contextlib.asynccontextmanager
 async def scene(
-    tmp_path: Path, drive: Drive, commands: list[str] | None = None
+    tmp_path: Path, drive: Drive, commands: list[str] | None = None, crop: str = "rapeseed"
 ) -> AsyncIterator[Scene]:
     """Broker, a subscriber that records what the daemon published, the daemon on the
     simulated planter, the dashboard process (same config file) and a browser on its page."""
     with Mosquitto(persistent=True) as broker:
         async with subscriber(broker.port, BASE, client_id="test-recorder") as sub:
-            machine = SimulatedMachine(drive=drive, with_gnss=True, with_seed_tubes=True)
+            machine = SimulatedMachine(drive=drive, with_gnss=True, with_seed_tubes=True,
+                                       crop=crop)
             overrides: dict[str, Any] = {
                 "mqtt": {"enabled": True, "port": broker.port, "keepalive": 5,
                          "reconnect_max_s": 1.0},
@@ -93,7 +94,8 @@ async def test_the_page_shows_what_the_daemon_published_and_sends_commands(
     tmp_path: Path,
 ) -> None:
     sow_s = 12.0
-    async with scene(tmp_path, sowing(sow_s), commands=["start", "stop", "rate"]) as s:
+    commands = ["start", "stop", "rate", "ack_alarm"]
+    async with scene(tmp_path, sowing(sow_s), commands=commands, crop="wheat") as s:
         await s.until_text("status", "online")
         # the tractor sows, then stands: once every stored seed has been published, the page
         # counts exactly the distinct records the daemon published (duplicates dropped)
@@ -114,7 +116,8 @@ async def test_the_page_shows_what_the_daemon_published_and_sends_commands(
         assert rows == s.rig.daemon.settings.machine.rows
 
         SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
-        await s.page.locator("#fit").click()
+        # the README's picture: the last metres of the pass, close up
+        await s.page.evaluate("sowgate.view.scale = 30; sowgate.dirty = true")
         await s.page.screenshot(path=str(SCREENSHOT), full_page=True)
 
         # a command from the page reaches the daemon, and its ack is shown
