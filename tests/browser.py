@@ -33,7 +33,8 @@ def find_chromium() -> str:
 
 @contextlib.asynccontextmanager
 async def browser_page(
-    url: str | None = None, *, width: int = 1400, height: int = 1000
+    url: str | None = None, *, width: int = 1400, height: int = 1000,
+    http_credentials: dict[str, str] | None = None,
 ) -> AsyncIterator[Any]:
     """A page of a fresh headless chromium (at ``url`` once loaded), closed after the block."""
     from playwright.async_api import async_playwright
@@ -41,7 +42,8 @@ async def browser_page(
     async with async_playwright() as pw:
         browser = await pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS)
         try:
-            page = await browser.new_page(viewport={"width": width, "height": height})
+            page = await browser.new_page(viewport={"width": width, "height": height},
+                                          http_credentials=http_credentials)
             if url is not None:
                 await page.goto(url)
             yield page

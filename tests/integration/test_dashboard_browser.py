@@ -188,6 +188,25 @@ async def test_the_page_says_the_broker_is_lost_and_refills_the_map_after_it_ret
         assert health["broker_connected"] is True
 
 
+async def test_with_a_password_the_page_and_its_live_updates_need_it(tmp_path: Path) -> None:
+    """Basic auth covers the WebSocket too: the browser, once logged in, gets live data
+    (here: that the broker is away); without the password it gets nothing."""
+    secret = tmp_path / "pw"
+    secret.write_text("s3cret\n")
+    config = tmp_path / "sowgate.toml"
+    config.write_text(f'[mqtt]\nport = 9\n[commands]\nenabled = ["stop"]\n'
+                      f'[dashboard]\npassword_file = "{secret}"\n')
+    async with dashboard_process(config, tmp_path / "dashboard.log") as dash:
+        async with browser_page(dash.url, http_credentials={"username": "farmer",
+                                                            "password": "s3cret"}) as page:
+            await _expect(page.locator("#link"), "to_have_text", "live")
+            await _expect(page.locator("#nodata-detail"), "to_contain_text",
+                          "Not connected to the MQTT broker")
+        async with browser_page() as page:
+            assert (await page.request.get(dash.url)).status == 401
+            assert (await page.request.get(dash.url + "static/dashboard.js")).status == 401
+
+
 async def _expect(locator: Any, check: str, *args: Any) -> None:
     """Playwright's retrying assertion ``check`` on ``locator`` (a condition, not a sleep)."""
     from playwright.async_api import expect
