@@ -34,7 +34,7 @@ def find_chromium() -> str:
 @contextlib.asynccontextmanager
 async def browser_page(
     url: str | None = None, *, width: int = 1400, height: int = 1000,
-    http_credentials: dict[str, str] | None = None,
+    http_credentials: Any = None,  # {"username": ..., "password": ...}
 ) -> AsyncIterator[Any]:
     """A page of a fresh headless chromium (at ``url`` once loaded), closed after the block."""
     from playwright.async_api import async_playwright

@@ -86,6 +86,8 @@ class HmiAdapter:
                 return cmd.SeedLevelMonitoring(on)
             case hmi.ZeroTilt():
                 return cmd.ZeroTilt()
+            case hmi.AckAlarm():
+                return cmd.AckAlarm()
             case hmi.Rejected(reason=reason):
                 return f"bad frame: {reason}"
         return f"unsupported input {event!r}"

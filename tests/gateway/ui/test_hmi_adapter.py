@@ -17,6 +17,7 @@ from drivers.tasks import cancel_and_wait
 from gateway.app.daemon import Daemon
 from gateway.config import parse_config
 from gateway.core.commands import AckAlarm
+from protocol import hmi
 from simulator.pty_link import PtyPair
 from tests.helpers import eventually
 
@@ -63,10 +64,15 @@ def test_the_alarm_line_shows_the_most_severe_alarm_not_the_oldest(tmp_path: Pat
         assert daemon.hmi.screen_texts()[line] == (
             "cleared, acknowledge: record store cannot write"
         )
+        # the alarm line's ACK button (F=07) acknowledges it, as cmd/ack_alarm does
+        daemon.hmi.on_event(hmi.AckAlarm())
+        assert daemon.alarms.unacknowledged == []
+        assert daemon.hmi.last_message == "acknowledged: records.store_failed"
+        assert daemon.hmi.screen_texts()[line] == "GNSS fix is rtk_float"
+        daemon.alarms.raise_("records.store_failed", "record store cannot write", "critical")
         assert daemon.execute(AckAlarm("records.store_failed"), "mqtt") == (
             "acknowledged: records.store_failed"
         )
-        assert daemon.hmi.screen_texts()[line] == "GNSS fix is rtk_float"
 
 
 async def test_a_storm_of_bad_frames_costs_a_few_log_lines_and_is_counted_per_reason(
