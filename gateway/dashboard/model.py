@@ -92,6 +92,7 @@ class MachineView:
         default_factory=deque
     )
     last_counter: tuple[float, float, float] | None = None  # (t, area_ha, seed_mass_kg)
+    rate_sent_t: float = -math.inf  # the newest rate point already pushed to the pages
     alarms: dict[str, AlarmEntry] = field(default_factory=dict)
     alarm_ids: set[int] = field(default_factory=set)
     acks: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -137,8 +138,17 @@ class MachineView:
     def alarm_list(self) -> list[dict[str, Any]]:
         return [a.as_dict() for a in self.alarms.values()]
 
-    def summary(self) -> dict[str, Any]:
-        """Everything but the seeds: the page's machine panel, rows, chart and alarms."""
+    def summary(self, *, whole_rate: bool = True) -> dict[str, Any]:
+        """Everything but the seeds: the page's machine panel, rows, chart and alarms.
+
+        ``whole_rate`` False: only the rate points not pushed yet (``rate_new``), which the
+        page appends to what it has; the 10 minutes of history go once, in the snapshot."""
+        if whole_rate:
+            rate: dict[str, Any] = {"rate": [list(r) for r in self.rate]}
+        else:
+            rate = {"rate_new": [list(r) for r in self.rate if r[0] > self.rate_sent_t]}
+        if self.rate:
+            self.rate_sent_t = self.rate[-1][0]
         return {
             "machine_id": self.machine_id,
             "status": self.status,
@@ -146,7 +156,7 @@ class MachineView:
             "seed_count": self.seed_count,
             "duplicates": self.duplicates,
             "quality": self.row_quality(),
-            "rate": [list(r) for r in self.rate],
+            **rate,
             "alarms": self.alarm_list(),
             "acks": self.acks,
         }
@@ -245,7 +255,8 @@ class Fleet:
         state = StatePayload.model_validate_json(payload)
         view = self.machine(machine_id)
         view.state = state.model_dump(mode="json")
-        now = self.clock()
+        # the box's time: a retained state read late is drawn when it was true, not now
+        now = state.utc.timestamp()
         applied = None
         if view.last_counter is not None:
             _, area0, mass0 = view.last_counter
@@ -388,7 +399,9 @@ class Fleet:
         if self.origin is not None and self._dirty:
             out.append({"type": "origin", "origin": self.origin})
         for mid in sorted(self._dirty):
-            msg: dict[str, Any] = {"type": "machine", **self.machines[mid].summary()}
+            msg: dict[str, Any] = {
+                "type": "machine", **self.machines[mid].summary(whole_rate=False)
+            }
             seeds = self._new_seeds.pop(mid, None)
             if seeds:
                 msg["seeds"] = seeds

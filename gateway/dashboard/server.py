@@ -20,9 +20,10 @@ import contextlib
 import logging
 import math
 import secrets
-from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, MutableMapping
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import orjson
 from starlette.applications import Starlette
@@ -99,6 +100,15 @@ class BasicAuth:
         await response(scope, receive, send)
 
 
+def same_origin(headers: Mapping[str, str]) -> bool:
+    """No ``Origin`` (not a browser), or one naming the host the request was sent to."""
+    origin = headers.get("origin")
+    if origin is None:
+        return True
+    host = headers.get("host", "")
+    return urlsplit(origin).netloc == host
+
+
 class Hub:
     """The open pages and what is pushed to them."""
 
@@ -127,6 +137,16 @@ class Hub:
                 continue
             for text in messages:
                 queue.put_nowait(text)
+
+    def join(self) -> tuple[asyncio.Queue[str], str]:
+        """A new page's queue and its snapshot, in one step (no await): what is pending goes
+        to the other pages first, so the snapshot and the updates after it neither miss nor
+        repeat a seed."""
+        self.push()
+        snapshot = encode(self.fleet.snapshot())
+        queue: asyncio.Queue[str] = asyncio.Queue()
+        self.clients.add(queue)
+        return queue, snapshot
 
     def resync(self, queue: asyncio.Queue[str]) -> None:
         while not queue.empty():
@@ -168,11 +188,13 @@ def create_app(
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 
     async def live(websocket: WebSocket) -> None:
+        if not same_origin(websocket.headers):
+            await websocket.close(code=1008)
+            return
         await websocket.accept()
-        queue: asyncio.Queue[str] = asyncio.Queue()
+        queue, snapshot = hub.join()
         await websocket.send_text(encode({"type": "config", **config}))
-        await websocket.send_text(encode(fleet.snapshot()))
-        hub.clients.add(queue)
+        await websocket.send_text(snapshot)
 
         async def sender() -> None:
             while True:
@@ -192,6 +214,13 @@ def create_app(
             await asyncio.gather(task, return_exceptions=True)
 
     async def command(request: Request) -> Response:
+        # a JSON content type forces a browser's CORS preflight (which is never answered), and
+        # the origin must be this page's: another web site cannot move the machine through a
+        # browser that has the password cached
+        if not request.headers.get("content-type", "").startswith("application/json"):
+            return JSONResponse({"ok": False, "error": "send application/json"}, 415)
+        if not same_origin(request.headers):
+            return JSONResponse({"ok": False, "error": "cross-origin request refused"}, 403)
         try:
             body = orjson.loads(await request.body())
         except (orjson.JSONDecodeError, RecursionError):

@@ -66,8 +66,14 @@ function applyMachine(msg, replaceSeeds) {
   const m = machine(msg.machine_id);
   if (replaceSeeds) m.n = 0;
   if (msg.seeds && msg.seeds.length) addSeeds(m, msg.seeds);
-  const { seeds, ...summary } = msg;
+  const { seeds, rate, rate_new, ...summary } = msg;
   m.summary = summary;
+  if (rate) m.rate = rate;
+  if (rate_new && rate_new.length) {
+    m.rate = (m.rate || []).concat(rate_new);
+    const since = m.rate[m.rate.length - 1][0] - 600;
+    while (m.rate.length && m.rate[0][0] < since) m.rate.shift();
+  }
   if (!app.selected) {
     // ?machine=ID picks one (a bookmark per seeder); else the config's own, else the first
     const wanted = new URLSearchParams(location.search).get("machine");
@@ -184,7 +190,7 @@ function renderAll() {
   $("seed-count").textContent = String(m.n);
   renderAlarms(s);
   renderRows(s.quality || {});
-  renderChart(s.rate || []);
+  renderChart(m.rate || []);
 }
 
 function renderAlarms(s) {
