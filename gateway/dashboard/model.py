@@ -273,7 +273,7 @@ class Fleet:
         while view.rate and view.rate[0][0] < now - RATE_HISTORY_S:
             view.rate.popleft()
         self._sync_active_alarms(view, state)
-        waiting = set(getattr(state, "unacknowledged", ()))
+        waiting = set(state.unacknowledged)
         for code, entry in view.alarms.items():
             entry.acknowledged = entry.severity != "critical" or code not in waiting
         self._dirty.add(machine_id)
