@@ -12,6 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import aiomqtt
+
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
 from tests.browser import DashboardProcess, browser_page, dashboard_process
@@ -212,3 +214,91 @@ async def _expect(locator: Any, check: str, *args: Any) -> None:
     from playwright.async_api import expect
 
     await getattr(expect(locator), check)(*args, timeout=WAIT_S * 1000)
+
+
+async def test_several_seeders_on_one_broker_each_have_their_page_and_tiles_load(
+    tmp_path: Path,
+) -> None:
+    """Two boxes publishing on one broker (here: their payloads, as docs/mqtt.md gives them):
+    one tab each, each with its own values and seeds; a configured tile server is asked for
+    the tiles under the field."""
+    from tests.gateway.dashboard.test_model import batch, record, state
+
+    tiles = TileServer()
+    with Mosquitto() as broker, tiles:
+        config = tmp_path / "sowgate.toml"
+        config.write_text(f'[mqtt]\nport = {broker.port}\n[dashboard]\n'
+                          f'tile_url = "http://127.0.0.1:{tiles.port}/{{z}}/{{x}}/{{y}}.png"\n')
+        async with dashboard_process(config, tmp_path / "dashboard.log") as dash:
+            async with aiomqtt.Client("127.0.0.1", broker.port) as client:
+                for mid, crop, n in (("north-01", "wheat", 30), ("south-02", "rapeseed", 12)):
+                    await client.publish(f"sowgate/{mid}/status", b"online", qos=1, retain=True)
+                    await client.publish(f"sowgate/{mid}/state", state(machine_id=mid, crop=crop),
+                                         qos=1, retain=True)
+                    await client.publish(f"sowgate/{mid}/seeds", batch(
+                        [record(i, row=1 + i % 4, north_m=i * 0.2, machine=mid)
+                         for i in range(1, n + 1)], mid), qos=1)
+            async with browser_page(dash.url) as page:
+                tabs = page.locator("#machines button")
+                await _expect(tabs, "to_have_count", 2)
+                await _expect(tabs, "to_have_text", ["north-01", "south-02"])
+                await _expect(page.locator("#crop"), "to_have_text", "wheat")
+                await _expect(page.locator("#seed-count"), "to_have_text", "30")
+                await tabs.nth(1).click()
+                await _expect(page.locator("#crop"), "to_have_text", "rapeseed")
+                await _expect(page.locator("#seed-count"), "to_have_text", "12")
+                await eventually(lambda: tiles.requests > 0, WAIT_S, "a tile requested")
+                assert all(re.fullmatch(r"/\d+/\d+/\d+\.png", p) for p in tiles.paths)
+                # and drawn under the seeds: the map's corner is the tiles' grey
+                await page.wait_for_function(
+                    "(() => { const c = document.getElementById('map');"
+                    " const p = c.getContext('2d').getImageData(3, 3, 1, 1).data;"
+                    " return p[0] === 128 && p[1] === 128 && p[2] === 128; })()",
+                    timeout=WAIT_S * 1000,
+                )
+
+
+class TileServer:
+    """An XYZ tile server on a free port answering every tile with one grey PNG."""
+
+    PNG = bytes.fromhex(
+        "89504e470d0a1a0a0000000d49484452000000010000000108000000003a7e9b"
+        "550000000a49444154789c636800000082008177cd72b60000000049454e44ae"
+        "426082"
+    )
+
+    def __init__(self) -> None:
+        import http.server
+        import threading
+
+        outer = self
+        self.paths: list[str] = []
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_GET(self) -> None:
+                outer.paths.append(self.path)
+                self.send_response(200)
+                self.send_header("Content-Type", "image/png")
+                self.send_header("Access-Control-Allow-Origin", "*")
+                self.end_headers()
+                self.wfile.write(TileServer.PNG)
+
+            def log_message(self, *args: object) -> None:
+                pass
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.port = self.server.server_address[1]
+        self.thread = threading.Thread(target=self.server.serve_forever, name="tiles")
+
+    @property
+    def requests(self) -> int:
+        return len(self.paths)
+
+    def __enter__(self) -> TileServer:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+        self.thread.join()
