@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import re
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -24,7 +25,9 @@ from tests.mosquitto import Mosquitto, Subscriber, subscriber
 
 BASE = "sowgate/seeder-01"
 REPO = Path(__file__).resolve().parents[2]
-SCREENSHOT = REPO / "docs" / "img" / "dashboard.png"
+# every run writes build/dashboard.png; SOWGATE_UPDATE_SCREENSHOT=1 also the README's picture
+SCREENSHOT = REPO / "build" / "dashboard.png"
+README_SCREENSHOT = REPO / "docs" / "img" / "dashboard.png"
 WAIT_S = 20.0
 STANDING_S = 3.0
 
@@ -121,6 +124,8 @@ async def test_the_page_shows_what_the_daemon_published_and_sends_commands(
         # the README's picture: the last metres of the pass, close up
         await s.page.evaluate("sowgate.view.scale = 30; sowgate.dirty = true")
         await s.page.screenshot(path=str(SCREENSHOT), full_page=True)
+        if os.environ.get("SOWGATE_UPDATE_SCREENSHOT") == "1":
+            README_SCREENSHOT.write_bytes(SCREENSHOT.read_bytes())
 
         # a command from the page reaches the daemon, and its ack is shown
         await s.page.locator("#cmd-stop").click()
