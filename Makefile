@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto demo test reliability lint typecheck bench schemas dist clean lock
+.PHONY: mosquitto chromium demo test reliability lint typecheck bench schemas dist clean lock
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -29,10 +29,18 @@ mosquitto:
 	  { (apt-get update -qq && apt-get install -y -qq mosquitto) || \
 	    { echo "mosquitto is needed for the MQTT tests: apt-get install -y mosquitto" >&2; exit 1; }; }
 
-demo: $(STAMP)
-	$(BIN)/sowgate demo
+# the dashboard's browser tests drive Debian's chromium headless (Playwright, no browser download)
+chromium:
+	@test -x /usr/bin/chromium || \
+	  { (apt-get update -qq && apt-get install -y -qq chromium) || \
+	    { echo "chromium is needed for the dashboard's browser tests: apt-get install -y chromium" >&2; exit 1; }; }
 
-test: $(STAMP) mosquitto
+demo: $(STAMP)
+	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || \
+	  echo "note: without mosquitto (make mosquitto) the demo runs without its web dashboard" >&2
+	$(BIN)/sowgate demo --dashboard
+
+test: $(STAMP) mosquitto chromium
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/lint-imports
@@ -46,7 +54,7 @@ reliability: $(STAMP) mosquitto
 
 # every benchmark, to docs/benchmarks.md: a generated page, rewritten by each run (review the
 # diff, then commit it). `python -m benchmarks bench_x` alone writes benchmarks/latest.md.
-bench: $(STAMP)
+bench: $(STAMP) mosquitto chromium
 	$(BIN)/python -m benchmarks --output docs/benchmarks.md
 
 # a wheel to install on the cab box (systemd/README.md): sowgate is not on PyPI

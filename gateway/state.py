@@ -94,3 +94,5 @@ class MachineState:
     pwm_channel: PwmChannelState | None = None
     rejected: RejectedCounts | None = None  # None without a device that can reject input
     hopper: HopperState | None = None  # None without [hopper_scale]
+    # critical alarms not acknowledged yet (active or cleared), oldest first: code -> message
+    unacknowledged: tuple[tuple[str, str], ...] = ()

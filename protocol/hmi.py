@@ -43,6 +43,7 @@ F_SELECT_CROP = 0x03
 F_EMPTY = 0x04
 F_SEED_LEVEL = 0x05
 F_ZERO_TILT = 0x06
+F_ACK_ALARM = 0x07  # sowgate's addition to paper A's set: the alarm line's "ACK" button
 
 RATE_SCALE = 10  # R1 R2 carry the rate in 0.1 kg/ha
 RATE_RAW_MAX = 0xFFFF
@@ -87,6 +88,12 @@ class ZeroTilt:
     """F=0x06: take the current inclinometer angle as level."""
 
 
+@dataclass(frozen=True, slots=True)
+class AckAlarm:
+    """F=0x07: the operator acknowledges the critical alarms waiting (the alarm line's button).
+    Not in paper A's frame set: a screen without the button never sends it."""
+
+
 # Kinds of rejected input: stable keys for the per-reason counters (the ``reason`` text varies).
 KIND_GARBAGE = "garbage"  # bytes that are not a 55 55 frame (noise, wrong baud rate)
 KIND_BAD_TRAILER = "bad_trailer"  # a 55 55 header without 0D 0A six bytes later
@@ -124,7 +131,9 @@ class ScreenReply:
     data: bytes
 
 
-HmiCommand = StartWork | StopWork | SelectCrop | EmptySeed | SeedLevelMonitoring | ZeroTilt
+HmiCommand = (
+    StartWork | StopWork | SelectCrop | EmptySeed | SeedLevelMonitoring | ZeroTilt | AckAlarm
+)
 HmiEvent = HmiCommand | Rejected | ScreenError | ScreenReply
 
 # Nextion instruction-set return codes that mean "your instruction failed".
@@ -172,6 +181,8 @@ def _decode_framed(frame: bytes) -> HmiEvent:
         return SeedLevelMonitoring(enabled=c == 1)
     if function == F_ZERO_TILT:
         return ZeroTilt()
+    if function == F_ACK_ALARM:
+        return AckAlarm()
     return Rejected(f"unknown function code 0x{function:02X}", frame, KIND_UNKNOWN_FUNCTION)
 
 
@@ -355,6 +366,8 @@ def encode_frame(command: HmiCommand) -> bytes:
             c = 1 if enabled else 0
         case ZeroTilt():
             function = F_ZERO_TILT
+        case AckAlarm():
+            function = F_ACK_ALARM
         case _:
             raise TypeError(f"not an HMI command: {command!r}")
     return HEADER + bytes((function, c, rate_raw >> 8, rate_raw & 0xFF)) + TRAILER

@@ -10,6 +10,11 @@ directory, so simulated seeds never mix with a field's.
 With ``channels=True`` paper B's three metering channels (shallow and deep fertiliser, seed)
 run as well: simulated PID controllers and hydraulic motors (``simulator.can_pid``) answer on
 a python-can ``virtual`` bus, and the daemon drives them through the DBC like real ones.
+
+With ``dashboard=True`` (``make demo``) the web dashboard runs too, in its own process as in
+the field (``sowgate dashboard`` on the demo's config), with start/stop/rate and alarm
+acknowledgement enabled: on the broker the environment names (``SOWGATE_MQTT__*``), else on a
+private mosquitto on a free port when one is installed. Its URL is printed at start.
 """
 
 from __future__ import annotations
@@ -20,6 +25,12 @@ import contextlib
 import logging
 import os
 import shlex
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +58,9 @@ DEFAULT_STATE_DIR = Path("sowgate-demo")  # relative: next to where the demo was
 CONFIG_FILE = "demo.toml"
 STATUS_EVERY_S = 5.0  # --no-tui: one status line this often
 BROKER_PROBE_S = 1.0
+DASHBOARD_PORT = 8080  # the dashboard's default; a free port when it is taken
+DEMO_COMMANDS = ["start", "stop", "rate", "ack_alarm"]
+MOSQUITTO_PATHS = ("/usr/sbin/mosquitto", "/usr/bin/mosquitto", "/usr/local/sbin/mosquitto")
 
 
 HOPPER_DEMO_BIAS = 0.08  # --hopper-scale: the drill's true discharge over its model, - 1
@@ -140,6 +154,7 @@ async def run_demo(
     channels: bool = False,
     state: Path | None = None,
     hopper_scale: bool = False,
+    dashboard: bool = False,
 ) -> int:
     from simulator.machine import SimulatedMachine
 
@@ -159,13 +174,19 @@ async def run_demo(
         if channels:
             overrides = paper_b_channel_config(f"sowgate-demo-{os.getpid()}")
             plants = await _start_controllers(stack, overrides["can"]["channel"])
-        settings = machine.settings(**overrides)
         state.mkdir(parents=True, exist_ok=True)
+        dashboard_lines: list[str] = []
+        if dashboard:
+            dashboard_lines = _dashboard_overrides(stack, machine.settings(**overrides), overrides)
+        settings = machine.settings(**overrides)
         machine.write_config(state / CONFIG_FILE, **overrides)
+        if dashboard and settings.mqtt.enabled:
+            dashboard_lines = _start_dashboard(stack, state, settings)
         daemon = Daemon(settings, state)
         assert machine.hmi is not None
         model = settings.control.crops[crop]
-        print(await start_text(machine, settings, state, duration_s, tui, channels), flush=True)
+        text = await start_text(machine, settings, state, duration_s, tui, channels)
+        print("\n".join([text, *dashboard_lines]), flush=True)
 
         async def operator() -> None:
             await asyncio.sleep(1.0)
@@ -205,6 +226,95 @@ def _hopper_demo() -> Any:
     from simulator.plant import HopperTruth
 
     return HopperTruth(initial_kg=300.0, noise_kg=2.0, refills=((600.0, 400.0),))
+def _free_port(preferred: int | None = None) -> int:
+    for port in ([preferred] if preferred else []) + [0]:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return int(s.getsockname()[1])
+    raise OSError("no free port")
+
+
+def _find_mosquitto() -> str | None:
+    for candidate in MOSQUITTO_PATHS:
+        if Path(candidate).exists():
+            return candidate
+    return shutil.which("mosquitto")
+
+
+def _stop_process(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _dashboard_overrides(
+    stack: contextlib.AsyncExitStack, settings: Settings, overrides: dict[str, Any]
+) -> list[str]:
+    """Config for the dashboard: the broker the environment names, else a private mosquitto
+    (started here, stopped with the demo); commands on. Lines to print if it cannot run."""
+    overrides["commands"] = {"enabled": DEMO_COMMANDS}
+    if settings.mqtt.enabled:
+        return []
+    mosquitto = _find_mosquitto()
+    if mosquitto is None:
+        return ["dashboard: not started: it needs an MQTT broker and mosquitto is not "
+                "installed (apt-get install mosquitto, or make mosquitto)"]
+    port = _free_port()
+    scratch = tempfile.TemporaryDirectory(prefix="sowgate-demo-broker-")
+    stack.callback(scratch.cleanup)
+    conf = Path(scratch.name) / "mosquitto.conf"
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
+                    "log_dest none\n", encoding="utf-8")
+    proc = subprocess.Popen([mosquitto, "-c", str(conf)], stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    stack.callback(_stop_process, proc)
+    _wait_listening(port, proc, "mosquitto")
+    overrides["mqtt"] = {"enabled": True, "host": "127.0.0.1", "port": port,
+                         "reconnect_max_s": 2.0}
+    return []
+
+
+def _wait_listening(port: int, proc: subprocess.Popen[bytes], what: str) -> None:
+    deadline = time.monotonic() + 15.0
+    while True:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            if proc.poll() is not None:
+                raise RuntimeError(f"{what} exited with {proc.returncode}") from None
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{what} did not listen on port {port}") from None
+            time.sleep(0.05)
+
+
+def _start_dashboard(
+    stack: contextlib.AsyncExitStack, state: Path, settings: Settings
+) -> list[str]:
+    """``sowgate dashboard`` on the demo's config, in its own process; its URL."""
+    port = _free_port(DASHBOARD_PORT)
+    log_path = state / "dashboard.log"
+    with log_path.open("ab") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "gateway.app.cli", "dashboard", "--config",
+             str(state / CONFIG_FILE), "--listen", f"127.0.0.1:{port}"],
+            stdin=subprocess.DEVNULL, stdout=out, stderr=out,
+        )
+    stack.callback(_stop_process, proc)
+    _wait_listening(port, proc, f"sowgate dashboard (see {log_path})")
+    m = settings.mqtt
+    return [
+        f"dashboard: open http://127.0.0.1:{port}/ in a browser (MQTT broker "
+        f"{m.host}:{m.port}; start, stop, rate and alarm acknowledgement enabled; its log: "
+        f"{_shown(log_path)})",
+    ]
 
 
 def _shown(path: Path) -> str:
@@ -365,6 +475,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             channels=args.channels,
             state=args.state_dir,
             hopper_scale=args.hopper_scale,
+            dashboard=args.dashboard,
         )
     )
 
@@ -398,5 +509,11 @@ def add_demo_command(sub: Any) -> None:
         help="add a hopper scale on the RS485 bus (σ 2 kg vibration, a refill at 10 min) "
         "and make the simulated drill discharge 8 %% more than its model, to watch the "
         "correction find it",
+    )
+    d.add_argument(
+        "--dashboard",
+        action="store_true",
+        help="also serve the web dashboard (make demo does): on the broker SOWGATE_MQTT__* "
+        "names, else on a private mosquitto when one is installed; prints its URL",
     )
     d.set_defaults(func=cmd_demo)

@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterable
 from drivers.tasks import StartClose
 from protocol.hmi import (
     INSTRUCTION_END,
+    AckAlarm,
     EmptySeed,
     HmiCommand,
     SeedLevelMonitoring,
@@ -88,6 +89,9 @@ class HmiPeer(StartClose):
 
     def seed_level(self, enabled: bool) -> None:
         self.press(SeedLevelMonitoring(enabled))
+
+    def acknowledge(self) -> None:
+        self.press(AckAlarm())
 
     def zero_tilt(self) -> None:
         self.press(ZeroTilt())

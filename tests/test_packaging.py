@@ -39,6 +39,14 @@ def test_the_wheel_from_make_dist_installs_a_working_sowgate_command(tmp_path: P
     wheels = list(build.glob("sowgate-*.whl"))
     assert len(wheels) == 1, wheels
 
+    # the dashboard's page and its vendored assets, licence included (no CDN on a cab box)
+    import zipfile
+
+    names = set(zipfile.ZipFile(wheels[0]).namelist())
+    for asset in ("index.html", "dashboard.js", "dashboard.css", "vendor/uplot/uPlot.iife.min.js",
+                  "vendor/uplot/uPlot.min.css", "vendor/uplot/LICENSE"):
+        assert f"gateway/dashboard/static/{asset}" in names, asset
+
     env_dir = tmp_path / "venv"
     venv.create(env_dir, with_pip=True)
     pip = subprocess.run(
@@ -51,6 +59,9 @@ def test_the_wheel_from_make_dist_installs_a_working_sowgate_command(tmp_path: P
     got = subprocess.run([str(sowgate), "--version"], cwd=tmp_path, capture_output=True,
                          text=True, timeout=60)
     assert got.stdout.strip() == f"sowgate {version('sowgate')}", got.stderr
+    dashboard = subprocess.run([str(sowgate), "dashboard", "--help"], cwd=tmp_path,
+                               capture_output=True, text=True, timeout=60)
+    assert dashboard.returncode == 0 and "--listen" in dashboard.stdout, dashboard.stderr
     check = subprocess.run(
         [str(sowgate), "check-config", str(REPO / "examples" / "sowgate.toml")],
         cwd=tmp_path, capture_output=True, text=True, timeout=60,

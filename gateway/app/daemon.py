@@ -539,6 +539,7 @@ class Daemon:
             pwm_channel=parts.pwm_channel.state() if parts.pwm_channel is not None else None,
             rejected=parts.rejected.counts() if parts.rejected is not None else None,
             hopper=c.hopper.state(self.clock()) if c.hopper is not None else None,
+            unacknowledged=tuple((a.code, a.message) for a in self.alarms.unacknowledged),
         )
 
 async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:

@@ -107,6 +107,7 @@ def state_payload(daemon: Daemon) -> StatePayload:
             ActiveAlarmInfo(code=a.code, severity=a.severity, message=a.message, since=a.since)
             for a in state.alarms
         ],
+        unacknowledged=[code for code, _ in state.unacknowledged],
         area_ha=state.area_ha,
         seed_mass_kg=state.seed_mass_kg,
         records_held=state.store.records_held if state.store is not None else 0,

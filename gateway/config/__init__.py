@@ -19,7 +19,7 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from gateway.config._base import FieldProblem, OptionalPart, switch_on_present_parts
-from gateway.config.farm import CommandsSection, MqttSection, TlsSection
+from gateway.config.farm import CommandsSection, DashboardSection, MqttSection, TlsSection
 from gateway.config.machine import (
     ActuatorsSection,
     ControlSection,
@@ -69,6 +69,7 @@ __all__ = [
     "ConfigError",
     "ControlSection",
     "CropModel",
+    "DashboardSection",
     "GnssSection",
     "HmiSection",
     "HopperScaleSection",
@@ -126,6 +127,7 @@ class Settings(BaseSettings):
     store: StoreSection = Field(default_factory=StoreSection)
     mqtt: MqttSection = Field(default_factory=MqttSection)
     commands: CommandsSection = Field(default_factory=CommandsSection)
+    dashboard: DashboardSection = Field(default_factory=DashboardSection)
     can: CanSection = Field(default_factory=CanSection)
     channel: list[ChannelSection] = Field(default_factory=list)
     isobus: IsobusSection = Field(default_factory=IsobusSection)

@@ -52,10 +52,45 @@ class MqttSection(OptionalPart):
 
 
 CommandName = Literal[
-    "rate", "channel_rate", "start", "stop", "zero_tilt", "tilt_critical", "speed_cal"
+    "rate", "channel_rate", "start", "stop", "zero_tilt", "tilt_critical", "speed_cal",
+    "ack_alarm",
 ]
 
 
 class CommandsSection(Section):
     enabled: list[CommandName] = Field(default_factory=list)
     max_payload_bytes: int = Field(4096, ge=64, le=65536)
+
+
+LOCAL_HOSTS = frozenset({"127.0.0.1", "localhost", "::1", "[::1]"})
+
+
+class DashboardSection(Section):
+    """``sowgate dashboard``: the web page served by an MQTT subscriber (its own process).
+
+    It reads the same file as the daemon: ``[mqtt]`` says where the broker is, ``[commands]
+    enabled`` which controls the page offers. On a cab box the page must work without internet,
+    so every asset is in the package; ``tile_url`` (an XYZ template such as
+    ``https://tile.example/{z}/{x}/{y}.png``) only adds a background map where there is one.
+    """
+
+    listen: str = Field("127.0.0.1:8080", pattern=r"^(\[[0-9a-fA-F:.]+\]|[^:\s]+):\d{1,5}$")
+    tile_url: str | None = Field(None, pattern=r"^https?://.*\{z\}.*\{x\}.*\{y\}")
+    password_file: str | None = None
+    # a persistent MQTT session under this id: seeds published while the dashboard was away
+    # are redelivered by the broker when it comes back (docs/mqtt.md)
+    client_id: str = Field("sowgate-dashboard", min_length=1, max_length=128)
+    # seeds kept per machine for the map (the oldest go first); the page draws all of them
+    max_seeds: int = Field(300_000, ge=1000, le=5_000_000)
+
+    @property
+    def host(self) -> str:
+        return self.listen.rsplit(":", 1)[0].strip("[]")
+
+    @property
+    def port(self) -> int:
+        return int(self.listen.rsplit(":", 1)[1])
+
+    @property
+    def local_only(self) -> bool:
+        return self.host in LOCAL_HOSTS or self.host.startswith("127.")

@@ -299,6 +299,8 @@ class Controller:
                         self.settings.inclinometer.hysteresis_deg,
                     )
                 reply = f"tilt zeroed at raw {self._tilt_raw:.2f} deg"
+            case cmd.AckAlarm(code=code):
+                reply = self.alarms.acknowledge(code)
             case _:
                 raise CommandError(f"unsupported command {command!r}")
         log.info("command from %s: %s", source, reply)

@@ -6,6 +6,11 @@ flood the operator, the record store and the ``alarms`` topic: re-raising an act
 not a new event. Its message may carry a live value ("shaft speed 6.6 r/min outside ..."),
 so a new message only updates the active alarm (what ``state.alarms`` and the screen show);
 an event is emitted when the alarm is raised, when its severity changes, and when it clears.
+
+A critical alarm must be acknowledged, as on commercial seeder terminals: once raised it stays
+in ``unacknowledged`` (shown on the touchscreen's alarm line and in ``state.unacknowledged``)
+until the operator acknowledges it (command ``ack_alarm``), even after it has cleared, so a
+fault that came and went while nobody looked at the screen is still seen.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 
 from gateway.core.alarm_codes import lookup
+from gateway.core.errors import CommandError
 from gateway.core.records import AlarmEvent, AlarmSeverity
 
 log = logging.getLogger(__name__)
@@ -38,6 +44,8 @@ class AlarmBoard:
     ) -> None:
         self._machine_id = machine_id
         self._active: dict[str, ActiveAlarm] = {}
+        # critical alarms raised and not acknowledged yet, active or cleared since
+        self._unacknowledged: dict[str, ActiveAlarm] = {}
         self._listeners: list[Callable[[AlarmEvent], None]] = []
         if on_event is not None:
             self._listeners.append(on_event)
@@ -60,6 +68,8 @@ class AlarmBoard:
             return
         now = self._utcnow()
         self._active[code] = ActiveAlarm(code, message, severity, current.since if current else now)
+        if severity == "critical":
+            self._unacknowledged[code] = ActiveAlarm(code, message, severity, now)
         self._emit(
             AlarmEvent(
                 machine_id=self._machine_id,
@@ -94,6 +104,30 @@ class AlarmBoard:
             self.raise_(code, message, severity)
         else:
             self.clear(code)
+
+    def acknowledge(self, code: str | None = None) -> str:
+        """The operator saw it: ``code`` (or, with None, every critical alarm waiting) leaves
+        ``unacknowledged``. A still active alarm stays active (and listed in ``active``)."""
+        if code is None:
+            codes = list(self._unacknowledged)
+            if not codes:
+                return "no critical alarm to acknowledge"
+        elif code not in self._unacknowledged:
+            waiting = ", ".join(self._unacknowledged) or "none"
+            raise CommandError(
+                f"no critical alarm {code!r} to acknowledge (waiting: {waiting})"
+            )
+        else:
+            codes = [code]
+        for c in codes:
+            del self._unacknowledged[c]
+        log.info("alarm acknowledged: %s", ", ".join(codes))
+        return f"acknowledged: {', '.join(codes)}"
+
+    @property
+    def unacknowledged(self) -> list[ActiveAlarm]:
+        """Critical alarms raised and not acknowledged yet (active or cleared), oldest first."""
+        return sorted(self._unacknowledged.values(), key=lambda a: a.since)
 
     def is_active(self, code: str) -> bool:
         return code in self._active

@@ -65,6 +65,14 @@ class CalibrateSpeed:
     distance_m: float | None = None
 
 
+@dataclass(frozen=True)
+class AckAlarm:
+    """The operator has seen a critical alarm: it may leave the screens once it has cleared.
+    ``code`` None acknowledges every critical alarm waiting (the cab's one "ACK" button)."""
+
+    code: str | None = None
+
+
 Command = (
     SetRate
     | SetChannelRate
@@ -75,6 +83,7 @@ Command = (
     | EmptySeed
     | SeedLevelMonitoring
     | CalibrateSpeed
+    | AckAlarm
 )
 
 

@@ -22,6 +22,7 @@ from pydantic import BaseModel, ValidationError
 from pydantic_core import from_json
 
 from gateway.core.commands import (
+    AckAlarm,
     CalibrateSpeed,
     Command,
     CriticalTilt,
@@ -34,6 +35,7 @@ from gateway.core.commands import (
 from gateway.core.errors import CommandError
 from gateway.link.payloads import (
     REQUEST_ID_MAX_CHARS,
+    AckAlarmCommand,
     ChannelRateCommand,
     EmptyCommand,
     RateCommand,
@@ -48,6 +50,7 @@ KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
     "zero_tilt": EmptyCommand,
     "tilt_critical": EmptyCommand,
     "speed_cal": SpeedCalCommand,
+    "ack_alarm": AckAlarmCommand,
 }
 # A command is one flat JSON object; this leaves room for any future small structure and
 # refuses, before any parser recurses into it, a payload like ``[`` x 2000.
@@ -158,6 +161,8 @@ def _to_command(name: str, payload: BaseModel) -> Command:
         return SetRate(crop=payload.crop, rate_kg_ha=payload.rate_kg_ha)
     if isinstance(payload, ChannelRateCommand):
         return SetChannelRate(channel=payload.channel, rate_kg_ha=payload.rate_kg_ha)
+    if isinstance(payload, AckAlarmCommand):
+        return AckAlarm(code=payload.code)
     if isinstance(payload, SpeedCalCommand):
         return CalibrateSpeed(action=payload.action, distance_m=payload.distance_m)
     simple: dict[str, Command] = {

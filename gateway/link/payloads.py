@@ -36,6 +36,7 @@ from gateway.core.records import AlarmEvent, AlarmSeverity, FixQuality, SeedReco
 
 __all__ = [
     "SCHEMA_MODELS",
+    "AckAlarmCommand",
     "ActiveAlarmInfo",
     "AlarmEvent",
     "CommandAck",
@@ -173,6 +174,11 @@ class StatePayload(_Payload):
     )
     gnss_fix: FixQuality = "none"
     alarms: list[ActiveAlarmInfo] = Field(default_factory=list)
+    unacknowledged: list[str] = Field(
+        default_factory=list,
+        description="codes of the critical alarms raised and not acknowledged yet (command "
+        "ack_alarm), whether still active or cleared since, oldest first",
+    )
     area_ha: float = Field(0.0, ge=0, description="area worked since the counters were reset")
     seed_mass_kg: float = Field(0.0, ge=0, description="seed applied since the counters were reset")
     records_held: int = Field(
@@ -200,7 +206,8 @@ class StatePayload(_Payload):
 
     def _urgent_part(self) -> tuple[object, ...]:
         alarms = tuple((a.code, a.severity) for a in self.alarms)
-        return (self.work_state, self.crop, self.target_rate_kg_ha, alarms)
+        return (self.work_state, self.crop, self.target_rate_kg_ha, alarms,
+                tuple(self.unacknowledged))
 
     def same_as(self, other: StatePayload | None) -> bool:
         """Whether ``other`` differs in nothing that must be published at once: the work
@@ -256,6 +263,13 @@ class SpeedCalCommand(_Command):
     distance_m: float | None = Field(None, gt=0, le=10_000)
 
 
+class AckAlarmCommand(_Command):
+    """``cmd/ack_alarm``: ``{"code": "pwm.unavailable"}`` acknowledges that critical alarm;
+    ``{}`` every critical alarm waiting (``state.unacknowledged``)."""
+
+    code: str | None = Field(None, min_length=1, max_length=128)
+
+
 class EmptyCommand(_Command):
     """``cmd/start``, ``cmd/stop``, ``cmd/zero_tilt``: an empty object (or empty payload)."""
 
@@ -290,6 +304,7 @@ SCHEMA_MODELS: dict[str, type[BaseModel]] = {
     "speed_cal_command": SpeedCalCommand,
     "channel_rate_command": ChannelRateCommand,
     "command_ack": CommandAck,
+    "ack_alarm_command": AckAlarmCommand,
 }
 
 

@@ -97,6 +97,8 @@ class HmiAdapter:
                 return cmd.SeedLevelMonitoring(on)
             case hmi.ZeroTilt():
                 return cmd.ZeroTilt()
+            case hmi.AckAlarm():
+                return cmd.AckAlarm()
             case hmi.Rejected(reason=reason):
                 return f"bad frame: {reason}"
         return f"unsupported input {event!r}"
@@ -124,13 +126,21 @@ class HmiAdapter:
         tilt = state.tilt_deg
         # the alarms come oldest first: min keeps the oldest of the most severe
         top = min(state.alarms, key=lambda a: _SEVERITY_ORDER.get(a.severity, 3), default=None)
+        alarm_line = top.message if top is not None else ""
+        active = {a.code for a in state.alarms}
+        # a critical alarm that cleared before anyone acknowledged it keeps the line (unless
+        # another critical one is active): the operator must see that it happened
+        waiting = [(c, m) for c, m in state.unacknowledged if c not in active]
+        if waiting and (top is None or top.severity != "critical"):
+            _, message = waiting[0]
+            alarm_line = f"cleared, acknowledge: {message}"
         texts = {
             o.speed: "--" if speed is None else f"{speed:.1f} km/h",
             o.tilt: "--" if tilt is None else f"{tilt:+.1f} deg",
             o.state: labels.get(state.work_state, state.work_state),
             o.crop: self.section.crop_labels.get(crop, crop),
             o.rate: f"{state.target_rate_kg_ha:g} kg/ha",
-            o.alarm: top.message if top is not None else "",
+            o.alarm: alarm_line,
             o.message: self.last_message,
         }
         if state.hopper is not None:  # only a screen for a machine with a hopper scale

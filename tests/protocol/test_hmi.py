@@ -10,6 +10,7 @@ from protocol.errors import FieldError, ProtocolError
 from protocol.hmi import (
     MAX_BUFFER,
     MAX_TEXT_BYTES,
+    AckAlarm,
     EmptySeed,
     HmiCommand,
     HmiDecoder,
@@ -66,6 +67,7 @@ def decode_split(data: bytes, cut: int) -> list[HmiEvent]:
         (frame(0x05, 0x01), SeedLevelMonitoring(True)),
         (frame(0x05, 0x00), SeedLevelMonitoring(False)),
         (frame(0x06), ZeroTilt()),
+        (frame(0x07), AckAlarm()),
     ],
 )
 def test_every_function_code_decodes_to_its_command(raw: bytes, event: HmiEvent) -> None:
@@ -84,7 +86,7 @@ def test_largest_rate_field_decodes_without_range_judgement() -> None:
     assert HmiDecoder().feed(frame(0x03, 0x07, 0xFF, 0xFF)) == [SelectCrop(7, 6553.5)]
 
 
-@pytest.mark.parametrize("f", [0x01, 0x02, 0x04, 0x06])
+@pytest.mark.parametrize("f", [0x01, 0x02, 0x04, 0x06, 0x07])
 def test_c_and_r_bytes_are_ignored_where_unused(f: int) -> None:
     """Screens built from other projects' page files fill unused bytes with anything."""
     plain = HmiDecoder().feed(frame(f))
@@ -100,7 +102,7 @@ def test_seed_level_flag_other_than_0_or_1_is_rejected(c: int) -> None:
     assert "seed-level" in event.reason and event.raw == frame(0x05, c)
 
 
-@pytest.mark.parametrize("f", [0x00, 0x07, 0x55, 0xFF])
+@pytest.mark.parametrize("f", [0x00, 0x08, 0x55, 0xFF])
 def test_unknown_function_code_is_rejected_with_the_code(f: int) -> None:
     [event] = HmiDecoder().feed(frame(f))
     assert event == Rejected(f"unknown function code 0x{f:02X}", frame(f))
@@ -200,6 +202,7 @@ def test_encode_frame_round_trips_every_command() -> None:
         SeedLevelMonitoring(True),
         SeedLevelMonitoring(False),
         ZeroTilt(),
+        AckAlarm(),
     ]
     for command in commands:
         assert HmiDecoder().feed(encode_frame(command)) == [command]
@@ -270,6 +273,7 @@ commands = st.one_of(
     st.just(EmptySeed()),
     st.builds(SeedLevelMonitoring, st.booleans()),
     st.just(ZeroTilt()),
+    st.just(AckAlarm()),
 )
 garbage = st.binary(min_size=1, max_size=40)
 stream_items = st.lists(st.one_of(commands, garbage), max_size=12)

@@ -166,3 +166,43 @@ def test_pymodbus_logging_stays_at_warning_unless_verbose() -> None:
         assert pymodbus.getEffectiveLevel() == logging.DEBUG
     finally:
         pymodbus.setLevel(before)
+
+
+async def test_make_demo_serves_the_dashboard_on_a_private_broker_and_prints_its_url(
+    tmp_path: Path,
+) -> None:
+    """``make demo`` (``sowgate demo --dashboard``): a private mosquitto, the dashboard process,
+    and a URL that shows the simulated seeder's seeds."""
+    import asyncio
+    import json
+    import urllib.request
+
+    from tests.helpers import eventually, sowgate_process
+
+    env = sowgate_env(env={"PYTHONPATH": str(ROOT)}, clean=True)
+    out = tmp_path / "out.txt"
+    with out.open("wb") as sink:
+        async with sowgate_process("demo", "--no-tui", "--dashboard", "--duration", "20",
+                                   "--state-dir", str(tmp_path / "demo"), env=env,
+                                   stdout=sink, stderr=asyncio.subprocess.DEVNULL) as proc:
+            await eventually(lambda: "dashboard: open http://" in out.read_text(), 30.0,
+                             "the dashboard's URL", detail=out.read_text)
+            url = re.search(r"dashboard: open (http://\S+)", out.read_text())
+            assert url is not None
+            assert "MQTT: broker 127.0.0.1:" in out.read_text()  # the private one
+
+            def seeds() -> int:
+                with urllib.request.urlopen(url.group(1) + "api/health", timeout=5) as resp:
+                    return int(json.load(resp)["machines"].get("seeder-01", 0))
+
+            await eventually(lambda: seeds() > 0, 30.0, "seeds on the dashboard")
+            assert await asyncio.wait_for(proc.wait(), 40.0) == 0
+
+    def reachable() -> bool:
+        try:
+            urllib.request.urlopen(url.group(1), timeout=2).close()
+        except OSError:
+            return False
+        return True
+
+    assert not reachable()  # the dashboard stopped with the demo (and its broker)

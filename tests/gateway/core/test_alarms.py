@@ -101,3 +101,38 @@ def test_back_in_the_calibrated_range_clears_the_alarm_at_once() -> None:
     assert [(e.code, e.active) for e in events] == [
         ("rate.outside_calibration", True), ("rate.outside_calibration", False)
     ]
+
+
+def test_a_critical_alarm_waits_for_acknowledgement_even_after_it_cleared() -> None:
+    """As on commercial terminals: a critical fault that came and went while nobody looked
+    is still shown until the operator acknowledges it; warnings need no acknowledgement."""
+    board = AlarmBoard("m")
+    board.raise_("pwm.unavailable", "PWM module not answering", "critical")
+    board.raise_("radar.unavailable", "radar not answering", "warning")
+    assert [a.code for a in board.unacknowledged] == ["pwm.unavailable"]
+    board.clear("pwm.unavailable")
+    assert not board.is_active("pwm.unavailable")
+    assert [a.code for a in board.unacknowledged] == ["pwm.unavailable"]
+    try:
+        board.acknowledge("radar.unavailable")
+    except Exception as exc:
+        assert "waiting: pwm.unavailable" in str(exc)
+    else:
+        raise AssertionError("a warning cannot be acknowledged: it never waits")
+    assert board.acknowledge("pwm.unavailable") == "acknowledged: pwm.unavailable"
+    assert board.unacknowledged == []
+
+
+def test_acknowledging_an_active_critical_alarm_leaves_it_active_until_it_clears() -> None:
+    board = AlarmBoard("m")
+    board.raise_("speed.lost", "no speed", "critical")
+    board.raise_("records.lost", "seeds lost", "critical")
+    assert board.acknowledge(None) == "acknowledged: speed.lost, records.lost"
+    assert board.is_active("speed.lost") and board.unacknowledged == []
+    board.raise_("speed.lost", "no speed (new text)", "critical")  # same alarm: no new wait
+    assert board.unacknowledged == []
+    board.clear("speed.lost")
+    board.raise_("speed.lost", "no speed again", "critical")  # raised anew: waits again
+    assert [a.message for a in board.unacknowledged] == ["no speed again"]
+    assert board.acknowledge(None) == "acknowledged: speed.lost"
+    assert board.acknowledge(None) == "no critical alarm to acknowledge"

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from gateway.core.commands import CalibrateSpeed, SetChannelRate, SetRate, Start, Stop
+from gateway.core.commands import AckAlarm, CalibrateSpeed, SetChannelRate, SetRate, Start, Stop
 from gateway.core.errors import CommandError
 from gateway.link.command_payloads import (
     KNOWN_COMMANDS,
@@ -61,6 +61,10 @@ def test_the_documented_commands_parse() -> None:
     )
     assert parse("start", b"{}").command == Start()
     assert parse("stop", b"  \n").command == Stop()  # an empty payload is fine for these
+    assert parse("ack_alarm", b'{"code": "pwm.unavailable"}').command == (
+        AckAlarm("pwm.unavailable")
+    )
+    assert parse("ack_alarm", b"{}").command == AckAlarm(None)  # every one waiting
 
 
 def test_a_json_integer_is_a_number_and_arrives_as_a_float() -> None:

@@ -16,8 +16,10 @@ from drivers.hmi_link import HmiLink
 from drivers.tasks import cancel_and_wait
 from gateway.app.daemon import Daemon
 from gateway.config import parse_config
+from gateway.core.commands import AckAlarm
 from gateway.state import HopperState
 from gateway.ui.touchscreen import hopper_text
+from protocol import hmi
 from simulator.pty_link import PtyPair
 from tests.helpers import eventually
 
@@ -60,7 +62,19 @@ def test_the_alarm_line_shows_the_most_severe_alarm_not_the_oldest(tmp_path: Pat
         daemon.alarms.raise_("gnss.heading_invalid", "no dual-antenna heading", "info")
         assert daemon.hmi.screen_texts()[line] == "record store cannot write"
         daemon.alarms.clear("records.store_failed")
+        # a critical alarm keeps the line, cleared, until the operator acknowledges it
+        assert daemon.hmi.screen_texts()[line] == (
+            "cleared, acknowledge: record store cannot write"
+        )
+        # the alarm line's ACK button (F=07) acknowledges it, as cmd/ack_alarm does
+        daemon.hmi.on_event(hmi.AckAlarm())
+        assert daemon.alarms.unacknowledged == []
+        assert daemon.hmi.last_message == "acknowledged: records.store_failed"
         assert daemon.hmi.screen_texts()[line] == "GNSS fix is rtk_float"
+        daemon.alarms.raise_("records.store_failed", "record store cannot write", "critical")
+        assert daemon.execute(AckAlarm("records.store_failed"), "mqtt") == (
+            "acknowledged: records.store_failed"
+        )
 
 
 async def test_a_storm_of_bad_frames_costs_a_few_log_lines_and_is_counted_per_reason(

@@ -1,0 +1,470 @@
+// sowgate dashboard: one page, live over a WebSocket from `sowgate dashboard`.
+// The seed map is one canvas written pixel by pixel (ImageData): 100 000 seeds are a few
+// milliseconds of work per frame, never a DOM node per seed.
+"use strict";
+
+const CLASS_COLOURS = [[189, 189, 189], [255, 167, 38], [102, 187, 106], [239, 83, 80]];
+const CLASS_NAMES = ["no spacing yet", "multiple", "good", "miss"];
+const ROW_PALETTE = [[66, 165, 245], [255, 202, 40], [171, 71, 188], [38, 198, 218],
+  [255, 112, 67], [156, 204, 101], [236, 64, 122], [141, 110, 99], [120, 144, 156],
+  [255, 238, 88], [92, 107, 192], [0, 150, 136]];
+
+const app = {
+  config: { commands: [], units: { rate: "kg/ha", speed: "km/h" }, machine_id: null, tile_url: null },
+  machines: new Map(), // id -> {summary, xs, ys, rows, cls, n}
+  selected: null,
+  origin: null,
+  view: { cx: 0, cy: 0, scale: 8, follow: true, fit: false },
+  colourBy: "class",
+  dirty: true,
+  draws: [], // {seeds, t}: read by the browser tests and the benchmark
+  chart: null,
+  pending: new Map(), // request_id -> log <li>
+  tiles: new Map(),
+};
+window.sowgate = app;
+
+function $(id) { return document.getElementById(id); }
+function fmt(v, digits, unit) {
+  if (v === null || v === undefined) return "–";
+  return (typeof v === "number" ? v.toFixed(digits) : String(v)) + (unit ? " " + unit : "");
+}
+function time(iso) {
+  if (!iso) return "";
+  const d = new Date(iso);
+  return isNaN(d) ? iso : d.toLocaleTimeString();
+}
+
+// ---- machines and seeds ---------------------------------------------------------------------
+
+function machine(id) {
+  let m = app.machines.get(id);
+  if (!m) {
+    const cap = 1 << 14;
+    m = { summary: null, n: 0, xs: new Float32Array(cap), ys: new Float32Array(cap),
+      rows: new Uint8Array(cap), cls: new Uint8Array(cap) };
+    app.machines.set(id, m);
+  }
+  return m;
+}
+
+function addSeeds(m, flat) {
+  const count = flat.length / 4;
+  if (m.n + count > m.xs.length) {
+    let cap = m.xs.length;
+    while (cap < m.n + count) cap *= 2;
+    for (const k of ["xs", "ys"]) { const a = new Float32Array(cap); a.set(m[k].subarray(0, m.n)); m[k] = a; }
+    for (const k of ["rows", "cls"]) { const a = new Uint8Array(cap); a.set(m[k].subarray(0, m.n)); m[k] = a; }
+  }
+  for (let i = 0, j = m.n; i < flat.length; i += 4, j++) {
+    m.xs[j] = flat[i]; m.ys[j] = flat[i + 1]; m.rows[j] = flat[i + 2]; m.cls[j] = flat[i + 3];
+  }
+  m.n += count;
+}
+
+function applyMachine(msg, replaceSeeds) {
+  const m = machine(msg.machine_id);
+  if (replaceSeeds) m.n = 0;
+  if (msg.seeds && msg.seeds.length) addSeeds(m, msg.seeds);
+  const { seeds, rate, rate_new, ...summary } = msg;
+  m.summary = summary;
+  if (rate) m.rate = rate;
+  if (rate_new && rate_new.length) {
+    m.rate = (m.rate || []).concat(rate_new);
+    const since = m.rate[m.rate.length - 1][0] - 600;
+    while (m.rate.length && m.rate[0][0] < since) m.rate.shift();
+  }
+  if (!app.selected) {
+    // ?machine=ID picks one (a bookmark per seeder); else the config's own, else the first
+    const wanted = new URLSearchParams(location.search).get("machine");
+    if (wanted && wanted !== msg.machine_id && !app.machines.has(wanted)) return;
+    select(wanted || (app.config.machine_id && app.machines.has(app.config.machine_id)
+      ? app.config.machine_id : msg.machine_id));
+  }
+  app.dirty = true;
+}
+
+function select(id) {
+  app.selected = id;
+  renderMachineTabs();
+  renderAll();
+}
+
+// ---- the WebSocket --------------------------------------------------------------------------
+
+function connect() {
+  const proto = location.protocol === "https:" ? "wss:" : "ws:";
+  const ws = new WebSocket(`${proto}//${location.host}/ws`);
+  const link = $("link");
+  ws.onopen = () => { link.dataset.state = "open"; link.textContent = "live"; };
+  ws.onclose = () => {
+    link.dataset.state = "closed";
+    link.textContent = "dashboard server unreachable: retrying…";
+    setTimeout(connect, 1000);
+  };
+  ws.onmessage = (ev) => handle(JSON.parse(ev.data));
+}
+
+function handle(msg) {
+  switch (msg.type) {
+    case "config":
+      app.config = msg;
+      setupControls();
+      for (const el of document.querySelectorAll("[data-unit]")) el.textContent = msg.units[el.dataset.unit] || "";
+      break;
+    case "snapshot":
+      app.origin = msg.origin;
+      showBroker(msg.broker);
+      for (const [id, m] of Object.entries(msg.machines)) applyMachine(m, true);
+      renderAll();
+      break;
+    case "origin": app.origin = msg.origin; break;
+    case "broker": showBroker(msg); break;
+    case "machine": applyMachine(msg, false); renderAll(); break;
+    case "ack": showAck(msg); break;
+  }
+}
+
+function showBroker(b) {
+  const el = $("broker");
+  app.broker = b;
+  if (b.connected) { el.hidden = true; el.textContent = ""; }
+  else {
+    el.hidden = false;
+    el.textContent = "MQTT broker connection lost: the values below are not live. Reconnecting…"
+      + (b.error ? ` (${b.error})` : "");
+  }
+  const detail = $("nodata-detail");
+  detail.textContent = b.connected
+    ? "Connected to the MQTT broker; no seeder has published yet."
+    : "Not connected to the MQTT broker yet: reconnecting…";
+}
+
+// ---- panels ---------------------------------------------------------------------------------
+
+function renderMachineTabs() {
+  const nav = $("machines");
+  const ids = [...app.machines.keys()].sort();
+  nav.replaceChildren(...ids.map((id) => {
+    const b = document.createElement("button");
+    b.textContent = id;
+    b.setAttribute("aria-pressed", String(id === app.selected));
+    b.onclick = () => select(id);
+    return b;
+  }));
+}
+
+function renderAll() {
+  const m = app.selected && app.machines.get(app.selected);
+  $("nodata").hidden = !!m;
+  $("main").hidden = !m;
+  if (!m || !m.summary) return;
+  if (app.machines.size > 1 && $("machines").children.length !== app.machines.size) renderMachineTabs();
+  const s = m.summary, st = s.state || {}, u = app.config.units;
+  $("machine-id").textContent = s.machine_id;
+  const status = $("status");
+  status.textContent = s.status || "status unknown";
+  status.className = "badge " + (s.status || "");
+  $("work-state").textContent = s.state ? st.work_state : "no state yet";
+  $("speed").textContent = fmt(st.speed_kmh, 1, u.speed);
+  $("speed-source").textContent = st.speed_source ? `(${st.speed_source})` : "";
+  $("crop").textContent = st.crop || "–";
+  $("target-rate").textContent = fmt(st.target_rate_kg_ha, 1, u.rate);
+  $("commanded-rate").textContent = fmt(st.commanded_rate_kg_ha, 1, u.rate);
+  $("motor").textContent = fmt(st.motor_duty_pct, 1, "%");
+  $("fan").textContent = fmt(st.fan_duty_pct, 1, "%");
+  $("tilt").textContent = fmt(st.tilt_deg, 1, "°") + (st.raised === true ? " (raised)" : st.raised === false ? " (lowered)" : "");
+  $("gnss-fix").textContent = st.gnss_fix || "–";
+  $("area").textContent = fmt(st.area_ha, 2, u.area || "ha");
+  $("mass").textContent = fmt(st.seed_mass_kg, 1, u.mass || "kg");
+  $("state-utc").textContent = st.utc ? time(st.utc) : "–";
+  const dev = $("devices");
+  const devices = Object.entries(st.devices || {});
+  dev.replaceChildren(...devices.map(([name, ok], i) => {
+    const span = document.createElement("span");
+    span.textContent = (i ? ", " : "") + name + (ok ? "" : " (not answering)");
+    if (!ok) span.className = "dev-off";
+    return span;
+  }));
+  if (!devices.length) dev.textContent = "–";
+  $("seed-count").textContent = String(m.n);
+  renderAlarms(s);
+  renderRows(s.quality || {});
+  renderChart(m.rate || []);
+}
+
+function renderAlarms(s) {
+  const body = $("alarms").querySelector("tbody");
+  // active and unacknowledged first, newest first within each
+  const list = [...(s.alarms || [])].reverse().sort((a, b) =>
+    (Number(b.active || !b.acknowledged) - Number(a.active || !a.acknowledged)));
+  $("alarms-none").hidden = list.length > 0;
+  $("alarms").hidden = list.length === 0;
+  const canAck = app.config.commands.includes("ack_alarm");
+  body.replaceChildren(...list.map((a) => {
+    const tr = document.createElement("tr");
+    const unacked = a.severity === "critical" && !a.acknowledged;
+    tr.className = `${a.active ? "active" : "cleared"} ${a.severity}${unacked ? " unacked" : ""}`;
+    tr.dataset.code = a.code;
+    const cells = [
+      `<span class="sev ${a.severity}">${a.severity}</span>`,
+      `<code></code><br><span class="msg"></span>`,
+      time(a.raised), a.active ? "active" : time(a.cleared), "",
+    ];
+    tr.innerHTML = cells.map((c) => `<td>${c}</td>`).join("");
+    tr.querySelector("code").textContent = a.code;
+    tr.querySelector(".msg").textContent = a.message;
+    if (unacked && canAck) {
+      const b = document.createElement("button");
+      b.textContent = "Acknowledge";
+      b.className = "ack-alarm";
+      b.onclick = () => sendCommand("ack_alarm", { code: a.code });
+      tr.lastChild.appendChild(b);
+    } else if (unacked) {
+      tr.lastChild.textContent = "to acknowledge";
+    }
+    return tr;
+  }));
+}
+
+function bar(cls, v) {
+  const w = v === null || v === undefined ? 0 : Math.max(0, Math.min(100, v));
+  return `<div class="bar ${cls}"><span style="width:${w}%"></span><b>${fmt(v, 1, "%")}</b></div>`;
+}
+
+function renderRows(quality) {
+  const body = $("rows").querySelector("tbody");
+  const rows = Object.keys(quality).map(Number).sort((a, b) => a - b);
+  body.innerHTML = rows.length ? rows.map((r) => {
+    const q = quality[r];
+    return `<tr data-row="${r}"><td>${r}</td><td>${bar("q", q.quality_of_feed_index)}</td>` +
+      `<td>${bar("m", q.multiples_index)}</td><td>${bar("s", q.miss_index)}</td>` +
+      `<td>${fmt(q.precision, 1, "%")}</td><td>${q.n}</td></tr>`;
+  }).join("") : `<tr><td colspan="6" class="muted">no seed spacings yet</td></tr>`;
+}
+
+function renderChart(rate) {
+  const el = $("rate-chart");
+  const data = [rate.map((r) => r[0]), rate.map((r) => r[1]), rate.map((r) => r[2]), rate.map((r) => r[3])];
+  if (typeof uPlot === "undefined") return;
+  const width = Math.max(300, el.clientWidth || 600);
+  if (!app.chart) {
+    const unit = app.config.units.rate;
+    app.chart = new uPlot({
+      width, height: 200,
+      scales: { x: { time: true } },
+      series: [{}, { label: `target (${unit})`, stroke: "#2e7d32", width: 2 },
+        { label: `commanded (${unit})`, stroke: "#1565c0", dash: [4, 4] },
+        { label: `applied (${unit})`, stroke: "#ef6c00", width: 2, spanGaps: true, points: { show: true, size: 4 } }],
+      axes: [{}, { label: unit }],
+    }, data, el);
+  } else {
+    app.chart.setData(data);
+    if (Math.abs(app.chart.width - width) > 20) app.chart.setSize({ width, height: 200 });
+  }
+}
+
+// ---- commands -------------------------------------------------------------------------------
+
+function setupControls() {
+  const cmds = app.config.commands;
+  $("controls").hidden = !["start", "stop", "rate"].some((c) => cmds.includes(c));
+  $("cmd-start").hidden = !cmds.includes("start");
+  $("cmd-stop").hidden = !cmds.includes("stop");
+  $("rate-form").hidden = !cmds.includes("rate");
+  $("cmd-start").onclick = () => sendCommand("start", {});
+  $("cmd-stop").onclick = () => sendCommand("stop", {});
+  $("rate-form").onsubmit = (ev) => {
+    ev.preventDefault();
+    sendCommand("rate", { crop: $("rate-crop").value.trim(), rate_kg_ha: Number($("rate-value").value) });
+  };
+}
+
+async function sendCommand(name, payload) {
+  const li = document.createElement("li");
+  li.className = "pending";
+  li.dataset.command = name;
+  li.textContent = `${name}: sending…`;
+  $("cmd-log").prepend(li);
+  try {
+    const resp = await fetch("/api/command", {
+      method: "POST", headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ machine_id: app.selected, command: name, payload }),
+    });
+    const body = await resp.json();
+    if (!body.ok) { li.className = "error"; li.textContent = `${name}: not sent: ${body.error}`; return; }
+    li.textContent = `${name}: sent, waiting for the machine's answer…`;
+    app.pending.set(body.request_id, li);
+    setTimeout(() => {
+      if (app.pending.get(body.request_id) === li) {
+        app.pending.delete(body.request_id);
+        li.className = "error";
+        li.textContent = `${name}: no answer from the machine in 10 s: treat it as not executed`;
+      }
+    }, 10000);
+  } catch (err) {
+    li.className = "error";
+    li.textContent = `${name}: not sent: ${err}`;
+  }
+}
+
+function showAck(msg) {
+  const li = msg.request_id && app.pending.get(msg.request_id);
+  if (!li) return; // another dashboard's command
+  app.pending.delete(msg.request_id);
+  li.className = msg.ok ? "ok" : "error";
+  li.textContent = msg.ok
+    ? `${msg.command}: done${msg.message ? ": " + msg.message : ""}`
+    : `${msg.command}: refused: ${msg.error}`;
+}
+
+// ---- the seed map ---------------------------------------------------------------------------
+
+function colourOf(m, i) {
+  return app.colourBy === "row" ? ROW_PALETTE[(m.rows[i] - 1) % ROW_PALETTE.length] : CLASS_COLOURS[m.cls[i]];
+}
+
+function renderLegend(m) {
+  const items = app.colourBy === "row"
+    ? [...new Set(Array.from(m.rows.subarray(0, Math.min(m.n, 5000))))].sort((a, b) => a - b)
+        .map((r) => [`row ${r}`, ROW_PALETTE[(r - 1) % ROW_PALETTE.length]])
+    : CLASS_NAMES.map((n, i) => [n, CLASS_COLOURS[i]]);
+  $("legend").innerHTML = items.map(([n, c]) => `<span><i style="background:rgb(${c})"></i>${n}</span>`).join("")
+    + `<span class="muted">grid: 10 m · local metres from the first seed</span>`;
+}
+
+function fitView(m, w, h) {
+  let x0 = Infinity, x1 = -Infinity, y0 = Infinity, y1 = -Infinity;
+  for (let i = 0; i < m.n; i++) {
+    const x = m.xs[i], y = m.ys[i];
+    if (x < x0) x0 = x; if (x > x1) x1 = x; if (y < y0) y0 = y; if (y > y1) y1 = y;
+  }
+  if (!isFinite(x0)) return;
+  app.view.cx = (x0 + x1) / 2; app.view.cy = (y0 + y1) / 2;
+  app.view.scale = Math.min(w / Math.max(x1 - x0 + 4, 4), h / Math.max(y1 - y0 + 4, 4));
+}
+
+function draw() {
+  requestAnimationFrame(draw);
+  if (!app.dirty) return;
+  app.dirty = false;
+  const m = app.selected && app.machines.get(app.selected);
+  const canvas = $("map");
+  if (!m || $("main").hidden) return;
+  const w = canvas.clientWidth, h = canvas.clientHeight;
+  if (!w || !h) return;
+  if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
+  const started = performance.now();
+  const ctx = canvas.getContext("2d", { willReadFrequently: true });
+  const v = app.view;
+  if (v.fit) fitView(m, w, h);
+  else if (v.follow && m.n) { v.cx = m.xs[m.n - 1]; v.cy = m.ys[m.n - 1]; }
+  ctx.fillStyle = "#3b3326";
+  ctx.fillRect(0, 0, w, h);
+  drawTiles(ctx, w, h);
+  const img = ctx.getImageData(0, 0, w, h);
+  const px = new Uint32Array(img.data.buffer);
+  const palette = (app.colourBy === "row" ? ROW_PALETTE : CLASS_COLOURS)
+    .map(([r, g, b]) => (255 << 24) | (b << 16) | (g << 8) | r);
+  const byRow = app.colourBy === "row";
+  const s = v.scale, ox = w / 2 - v.cx * s, oy = h / 2 + v.cy * s;
+  const dot = s >= 20 ? 3 : s >= 4 ? 2 : 1;
+  const xs = m.xs, ys = m.ys, rows = m.rows, cls = m.cls, n = m.n;
+  const np = palette.length;
+  for (let i = 0; i < n; i++) {
+    const x = (ox + xs[i] * s) | 0, y = (oy - ys[i] * s) | 0;
+    if (x < 0 || y < 0 || x + dot > w || y + dot > h) continue;
+    const c = byRow ? palette[(rows[i] + np - 1) % np] : palette[cls[i]];
+    for (let dy = 0; dy < dot; dy++) {
+      const base = (y + dy) * w + x;
+      for (let dx = 0; dx < dot; dx++) px[base + dx] = c;
+    }
+  }
+  ctx.putImageData(img, 0, 0);
+  drawGrid(ctx, w, h, ox, oy, s);
+  if (n) { // the machine: its latest seed
+    const x = ox + xs[n - 1] * s, y = oy - ys[n - 1] * s;
+    ctx.strokeStyle = "#fff"; ctx.lineWidth = 2;
+    ctx.beginPath(); ctx.arc(x, y, 7, 0, 2 * Math.PI); ctx.stroke();
+  }
+  renderLegend(m);
+  const t = performance.now();
+  app.draws.push({ seeds: n, t, ms: t - started });
+  if (app.draws.length > 100) app.draws.shift();
+}
+
+function drawGrid(ctx, w, h, ox, oy, s) {
+  const step = s * 10 >= 20 ? 10 : s * 100 >= 20 ? 100 : 1000;
+  ctx.strokeStyle = "rgba(255,255,255,0.12)"; ctx.lineWidth = 1;
+  ctx.beginPath();
+  for (let gx = Math.ceil(-ox / s / step) * step; ox + gx * s < w; gx += step) { ctx.moveTo(ox + gx * s, 0); ctx.lineTo(ox + gx * s, h); }
+  for (let gy = Math.floor(oy / s / step) * step; oy - gy * s < h; gy -= step) { ctx.moveTo(0, oy - gy * s); ctx.lineTo(w, oy - gy * s); }
+  ctx.stroke();
+}
+
+// Background tiles only where [dashboard] tile_url is configured (an office with internet);
+// the cab box draws on the plain background.
+function drawTiles(ctx, w, h) {
+  const url = app.config.tile_url, o = app.origin;
+  if (!url || !o) return;
+  const R = 6371008.8, k = Math.PI / 180 * R, cos = Math.cos(o[0] * Math.PI / 180), v = app.view;
+  const toLatLon = (x, y) => [o[0] + y / k, o[1] + x / (k * cos)];
+  const z = Math.max(1, Math.min(19, Math.round(Math.log2(v.scale * 156543.03 * cos))));
+  const tileXY = ([lat, lon]) => {
+    const n = 2 ** z, r = lat * Math.PI / 180;
+    return [(lon + 180) / 360 * n, (1 - Math.log(Math.tan(r) + 1 / Math.cos(r)) / Math.PI) / 2 * n];
+  };
+  const toLocal = (tx, ty) => {
+    const n = 2 ** z, lon = tx / n * 360 - 180;
+    const lat = Math.atan(Math.sinh(Math.PI * (1 - 2 * ty / n))) * 180 / Math.PI;
+    return [(lon - o[1]) * k * cos, (lat - o[0]) * k];
+  };
+  const [ax, ay] = tileXY(toLatLon(v.cx - w / 2 / v.scale, v.cy + h / 2 / v.scale));
+  const [bx, by] = tileXY(toLatLon(v.cx + w / 2 / v.scale, v.cy - h / 2 / v.scale));
+  for (let tx = Math.floor(ax); tx <= Math.floor(bx); tx++) {
+    for (let ty = Math.floor(ay); ty <= Math.floor(by); ty++) {
+      const key = `${z}/${tx}/${ty}`;
+      let img = app.tiles.get(key);
+      if (!img) {
+        img = new Image(); img.crossOrigin = "anonymous";
+        img.onload = () => { app.dirty = true; };
+        img.src = url.replace("{z}", z).replace("{x}", tx).replace("{y}", ty);
+        app.tiles.set(key, img);
+      }
+      if (!img.complete || !img.naturalWidth) continue;
+      const [x0, y0] = toLocal(tx, ty), [x1, y1] = toLocal(tx + 1, ty + 1);
+      const sx = w / 2 + (x0 - v.cx) * v.scale, sy = h / 2 - (y0 - v.cy) * v.scale;
+      ctx.drawImage(img, sx, sy, (x1 - x0) * v.scale, (y0 - y1) * v.scale);
+    }
+  }
+}
+
+function setupMap() {
+  const canvas = $("map");
+  canvas.addEventListener("wheel", (ev) => {
+    ev.preventDefault();
+    app.view.fit = false;
+    app.view.scale = Math.max(0.05, Math.min(200, app.view.scale * (ev.deltaY < 0 ? 1.25 : 0.8)));
+    app.dirty = true;
+  }, { passive: false });
+  let drag = null;
+  canvas.addEventListener("pointerdown", (ev) => { drag = [ev.clientX, ev.clientY]; });
+  window.addEventListener("pointerup", () => { drag = null; });
+  canvas.addEventListener("pointermove", (ev) => {
+    if (!drag) return;
+    app.view.cx -= (ev.clientX - drag[0]) / app.view.scale;
+    app.view.cy += (ev.clientY - drag[1]) / app.view.scale;
+    drag = [ev.clientX, ev.clientY];
+    app.view.follow = false; app.view.fit = false; $("follow").checked = false;
+    app.dirty = true;
+  });
+  $("follow").onchange = (ev) => { app.view.follow = ev.target.checked; if (app.view.follow) app.view.fit = false; app.dirty = true; };
+  $("fit").onclick = () => { app.view.fit = true; app.view.follow = false; $("follow").checked = false; app.dirty = true; };
+  $("colour").onchange = (ev) => { app.colourBy = ev.target.value; app.dirty = true; };
+  window.addEventListener("resize", () => { app.dirty = true; });
+}
+
+setupMap();
+if (new URLSearchParams(location.search).get("view") === "field") $("fit").click();
+connect();
+requestAnimationFrame(draw);

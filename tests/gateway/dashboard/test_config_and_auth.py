@@ -1,0 +1,118 @@
+"""``[dashboard]``: where it listens, when it needs a password, and that the password holds."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from gateway.config import EXIT_CONFIG, ConfigError, parse_config
+from gateway.dashboard.cli import dashboard_problems
+from gateway.dashboard.server import check_password, page_config
+from tests.browser import DashboardProcess
+from tests.helpers import run_sowgate, sowgate_env
+
+
+def basic(user: str, password: str) -> str:
+    return "Basic " + base64.b64encode(f"{user}:{password}".encode()).decode()
+
+
+def test_defaults_listen_on_localhost_without_a_password() -> None:
+    settings = parse_config({})
+    d = settings.dashboard
+    assert (d.listen, d.host, d.port, d.local_only) == ("127.0.0.1:8080", "127.0.0.1", 8080, True)
+    assert d.tile_url is None and d.password_file is None
+    assert dashboard_problems(settings) == []
+    assert page_config(settings)["commands"] == []  # commands off: the page has no controls
+
+
+@pytest.mark.parametrize("listen", ["8080", "host:", ":8080", "a b:1"])
+def test_a_bad_listen_address_is_a_config_error_naming_the_key(listen: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        parse_config({"dashboard": {"listen": listen}})
+    assert any(p.startswith("dashboard.listen") for p in err.value.problems), err.value.problems
+
+
+def test_a_tile_url_needs_the_xyz_placeholders() -> None:
+    with pytest.raises(ConfigError):
+        parse_config({"dashboard": {"tile_url": "https://tiles.example/map.png"}})
+    ok = parse_config({"dashboard": {"tile_url": "https://t.example/{z}/{x}/{y}.png"}})
+    assert ok.dashboard.tile_url == "https://t.example/{z}/{x}/{y}.png"
+
+
+def test_controls_beyond_localhost_need_a_password_file(tmp_path: Path) -> None:
+    open_to_all = {"dashboard": {"listen": "0.0.0.0:8080"},
+                   "commands": {"enabled": ["start", "stop"]}}
+    (problem,) = dashboard_problems(parse_config(open_to_all))
+    assert problem.startswith("dashboard.password_file: needed when dashboard.listen "
+                              "(0.0.0.0:8080) is not localhost")
+    # read-only page (no command the page offers): no password needed
+    read_only = {"dashboard": {"listen": "0.0.0.0:8080"}, "commands": {"enabled": ["zero_tilt"]}}
+    assert dashboard_problems(parse_config(read_only)) == []
+    secret = tmp_path / "dashboard-password"
+    secret.write_text("s3cret\n")
+    with_password = {**open_to_all, "dashboard": {"listen": "0.0.0.0:8080",
+                                                  "password_file": str(secret)}}
+    assert dashboard_problems(parse_config(with_password)) == []
+    missing = {"dashboard": {"password_file": str(tmp_path / "nope")}}
+    (problem,) = dashboard_problems(parse_config(missing))
+    assert problem.startswith(f"dashboard.password_file: {tmp_path / 'nope'}")
+
+
+def test_the_command_refuses_to_start_open_controls_with_exit_78(tmp_path: Path) -> None:
+    config = tmp_path / "sowgate.toml"
+    config.write_text('[commands]\nenabled = ["start", "stop", "rate"]\n')
+    got = run_sowgate("dashboard", "--config", str(config), "--listen", "0.0.0.0:18080",
+                      env=sowgate_env(tmp_path, clean=True))
+    assert got.returncode == EXIT_CONFIG, got.stderr
+    assert "dashboard.password_file: needed" in got.stderr
+    got = run_sowgate("dashboard", "--config", str(config), "--listen", "nonsense",
+                      env=sowgate_env(tmp_path, clean=True))
+    assert got.returncode == EXIT_CONFIG and "--listen" in got.stderr, got.stderr
+
+
+def test_basic_auth_takes_the_password_with_any_user_name() -> None:
+    assert check_password(basic("farmer", "s3cret"), "s3cret")
+    assert check_password(basic("", "s3cret"), "s3cret")
+    assert not check_password(basic("farmer", "wrong"), "s3cret")
+    assert not check_password(None, "s3cret")
+    assert not check_password("Basic !!!notbase64", "s3cret")
+    assert not check_password("Bearer s3cret", "s3cret")
+    assert not check_password("Basic " + base64.b64encode(b"no-colon").decode(), "no-colon")
+
+
+async def test_with_a_password_file_every_request_needs_the_password(tmp_path: Path) -> None:
+    secret = tmp_path / "pw"
+    secret.write_text("s3cret\n")
+    config = tmp_path / "sowgate.toml"
+    # the broker port is closed: the page still loads (and says the broker is away)
+    config.write_text(f'[mqtt]\nport = 9\n[dashboard]\npassword_file = "{secret}"\n')
+    dash = DashboardProcess(config, tmp_path / "dashboard.log")
+    await dash.start()
+    try:
+        status, headers, _ = await asyncio.to_thread(get, dash.url)
+        assert status == 401 and "Basic" in headers["WWW-Authenticate"]
+        status, _, body = await asyncio.to_thread(get, dash.url, basic("x", "s3cret"))
+        assert status == 200 and b"sowgate dashboard" in body
+        for path in ("static/dashboard.js", "api/health"):
+            assert (await asyncio.to_thread(get, dash.url + path))[0] == 401
+            status, _, _ = await asyncio.to_thread(get, dash.url + path, basic("x", "wrong"))
+            assert status == 401
+    finally:
+        await dash.stop()
+
+
+def get(url: str, authorization: str | None = None) -> tuple[int, Any, bytes]:
+    """(status, headers, body) of a GET, errors included."""
+    headers = {"Authorization": authorization} if authorization else {}
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, headers=headers),
+                                    timeout=10) as resp:
+            return resp.status, resp.headers, resp.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.headers, b""
