@@ -43,6 +43,7 @@ from drivers.rs485_devices import Channel, Inclinometer, PwmModule, Radar
 from drivers.tasks import cancel_all
 from gateway.app import wiring
 from gateway.app.calibration_check import working_speed_problem
+from gateway.app.live_calibration import LiveCalibration
 from gateway.app.parts import Parts
 from gateway.calibration.apply import apply_calibrations
 from gateway.calibration.fits import CalibrationStore
@@ -115,6 +116,7 @@ class Daemon:
         self.state_dir = state_dir
         self.clock = clock
         self.alarms = AlarmBoard(settings.machine.id)
+        base = settings.model_copy(deep=True)  # the config alone: live reloads start from it
         self.calibrations = apply_calibrations(
             settings, state_dir, vet=working_speed_problem, alarms=self.alarms
         )
@@ -163,6 +165,11 @@ class Daemon:
             )
         self.parts = Parts()  # the optional parts, filled by gateway.app.wiring
         self.tick_hooks: list[Callable[[ControlOutputs], None]] = []
+        self.live_calibration = LiveCalibration(
+            base, settings, state_dir, self.alarms, self.controller,
+            vet=working_speed_problem, clock=clock, start_notes=self.calibrations,
+        )
+        self.tick_hooks.append(lambda _out: self.live_calibration.poll())
         self.closers: list[Callable[[], None]] = []
         self.epoch_listeners: list[Callable[[Any], None]] = []
         self._build_optional()
@@ -231,6 +238,7 @@ class Daemon:
                 installed.append(sig)
         if self.rs485:
             await self.bus.start()
+        self.live_calibration.announce()
         try:
             # both outputs are 0 before anything else happens
             await self._write_outputs(0.0, 0.0, force=True)
@@ -238,6 +246,7 @@ class Daemon:
             await self._supervise()
         finally:
             await self._safe_off()  # again: the net for the paths that skipped _stop_control
+            self.live_calibration.retire()
             if self.rs485:
                 await self.bus.close()
             for close in reversed(self.closers):

@@ -26,6 +26,7 @@ import csv
 import json
 import logging
 import signal
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,7 @@ from rich.table import Table
 from drivers.errors import DriverError
 from gateway.calibration import drive as drive_mod
 from gateway.calibration import fits as cal
+from gateway.calibration import presence
 from gateway.config import ConfigError, CropModel, Settings, load_config, state_dir
 from gateway.core.errors import GatewayError
 
@@ -54,6 +56,8 @@ DEFAULT_B_SECONDS = 30.0
 DEFAULT_A_SECONDS = 60.0  # paper A weighs 60 s runs
 DEFAULT_A_RUNS = 6  # paper A duties over the fitted shaft speed range, when not given
 SPEED_SOURCES = ("radar", "gnss", "isobus")
+# how long the CLI waits for a running daemon to apply a save (it looks every WATCH_S)
+DAEMON_PICKUP_S = 2 * presence.WATCH_S + 1.0
 PROGRESS_EVERY_S = 10.0  # without a terminal: a "10 s of 30 s" line this often
 
 
@@ -456,12 +460,43 @@ def _default_duties(crop: CropModel) -> list[float]:
     return sorted(set(out))
 
 
-def _saved(console: Console, key: str, stored: str) -> None:
-    console.print(
-        f"saved {key}: {stored}. The daemon applies it at its next start (restart it: "
-        f"`systemctl restart sowgate`); `sowgate calibrate undo --key {key}` restores the "
-        "value it replaced."
-    )
+def _saved(console: Console, key: str, stored: str, state: Path) -> None:
+    console.print(f"saved {key}: {stored}.")
+    _tell_daemon(console, state, key)
+    console.print(f"`sowgate calibrate undo --key {key}` restores the value it replaced.")
+
+
+def _tell_daemon(console: Console, state: Path, key: str | None) -> None:
+    """Say whether a running daemon applied what was just saved, or when it will apply."""
+    daemon = presence.running_daemon(state)
+    if daemon is None:
+        console.print("No daemon is running on this state directory: the daemon applies it "
+                      "at its next start.")
+        return
+    pid = daemon["pid"]
+    wanted = presence.calibration_signature(state)
+    deadline = time.monotonic() + DAEMON_PICKUP_S
+    while True:
+        daemon = presence.running_daemon(state)
+        applied = (daemon or {}).get("calibration") or {}
+        if daemon is not None and applied.get("signature") == wanted:
+            name = None if key is None else key.partition(".")[2].partition("@")[0]
+            notes = [n for n in applied.get("notes", []) if name is None or name in n]
+            if not applied.get("ok", True):
+                console.print(f"[red]The running daemon (pid {pid}) could not read the file; "
+                              "it keeps the values it had[/red]")
+            elif notes:
+                console.print(f"The running daemon (pid {pid}) applied the file: "
+                              f"{escape('; '.join(notes))}")
+            else:
+                console.print(f"The running daemon (pid {pid}) applied it.")
+            return
+        if daemon is None or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    console.print(f"[yellow]The running daemon (pid {pid}) has not picked it up within "
+                  f"{DAEMON_PICKUP_S:g} s[/yellow]: it applies it at its next start (see its "
+                  "log and the calibration.* alarms).")
 
 
 def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
@@ -470,6 +505,12 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     outlets = _outlets(args, settings)
     store = _store(args)
     key = f"rotation.{args.channel}"
+    daemon = presence.running_daemon(store.path.parent) if args.drive != "manual" else None
+    if daemon is not None:
+        raise cal.CalibrationError(
+            f"the daemon (pid {daemon['pid']}) is running and owns the bus: stop it first "
+            f"(systemctl stop sowgate), then run --drive {args.drive} again"
+        )
     console.print(f"masses asked for: the catch of each run, {outlets.describe()}")
     if args.model == "grams_per_rev":
         speeds = args.speeds or list(DEFAULT_B_SPEEDS)
@@ -523,7 +564,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
             outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
             replaces=replaces, accepted_poor_fit=problems,
             accepted_large_change=large))
-        _saved(console, key, f"{fit.grams_per_rev:.2f} g/rev per outlet")
+        _saved(console, key, f"{fit.grams_per_rev:.2f} g/rev per outlet", store.path.parent)
         return EXIT_OK
     # paper A: duty -> speed line and speed -> rate quadratic
     seconds = args.seconds or DEFAULT_A_SECONDS
@@ -595,7 +636,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         channel=args.channel, model="paper_a", outlets_weighed=outlets.weighed,
         outlets=outlets.total, weighed_mass_g=weighed, replaces=replaces_a,
         accepted_poor_fit=problems, accepted_large_change=large))
-    _saved(console, key, "eq. 5 and eq. 6 for the whole machine")
+    _saved(console, key, "eq. 5 and eq. 6 for the whole machine", store.path.parent)
     return EXIT_OK
 
 
@@ -613,7 +654,9 @@ def _speed(args: argparse.Namespace, console: Console) -> int:
     res = cal.speed_correction(args.source, args.distance, integrated)
     console.print(f"{res.source}: measured {res.measured_m:g} m, integrated "
                   f"{res.integrated_m:.2f} m -> factor {res.factor:.4f}")
-    _store(args).save(f"speed.{res.source}", cal.to_entry(res))
+    store = _store(args)
+    store.save(f"speed.{res.source}", cal.to_entry(res))
+    _tell_daemon(console, store.path.parent, f"speed.{res.source}")
     return EXIT_OK
 
 
@@ -628,12 +671,14 @@ def _tilt(args: argparse.Namespace, console: Console, ask: Callable[[str], float
         console.print(f"zero offset {res.zero_offset_deg:+.2f}° (zeroed = raw − offset)")
     if res.critical_angle_deg is not None:
         console.print(f"critical angle {res.critical_angle_deg:+.2f}° (below → working)")
-    entry = cal.save_tilt(_store(args), f"tilt.{args.sensor}", res)
+    store = _store(args)
+    entry = cal.save_tilt(store, f"tilt.{args.sensor}", res)
     kept = entry["result"]
     if res.zero_offset_deg is None and kept.get("zero_offset_deg") is not None:
         console.print(f"kept the stored zero offset {kept['zero_offset_deg']:+.2f}°")
     if res.critical_angle_deg is None and kept.get("critical_angle_deg") is not None:
         console.print(f"kept the stored critical angle {kept['critical_angle_deg']:+.2f}°")
+    _tell_daemon(console, store.path.parent, None)
     return EXIT_OK
 
 
@@ -658,6 +703,7 @@ def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
         if cmd == "undo":
             key, prev = store.undo(args.key)
             con.print(f"{key}: restored {'(no value)' if prev is None else prev['saved_at']}")
+            _tell_daemon(con, store.path.parent, None)
             return EXIT_OK
         con.print_json(json.dumps(store.current()))
         return EXIT_OK
