@@ -91,3 +91,5 @@ class MachineState:
     metering: MeteringStatus | None = None
     pwm_channel: PwmChannelState | None = None
     rejected: RejectedCounts | None = None  # None without a device that can reject input
+    seed_lot: str = "default"  # the active seed lot of ``crop`` (gateway.calibration.lots)
+    seed_lots: Mapping[str, str] = field(default_factory=dict)  # crop -> lot, when not default

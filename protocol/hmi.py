@@ -43,6 +43,7 @@ F_SELECT_CROP = 0x03
 F_EMPTY = 0x04
 F_SEED_LEVEL = 0x05
 F_ZERO_TILT = 0x06
+F_SEED_LOT = 0x07
 
 RATE_SCALE = 10  # R1 R2 carry the rate in 0.1 kg/ha
 RATE_RAW_MAX = 0xFFFF
@@ -87,6 +88,15 @@ class ZeroTilt:
     """F=0x06: take the current inclinometer angle as level."""
 
 
+@dataclass(frozen=True, slots=True)
+class SelectSeedLot:
+    """F=0x07: make seed lot number R1R2 (big-endian) the active lot of crop code C. Lot 0
+    is ``default``; which name a number stands for is the gateway's (it shows the list)."""
+
+    crop_code: int
+    lot_number: int
+
+
 # Kinds of rejected input: stable keys for the per-reason counters (the ``reason`` text varies).
 KIND_GARBAGE = "garbage"  # bytes that are not a 55 55 frame (noise, wrong baud rate)
 KIND_BAD_TRAILER = "bad_trailer"  # a 55 55 header without 0D 0A six bytes later
@@ -124,7 +134,9 @@ class ScreenReply:
     data: bytes
 
 
-HmiCommand = StartWork | StopWork | SelectCrop | EmptySeed | SeedLevelMonitoring | ZeroTilt
+HmiCommand = (
+    StartWork | StopWork | SelectCrop | EmptySeed | SeedLevelMonitoring | ZeroTilt | SelectSeedLot
+)
 HmiEvent = HmiCommand | Rejected | ScreenError | ScreenReply
 
 # Nextion instruction-set return codes that mean "your instruction failed".
@@ -172,6 +184,8 @@ def _decode_framed(frame: bytes) -> HmiEvent:
         return SeedLevelMonitoring(enabled=c == 1)
     if function == F_ZERO_TILT:
         return ZeroTilt()
+    if function == F_SEED_LOT:
+        return SelectSeedLot(crop_code=c, lot_number=(r1 << 8) | r2)
     return Rejected(f"unknown function code 0x{function:02X}", frame, KIND_UNKNOWN_FUNCTION)
 
 
@@ -355,6 +369,13 @@ def encode_frame(command: HmiCommand) -> bytes:
             c = 1 if enabled else 0
         case ZeroTilt():
             function = F_ZERO_TILT
+        case SelectSeedLot(crop_code=code, lot_number=number):
+            function = F_SEED_LOT
+            if not 0 <= code <= 0xFF:
+                raise FieldError(f"crop code must fit one byte (0..255), got {code}")
+            if not 0 <= number <= RATE_RAW_MAX:
+                raise FieldError(f"seed lot number must be 0..65535, got {number}")
+            c, rate_raw = code, number
         case _:
             raise TypeError(f"not an HMI command: {command!r}")
     return HEADER + bytes((function, c, rate_raw >> 8, rate_raw & 0xFF)) + TRAILER

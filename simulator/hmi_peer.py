@@ -23,6 +23,7 @@ from protocol.hmi import (
     HmiCommand,
     SeedLevelMonitoring,
     SelectCrop,
+    SelectSeedLot,
     StartWork,
     StopWork,
     ZeroTilt,
@@ -91,6 +92,9 @@ class HmiPeer(StartClose):
 
     def zero_tilt(self) -> None:
         self.press(ZeroTilt())
+
+    def select_seed_lot(self, crop_code: int, lot_number: int) -> None:
+        self.press(SelectSeedLot(crop_code, lot_number))
 
     def send_raw(self, data: bytes) -> None:
         """Put bytes on the wire as they are (fault injection: garbage, split frames)."""

@@ -125,6 +125,10 @@ class Daemon:
         self.controller = Controller(
             settings, self.alarms, calibrations=CalibrationStore(state_dir)
         )
+        self.live_calibration = LiveCalibration(
+            base, settings, state_dir, self.alarms, self.controller,
+            vet=working_speed_problem, clock=clock, start_notes=self.calibrations,
+        )
         self.rs485 = settings.rs485.enabled  # False: no radar, inclinometer or PWM module
         self.bus = ModbusBus.from_config(settings.rs485)
         self.radar = Radar(self.bus, settings.radar)
@@ -162,13 +166,10 @@ class Daemon:
                 crops=settings.control.crops,
                 execute=self.try_execute,
                 state=self.state,
+                seed_lots=self.live_calibration.lots_of,
             )
         self.parts = Parts()  # the optional parts, filled by gateway.app.wiring
         self.tick_hooks: list[Callable[[ControlOutputs], None]] = []
-        self.live_calibration = LiveCalibration(
-            base, settings, state_dir, self.alarms, self.controller,
-            vet=working_speed_problem, clock=clock, start_notes=self.calibrations,
-        )
         self.tick_hooks.append(lambda _out: self.live_calibration.poll())
         self.closers: list[Callable[[], None]] = []
         self.epoch_listeners: list[Callable[[Any], None]] = []
@@ -199,6 +200,10 @@ class Daemon:
         """The one command path for HMI and MQTT (see gateway.core.commands)."""
         if isinstance(command, cmd.SetChannelRate):
             return self._set_channel_rate(command, source)
+        if isinstance(command, cmd.SelectSeedLot):
+            reply = self.live_calibration.select_lot(command.crop, command.lot)
+            log.info("command from %s: %s", source, reply)
+            return reply
         return self.controller.execute(command, source)
 
     def _set_channel_rate(self, command: cmd.SetChannelRate, source: str) -> str:
@@ -537,6 +542,8 @@ class Daemon:
             metering=parts.metering.status() if parts.metering is not None else None,
             pwm_channel=parts.pwm_channel.state() if parts.pwm_channel is not None else None,
             rejected=parts.rejected.counts() if parts.rejected is not None else None,
+            seed_lot=self.live_calibration.lot_of(c.crop),
+            seed_lots=dict(self.live_calibration.lots),
         )
 
 async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:

@@ -21,12 +21,14 @@ so the CLI can tell the fitter the running daemon has applied the save.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from gateway.calibration import lots
 from gateway.calibration.apply import Vet, apply_entries, refused_message
 from gateway.calibration.fits import CalibrationError, CalibrationStore
 from gateway.calibration.presence import (
@@ -38,6 +40,7 @@ from gateway.calibration.presence import (
 from gateway.config import Settings
 from gateway.control.controller import Controller
 from gateway.core.alarms import AlarmBoard
+from gateway.core.errors import CommandError
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +90,11 @@ class LiveCalibration:
             self.alarms.raise_(FILE_INVALID_ALARM, self._invalid_message(start_notes[0]),
                                "warning")
         self._next_look = clock() + watch_s
+        self.lots: dict[str, str] = {}  # crop -> active seed lot (absent: default)
+        self.current: dict[str, Any] = {}  # the file's entries, every lot
+        with contextlib.suppress(CalibrationError):
+            doc = CalibrationStore(state_dir).load()
+            self.lots, self.current = lots.active_lots(doc), doc["current"]
 
     @staticmethod
     def _invalid_message(why: str) -> str:
@@ -126,7 +134,7 @@ class LiveCalibration:
             signature)
         self.reloads += 1
         try:
-            current = CalibrationStore(self.state_dir).current()
+            doc = CalibrationStore(self.state_dir).load()
         except CalibrationError as exc:
             log.error("calibration.json changed but cannot be used (values kept): %s", exc)
             self._ok = False
@@ -135,6 +143,9 @@ class LiveCalibration:
             self.announce()
             return self.notes
         candidate = self.base.model_copy(deep=True)
+        self.lots = lots.active_lots(doc)
+        self.current = doc["current"]
+        current = lots.effective_entries(candidate, self.current, self.lots)
         notes, refused = apply_entries(candidate, current, vet=self.vet)
         _take(self.live, candidate)
         self.controller.recalibrated()
@@ -145,3 +156,47 @@ class LiveCalibration:
         log.info("calibration.json reloaded: %s", "; ".join(notes) or "no calibrations")
         self.announce()
         return notes
+
+    # ---- seed lots ---------------------------------------------------------------------------
+    def lot_of(self, crop: str) -> str:
+        return self.lots.get(crop, lots.DEFAULT_LOT)
+
+    def lots_of(self, crop: str) -> list[str]:
+        """``default``, then the lots with a rotation test of ``crop``, by name."""
+        return lots.lots_of(self.base, self.current, crop)
+
+    def active_rotation(self, name: str) -> dict[str, Any] | None:
+        """The rotation-test entry in force for ``name`` (crop or channel): its ``crop``,
+        ``seed_lot``, ``saved_at`` and result; None when the config's values are in force."""
+        return lots.active_rotation(self.base, self.current, self.lots, name)
+
+    def select_lot(self, crop: str, lot: str) -> str:
+        """Make ``lot`` the active seed lot of ``crop``, applied at once; the reply text.
+
+        Refused (``CommandError``, nothing changed) for a crop this machine does not sow or a
+        lot without a rotation test of that crop (``default`` always exists: the config's or
+        the default lot's fits)."""
+        known_crops = lots.crops(self.base)
+        if crop not in known_crops:
+            raise CommandError(f"unknown crop {crop!r}; known: {', '.join(known_crops)}")
+        try:
+            lots.check_lot_name(lot)
+        except CalibrationError as exc:
+            raise CommandError(str(exc)) from None
+        available = self.lots_of(crop)
+        if lot not in available:
+            raise CommandError(
+                f"{crop} has no rotation test for seed lot {lot!r} (lots: "
+                f"{', '.join(available)}); run sowgate calibrate rotation --seed-lot {lot}"
+            )
+        try:
+            lots.select_lot(CalibrationStore(self.state_dir), crop, lot)
+        except (CalibrationError, OSError) as exc:
+            raise CommandError(f"seed lot not changed: {exc}") from None
+        notes = self.reload()
+        self._next_look = self.clock() + self.watch_s  # this write is applied already
+        names = [crop, *(c.name for c in self.base.channel if c.product == crop)]
+        said = [n for n in notes if any(name in n for name in names)]
+        if lot == lots.DEFAULT_LOT and not said:
+            said = ["the config's values"]
+        return f"{crop}: seed lot {lot} ({'; '.join(said) or 'applied'})"

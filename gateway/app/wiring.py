@@ -117,6 +117,8 @@ def state_payload(daemon: Daemon) -> StatePayload:
             hmi=dict(rejected.hmi),
             seed_sensors=dict(rejected.seed_sensors),
         ),
+        seed_lot=state.seed_lot,
+        seed_lots=dict(state.seed_lots),
     )
 
 

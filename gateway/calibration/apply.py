@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from gateway.calibration.fits import CalibrationError, CalibrationStore
+from gateway.calibration.lots import active_lots, effective_entries
 from gateway.config import Settings
 from gateway.core.alarms import AlarmBoard
 
@@ -42,10 +43,11 @@ def apply_calibrations(settings: Settings, state_dir: Path, *, vet: Vet | None =
     raised as ``calibration.refused``.
     """
     try:
-        current = CalibrationStore(state_dir).current()
+        doc = CalibrationStore(state_dir).load()
     except CalibrationError as exc:
         log.error("calibrations not applied: %s", exc)
         return [f"calibration file ignored: {exc}"]
+    current = effective_entries(settings, doc["current"], active_lots(doc))
     applied, refused = apply_entries(settings, current, vet=vet)
     if alarms is not None and refused:
         alarms.raise_(REFUSED_ALARM, refused_message(refused), "warning")
@@ -58,7 +60,8 @@ def refused_message(refused: list[str]) -> str:
 
 def apply_entries(settings: Settings, current: dict[str, Any], *,
                   vet: Vet | None = None) -> tuple[list[str], list[str]]:
-    """Apply the entries of ``current`` (a calibration file's ``current``) to ``settings``;
+    """Apply the entries of ``current`` (a calibration file's ``current``, its seed lots
+    resolved by ``lots.effective_entries``) to ``settings``;
     (notes on what changed, ``<key> <why>`` of each entry the ``vet`` refused)."""
     applied: list[str] = []
     refused: list[str] = []

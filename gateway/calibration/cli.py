@@ -41,7 +41,7 @@ from rich.table import Table
 from drivers.errors import DriverError
 from gateway.calibration import drive as drive_mod
 from gateway.calibration import fits as cal
-from gateway.calibration import presence
+from gateway.calibration import lots, presence
 from gateway.config import ConfigError, CropModel, Settings, load_config, state_dir
 from gateway.core.errors import GatewayError
 
@@ -113,6 +113,11 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     r.add_argument("--accept-large-change", action="store_true",
                    help=f"save a result more than {cal.LARGE_CHANGE_PCT:g} percent away from the "
                    "value it replaces (the saved one, else the config's)")
+    r.add_argument("--seed-lot", default=lots.DEFAULT_LOT, metavar="NAME",
+                   help="the seed lot this test is for (default: default); each lot of a crop "
+                   "keeps its own fit, and the one just calibrated becomes the crop's active "
+                   "lot (switch with: sowgate calibrate seed-lot, MQTT cmd/seed_lot or the "
+                   "touchscreen)")
     r.add_argument("--min-stable-rpm", type=float, default=cal.PAPER_B_MIN_STABLE_RPM)
     r.add_argument("--working-range", type=_floats, default=None, help="lo,hi r/min")
     r.add_argument("--drive", choices=("manual", "modbus", "can"), default="manual",
@@ -142,6 +147,12 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     t.add_argument("--mode", choices=("level", "lowered"), required=True)
     t.add_argument("--sensor", default="inclinometer")
     t.add_argument("--readings", type=_floats, default=None, help="angles in degrees")
+
+    lot = sub.add_parser("seed-lot", help="make a seed lot's rotation test the crop's active "
+                         "one (as MQTT cmd/seed_lot)")
+    lot.add_argument("--crop", required=True, help="crop (or a channel's product)")
+    lot.add_argument("--lot", required=True, help="seed lot name; default: the test saved "
+                     "without --seed-lot")
 
     u = sub.add_parser("undo", help="restore the value replaced by the last calibration")
     u.add_argument("--key", default=None, help="e.g. rotation.seed, speed.radar, tilt.inclinometer")
@@ -401,23 +412,35 @@ def _check_rotation_target(settings: Settings | None, name: str, model: str) -> 
         )
 
 
+def _previous_entry(store: cal.CalibrationStore, name: str, lot: str,
+                    model: str) -> tuple[dict[str, Any], str] | None:
+    """The saved entry a new result of ``lot`` replaces: that lot's, else (a lot's first test)
+    the default lot's, with where it comes from."""
+    for candidate in dict.fromkeys((lot, lots.DEFAULT_LOT)):
+        entry = store.get(lots.rotation_key(name, candidate))
+        if entry is not None and entry.get("model") == model:
+            return entry, ("calibration" if candidate == lot
+                           else f"calibration (lot {candidate})")
+    return None
+
+
 def _previous_gpr(store: cal.CalibrationStore, settings: Settings | None,
-                  name: str) -> tuple[float, str] | None:
+                  name: str, lot: str) -> tuple[float, str] | None:
     """The per-outlet g/rev a new result replaces: the saved one, else the config's."""
-    entry = store.get(f"rotation.{name}")
-    if entry is not None and entry.get("model") == "grams_per_rev":
-        return float(entry["result"]["grams_per_rev"]), "calibration"
+    saved = _previous_entry(store, name, lot, "grams_per_rev")
+    if saved is not None:
+        return float(saved[0]["result"]["grams_per_rev"]), saved[1]
     ch = next((c for c in settings.channel if c.name == name), None) if settings else None
     return (ch.grams_per_rev, "config") if ch is not None else None
 
 
-def _previous_paper_a(store: cal.CalibrationStore, settings: Settings | None,
-                      name: str) -> tuple[dict[str, float], dict[str, float], str] | None:
+def _previous_paper_a(store: cal.CalibrationStore, settings: Settings | None, name: str,
+                      lot: str) -> tuple[dict[str, float], dict[str, float], str] | None:
     """Eq. 5 and eq. 6 coefficients a new paper-A fit replaces: saved, else the config's."""
-    entry = store.get(f"rotation.{name}")
-    if entry is not None and entry.get("model") == "paper_a":
-        result = entry["result"]
-        return dict(result["motor"]), dict(result["meter"]), "calibration"
+    saved = _previous_entry(store, name, lot, "paper_a")
+    if saved is not None:
+        result = saved[0]["result"]
+        return dict(result["motor"]), dict(result["meter"]), saved[1]
     if settings is None:
         return None
     crop_name = name if name in settings.control.crops else next(
@@ -428,6 +451,17 @@ def _previous_paper_a(store: cal.CalibrationStore, settings: Settings | None,
     motor = {"slope": crop.motor_slope, "intercept": crop.motor_intercept}
     meter = {"a": crop.meter_a, "b": crop.meter_b, "c": crop.meter_c}
     return motor, meter, "config"
+
+
+def _activate_lot(console: Console, store: cal.CalibrationStore, settings: Settings | None,
+                  name: str, lot: str) -> None:
+    """The lot just calibrated is the one in the hopper: make it the crop's active lot."""
+    crop = lots.crop_of(settings, name) if settings is not None else None
+    if crop is None:
+        crop = name  # without a config: a paper-A test is named after its crop
+    if lots.active_lots(store.load()).get(crop, lots.DEFAULT_LOT) != lot:
+        lots.select_lot(store, crop, lot)
+        console.print(f"seed lot {lot} is now {crop}'s active lot")
 
 
 def _need(settings: Settings | None, what: str) -> Settings:
@@ -504,7 +538,9 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     _check_rotation_target(settings, args.channel, args.model)
     outlets = _outlets(args, settings)
     store = _store(args)
-    key = f"rotation.{args.channel}"
+    lot = lots.check_lot_name(args.seed_lot)
+    key = lots.rotation_key(args.channel, lot)
+    crop = lots.crop_of(settings, args.channel) if settings is not None else None
     daemon = presence.running_daemon(store.path.parent) if args.drive != "manual" else None
     if daemon is not None:
         raise cal.CalibrationError(
@@ -552,7 +588,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         console.print(f"{fit.grams_per_rev:.2f} g/rev per outlet ({outlets.describe()})")
         problems = cal.grams_per_rev_problems(fit)
         _check_quality(problems, args, console)
-        previous = _previous_gpr(store, settings, args.channel)
+        previous = _previous_gpr(store, settings, args.channel, lot)
         large = False
         if previous is not None:
             large = _check_change([("g/rev per outlet", previous[0], fit.grams_per_rev)],
@@ -560,10 +596,11 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         replaces = (None if previous is None
                     else {"grams_per_rev": previous[0], "from": previous[1]})
         store.save(key, cal.to_entry(
-            fit, channel=args.channel, model="grams_per_rev",
+            fit, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
             outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
             replaces=replaces, accepted_poor_fit=problems,
             accepted_large_change=large))
+        _activate_lot(console, store, settings, args.channel, lot)
         _saved(console, key, f"{fit.grams_per_rev:.2f} g/rev per outlet", store.path.parent)
         return EXIT_OK
     # paper A: duty -> speed line and speed -> rate quadratic
@@ -614,7 +651,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     console.print(f"Q = {quad.a:.4f}·ω² {quad.b:+.4f}·ω {quad.c:+.4f}  (R² {quad.r2:.4f})")
     problems = cal.paper_a_problems(line, quad, duties, rpm)
     _check_quality(problems, args, console)
-    previous_a = _previous_paper_a(store, settings, args.channel)
+    previous_a = _previous_paper_a(store, settings, args.channel, lot)
     large = False
     if previous_a is not None:
         motor, meter, source = previous_a
@@ -633,9 +670,11 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         "motor": previous_a[0], "meter": previous_a[1], "from": previous_a[2]}
     store.save(key, cal.to_entry(
         {"motor": line.__dict__, "meter": quad.__dict__, "omega_range": list(wr)},
-        channel=args.channel, model="paper_a", outlets_weighed=outlets.weighed,
+        channel=args.channel, crop=crop or args.channel, seed_lot=lot, model="paper_a",
+        outlets_weighed=outlets.weighed,
         outlets=outlets.total, weighed_mass_g=weighed, replaces=replaces_a,
         accepted_poor_fit=problems, accepted_large_change=large))
+    _activate_lot(console, store, settings, args.channel, lot)
     _saved(console, key, "eq. 5 and eq. 6 for the whole machine", store.path.parent)
     return EXIT_OK
 
@@ -682,6 +721,29 @@ def _tilt(args: argparse.Namespace, console: Console, ask: Callable[[str], float
     return EXIT_OK
 
 
+def _seed_lot(args: argparse.Namespace, console: Console, store: cal.CalibrationStore) -> int:
+    lot = lots.check_lot_name(args.lot)
+    current = store.current()
+    settings = _settings(args)
+    if settings is not None:
+        available = lots.lots_of(settings, current, args.crop)
+        if args.crop not in lots.crops(settings):
+            raise cal.CalibrationError(f"unknown crop {args.crop!r}; known: "
+                                       f"{', '.join(lots.crops(settings))}")
+    else:  # without a config: the lots of entries named after the crop
+        available = [lots.DEFAULT_LOT, *sorted({
+            split[1] for key in current
+            if (split := lots.split_rotation_key(key)) is not None and split[0] == args.crop
+            and split[1] != lots.DEFAULT_LOT})]
+    if lot not in available:
+        raise cal.CalibrationError(f"{args.crop} has no rotation test for seed lot {lot!r} "
+                                   f"(lots: {', '.join(available)})")
+    lots.select_lot(store, args.crop, lot)
+    console.print(f"{args.crop}: seed lot {lot} is the active lot")
+    _tell_daemon(console, store.path.parent, None)
+    return EXIT_OK
+
+
 def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
                     ask: Callable[[str], float] | None = None) -> int:
     """Run the chosen ``calibrate`` sub-command; 0 on success, 1 with a message otherwise."""
@@ -700,6 +762,8 @@ def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
         if cmd == "tilt":
             return _tilt(args, con, asker)
         store = _store(args)
+        if cmd == "seed-lot":
+            return _seed_lot(args, con, store)
         if cmd == "undo":
             key, prev = store.undo(args.key)
             con.print(f"{key}: restored {'(no value)' if prev is None else prev['saved_at']}")

@@ -52,7 +52,8 @@ class MqttSection(OptionalPart):
 
 
 CommandName = Literal[
-    "rate", "channel_rate", "start", "stop", "zero_tilt", "tilt_critical", "speed_cal"
+    "rate", "channel_rate", "start", "stop", "zero_tilt", "tilt_critical", "speed_cal",
+    "seed_lot",
 ]
 
 

@@ -122,6 +122,9 @@ class HmiObjects(Section):
     rate: str = "t_rate"
     alarm: str = "t_alarm"
     message: str = "t_msg"
+    # the active seed lot of the crop shown ("1 2026-B"); None (default): not shown, as a
+    # screen page without such an object would answer every update with an error
+    lot: str | None = None
 
 
 class HmiSection(OptionalPart):
@@ -158,6 +161,8 @@ class HmiSection(OptionalPart):
         from protocol.hmi import check_object_name
 
         for key, obj in self.objects.model_dump().items():
+            if obj is None:
+                continue
             try:
                 check_object_name(obj)
             except ValueError:

@@ -65,6 +65,15 @@ class CalibrateSpeed:
     distance_m: float | None = None
 
 
+@dataclass(frozen=True)
+class SelectSeedLot:
+    """Make ``lot`` the active seed lot of ``crop``: its rotation-test fits apply at once
+    (``gateway.calibration.lots``)."""
+
+    crop: str
+    lot: str
+
+
 Command = (
     SetRate
     | SetChannelRate
@@ -75,6 +84,7 @@ Command = (
     | EmptySeed
     | SeedLevelMonitoring
     | CalibrateSpeed
+    | SelectSeedLot
 )
 
 

@@ -25,6 +25,7 @@ from gateway.core.commands import (
     CalibrateSpeed,
     Command,
     CriticalTilt,
+    SelectSeedLot,
     SetChannelRate,
     SetRate,
     Start,
@@ -37,6 +38,7 @@ from gateway.link.payloads import (
     ChannelRateCommand,
     EmptyCommand,
     RateCommand,
+    SeedLotCommand,
     SpeedCalCommand,
 )
 
@@ -48,6 +50,7 @@ KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
     "zero_tilt": EmptyCommand,
     "tilt_critical": EmptyCommand,
     "speed_cal": SpeedCalCommand,
+    "seed_lot": SeedLotCommand,
 }
 # A command is one flat JSON object; this leaves room for any future small structure and
 # refuses, before any parser recurses into it, a payload like ``[`` x 2000.
@@ -160,6 +163,8 @@ def _to_command(name: str, payload: BaseModel) -> Command:
         return SetChannelRate(channel=payload.channel, rate_kg_ha=payload.rate_kg_ha)
     if isinstance(payload, SpeedCalCommand):
         return CalibrateSpeed(action=payload.action, distance_m=payload.distance_m)
+    if isinstance(payload, SeedLotCommand):
+        return SelectSeedLot(crop=payload.crop, lot=payload.lot)
     simple: dict[str, Command] = {
         "start": Start(),
         "stop": Stop(),

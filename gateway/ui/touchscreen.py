@@ -45,11 +45,14 @@ class HmiAdapter:
         crops: Mapping[str, CropModel],
         execute: Callable[[cmd.Command, str], tuple[bool, str]],
         state: Callable[[], MachineState],
+        seed_lots: Callable[[str], list[str]] | None = None,
     ) -> None:
         self.section = section
         self.crops = crops
         self.execute = execute
         self.state = state
+        # crop -> its seed lots, numbered as F=07 numbers them (0 is "default")
+        self.seed_lots = seed_lots or (lambda _crop: ["default"])
         self.link = HmiLink(
             section.port,
             section.baudrate,
@@ -86,6 +89,15 @@ class HmiAdapter:
                 return cmd.SeedLevelMonitoring(on)
             case hmi.ZeroTilt():
                 return cmd.ZeroTilt()
+            case hmi.SelectSeedLot(crop_code=code, lot_number=number):
+                crop = self.crop_for_code(code)
+                if crop is None:
+                    return f"unknown crop code {code}"
+                lots = self.seed_lots(crop)
+                if number >= len(lots):
+                    listed = ", ".join(f"{i} {name}" for i, name in enumerate(lots))
+                    return f"{crop} has no seed lot {number} (lots: {listed})"
+                return cmd.SelectSeedLot(crop, lots[number])
             case hmi.Rejected(reason=reason):
                 return f"bad frame: {reason}"
         return f"unsupported input {event!r}"
@@ -113,7 +125,7 @@ class HmiAdapter:
         tilt = state.tilt_deg
         # the alarms come oldest first: min keeps the oldest of the most severe
         top = min(state.alarms, key=lambda a: _SEVERITY_ORDER.get(a.severity, 3), default=None)
-        return {
+        texts = {
             o.speed: "--" if speed is None else f"{speed:.1f} km/h",
             o.tilt: "--" if tilt is None else f"{tilt:+.1f} deg",
             o.state: labels.get(state.work_state, state.work_state),
@@ -122,6 +134,11 @@ class HmiAdapter:
             o.alarm: top.message if top is not None else "",
             o.message: self.last_message,
         }
+        if o.lot is not None:  # "1 2026-B": the number F=07 selects it by, and its name
+            lots = self.seed_lots(crop)
+            number = lots.index(state.seed_lot) if state.seed_lot in lots else 0
+            texts[o.lot] = f"{number} {state.seed_lot}"
+        return texts
 
     async def refresh_loop(self) -> None:
         period = 1.0 / self.section.update_hz

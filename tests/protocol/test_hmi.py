@@ -20,6 +20,7 @@ from protocol.hmi import (
     ScreenReply,
     SeedLevelMonitoring,
     SelectCrop,
+    SelectSeedLot,
     StartWork,
     StopWork,
     ZeroTilt,
@@ -66,11 +67,18 @@ def decode_split(data: bytes, cut: int) -> list[HmiEvent]:
         (frame(0x05, 0x01), SeedLevelMonitoring(True)),
         (frame(0x05, 0x00), SeedLevelMonitoring(False)),
         (frame(0x06), ZeroTilt()),
+        (frame(0x07, 0x02, 0x00, 0x01), SelectSeedLot(2, 1)),
+        (frame(0x07, 0x01, 0x01, 0x00), SelectSeedLot(1, 256)),
     ],
 )
 def test_every_function_code_decodes_to_its_command(raw: bytes, event: HmiEvent) -> None:
     """Each documented F byte maps to one typed command."""
     assert HmiDecoder().feed(raw) == [event]
+
+
+def test_seed_lot_frame_is_crop_code_and_a_big_endian_lot_number_both_ways() -> None:
+    assert encode_frame(SelectSeedLot(2, 1)) == bytes.fromhex("5555070200010D0A")
+    assert HmiDecoder().feed(encode_frame(SelectSeedLot(1, 300))) == [SelectSeedLot(1, 300)]
 
 
 def test_wheat_225_kg_ha_is_08_ca_both_ways() -> None:
@@ -100,7 +108,7 @@ def test_seed_level_flag_other_than_0_or_1_is_rejected(c: int) -> None:
     assert "seed-level" in event.reason and event.raw == frame(0x05, c)
 
 
-@pytest.mark.parametrize("f", [0x00, 0x07, 0x55, 0xFF])
+@pytest.mark.parametrize("f", [0x00, 0x09, 0x55, 0xFF])
 def test_unknown_function_code_is_rejected_with_the_code(f: int) -> None:
     [event] = HmiDecoder().feed(frame(f))
     assert event == Rejected(f"unknown function code 0x{f:02X}", frame(f))
@@ -270,6 +278,7 @@ commands = st.one_of(
     st.just(EmptySeed()),
     st.builds(SeedLevelMonitoring, st.booleans()),
     st.just(ZeroTilt()),
+    st.builds(SelectSeedLot, st.integers(0, 255), st.integers(0, 0xFFFF)),
 )
 garbage = st.binary(min_size=1, max_size=40)
 stream_items = st.lists(st.one_of(commands, garbage), max_size=12)
