@@ -231,7 +231,8 @@ def _check_change(rows: Sequence[tuple[str, float, float]], source: str,
     if not rows:
         return False
     changes = [cal.change_pct(new, old) for _, old, new in rows]
-    table = _table(f"rotation.{args.channel}: new result beside the {source} value it replaces",
+    key = lots.rotation_key(args.channel, args.seed_lot)
+    table = _table(f"{key}: new result beside the {source} value it replaces",
                    ("value", f"replaces ({source})", "new", "change %"),
                    [(what, f"{old:.2f}", f"{new:.2f}", f"{c:+.1f}")
                     for (what, old, new), c in zip(rows, changes, strict=True)])
@@ -244,7 +245,7 @@ def _check_change(rows: Sequence[tuple[str, float, float]], source: str,
             f"the result is {worst:.0f} % away from the {source} value it replaces (more than "
             f"{cal.LARGE_CHANGE_PCT:g} %): check the outlets weighed (--outlets-weighed) and "
             "the masses; --accept-large-change saves it anyway (if the saved value is the "
-            f"mistake: sowgate calibrate undo --key rotation.{args.channel}). Nothing saved"
+            f"mistake: sowgate calibrate undo --key {key}). Nothing saved"
         )
     log.warning("calibration rotation.%s: %.0f %% change accepted (--accept-large-change)",
                 args.channel, worst)

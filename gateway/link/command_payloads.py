@@ -181,6 +181,7 @@ _TYPE_WORDS = {
     "string_type": "must be a string",
     "bool_type": "must be true or false",
     "finite_number": "must be a finite number",
+    "string_pattern_mismatch": "must be letters, digits, '.', '_' or '-' only",
 }
 
 

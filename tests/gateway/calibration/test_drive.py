@@ -291,3 +291,31 @@ async def test_cancelling_a_can_driven_test_commands_the_shaft_off(tmp_path: Pat
             await asyncio.gather(sim, return_exceptions=True)
     assert plant.targets == [0.0, 30.0, 0.0]
     assert not drive.bus.connected
+
+
+async def test_no_answer_at_the_prompt_ends_the_test_with_the_meter_off(
+    tmp_path: Path, sim: Rs485Simulator, plant: Plant,
+) -> None:
+    """Standard input closed (a script without --mass): EOF at the first prompt, fan on."""
+    cfg = paper_a_config(tmp_path, sim)
+
+    def ask(_question: str) -> float:
+        raise EOFError
+
+    code, out = await asyncio.to_thread(run, paper_a_argv(tmp_path, cfg, 0.5), ask)
+    assert code == 1 and "no answer at the prompt" in " ".join(out.split()), out
+    assert motor_steps(plant) == [0.0, round(WHEAT_DUTIES[0], 1), 0.0]
+    assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
+
+
+def test_the_meter_is_not_driven_while_a_daemon_owns_the_bus(tmp_path: Path) -> None:
+    from gateway.calibration.presence import remove_presence, write_presence
+
+    write_presence(tmp_path, {"calibration": {}})  # a daemon running (this process)
+    try:
+        cfg = tmp_path / "sowgate.toml"
+        cfg.write_text('[rs485]\nport = "/dev/null-no-such-port"\n')
+        code, out = run(paper_a_argv(tmp_path, cfg, 0.5), lambda _q: pytest.fail("asked"))
+    finally:
+        remove_presence(tmp_path)
+    assert code == 1 and "is running and owns the bus" in " ".join(out.split()), out
