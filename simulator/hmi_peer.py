@@ -21,6 +21,7 @@ from protocol.hmi import (
     INSTRUCTION_END,
     EmptySeed,
     HmiCommand,
+    RotationTest,
     SeedLevelMonitoring,
     SelectCrop,
     SelectSeedLot,
@@ -95,6 +96,9 @@ class HmiPeer(StartClose):
 
     def select_seed_lot(self, crop_code: int, lot_number: int) -> None:
         self.press(SelectSeedLot(crop_code, lot_number))
+
+    def rotation_test(self, action: str, value: float = 0.0) -> None:
+        self.press(RotationTest(action, value))
 
     def send_raw(self, data: bytes) -> None:
         """Put bytes on the wire as they are (fault injection: garbage, split frames)."""

@@ -45,6 +45,7 @@ from gateway.app import wiring
 from gateway.app.calibration_check import working_speed_problem
 from gateway.app.live_calibration import LiveCalibration
 from gateway.app.parts import Parts
+from gateway.app.rotation_test import RotationTestSession
 from gateway.calibration.apply import apply_calibrations
 from gateway.calibration.fits import CalibrationStore
 from gateway.config import Settings, parts_summary, start_problems
@@ -129,6 +130,7 @@ class Daemon:
             base, settings, state_dir, self.alarms, self.controller,
             vet=working_speed_problem, clock=clock, start_notes=self.calibrations,
         )
+        self.rotation_test = RotationTestSession(settings, self.controller, self.live_calibration)
         self.rs485 = settings.rs485.enabled  # False: no radar, inclinometer or PWM module
         self.bus = ModbusBus.from_config(settings.rs485)
         self.radar = Radar(self.bus, settings.radar)
@@ -200,6 +202,12 @@ class Daemon:
         """The one command path for HMI and MQTT (see gateway.core.commands)."""
         if isinstance(command, cmd.SetChannelRate):
             return self._set_channel_rate(command, source)
+        if isinstance(command, cmd.RotationTest):
+            reply = self.rotation_test.command(command.action, command.value, self.clock())
+            log.info("command from %s: %s", source, reply)
+            return reply
+        if isinstance(command, cmd.Stop):
+            self.rotation_test.stop()
         if isinstance(command, cmd.SelectSeedLot):
             reply = self.live_calibration.select_lot(command.crop, command.lot)
             log.info("command from %s: %s", source, reply)
@@ -382,7 +390,10 @@ class Daemon:
                     self.controller.on_tilt(tilt, reply_t)
                 except DriverError:
                     pass
-            out = self.controller.tick(self.clock())
+            out = self.rotation_test.apply(self.controller.tick(self.clock()), self.clock())
+            note = self.rotation_test.take_note()
+            if note is not None and self.hmi is not None:
+                self.hmi.show(note)
             self.outputs = out
             await self._write_outputs(out.motor_pct, out.fan_pct, reply_t=reply_t)
             await self._keep_pwm_watchdog()

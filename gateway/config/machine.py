@@ -299,6 +299,8 @@ class ControlSection(Section):
     emptying_timeout_s: float = Field(120.0, gt=0, le=3600)
     emptying_motor_pct: float = Field(100.0, ge=0, le=100)
     start_working: bool = False  # start in the "work" mode without an HMI start press
+    # one run of the rotation test started from the touchscreen (paper A weighs 60 s runs)
+    rotation_test_s: float = Field(60.0, ge=1, le=600)
     crops: dict[str, CropModel] = Field(default_factory=default_crops)
     # keys older versions accepted and that never did anything: key -> value in the file
     _ignored: dict[str, Any] = PrivateAttr(default_factory=dict)

@@ -74,6 +74,17 @@ class SelectSeedLot:
     lot: str
 
 
+@dataclass(frozen=True)
+class RotationTest:
+    """A step of paper A's rotation test run from the touchscreen
+    (``gateway.app.rotation_test``): ``run`` at duty ``value`` %, the run's shaft ``rpm`` and
+    weighed ``mass`` (g, whole machine), ``save`` (``save_confirmed``: a large change the
+    operator confirmed), ``cancel``."""
+
+    action: str
+    value: float = 0.0
+
+
 Command = (
     SetRate
     | SetChannelRate
@@ -85,6 +96,7 @@ Command = (
     | SeedLevelMonitoring
     | CalibrateSpeed
     | SelectSeedLot
+    | RotationTest
 )
 
 

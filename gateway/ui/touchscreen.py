@@ -98,6 +98,8 @@ class HmiAdapter:
                     listed = ", ".join(f"{i} {name}" for i, name in enumerate(lots))
                     return f"{crop} has no seed lot {number} (lots: {listed})"
                 return cmd.SelectSeedLot(crop, lots[number])
+            case hmi.RotationTest(action=action, value=value):
+                return cmd.RotationTest(action, value)
             case hmi.Rejected(reason=reason):
                 return f"bad frame: {reason}"
         return f"unsupported input {event!r}"
@@ -114,6 +116,11 @@ class HmiAdapter:
         else:
             ok, text = self.execute(command, "hmi")
             self.last_message = text if ok else f"refused: {text}"
+        self._dirty.set()
+
+    def show(self, text: str) -> None:
+        """Put ``text`` on the message line now (e.g. "run 2 done: enter ...")."""
+        self.last_message = text
         self._dirty.set()
 
     def screen_texts(self) -> dict[str, str]:

@@ -16,6 +16,7 @@ from protocol.hmi import (
     HmiEvent,
     NextionReplyDecoder,
     Rejected,
+    RotationTest,
     ScreenError,
     ScreenReply,
     SeedLevelMonitoring,
@@ -69,6 +70,10 @@ def decode_split(data: bytes, cut: int) -> list[HmiEvent]:
         (frame(0x06), ZeroTilt()),
         (frame(0x07, 0x02, 0x00, 0x01), SelectSeedLot(2, 1)),
         (frame(0x07, 0x01, 0x01, 0x00), SelectSeedLot(1, 256)),
+        (frame(0x08, 0x01, 0x01, 0xC2), RotationTest("run", 45.0)),
+        (frame(0x08, 0x03, 0x10, 0x04), RotationTest("mass", 410.0)),
+        (frame(0x08, 0x00), RotationTest("cancel", 0.0)),
+        (frame(0x08, 0x05), RotationTest("save_confirmed", 0.0)),
     ],
 )
 def test_every_function_code_decodes_to_its_command(raw: bytes, event: HmiEvent) -> None:
@@ -79,6 +84,13 @@ def test_every_function_code_decodes_to_its_command(raw: bytes, event: HmiEvent)
 def test_seed_lot_frame_is_crop_code_and_a_big_endian_lot_number_both_ways() -> None:
     assert encode_frame(SelectSeedLot(2, 1)) == bytes.fromhex("5555070200010D0A")
     assert HmiDecoder().feed(encode_frame(SelectSeedLot(1, 300))) == [SelectSeedLot(1, 300)]
+
+
+@pytest.mark.parametrize("c", [0x06, 0x80, 0xFF])
+def test_a_rotation_test_action_beyond_05_is_rejected(c: int) -> None:
+    [event] = HmiDecoder().feed(frame(0x08, c))
+    assert isinstance(event, Rejected) and event.kind == "bad_field"
+    assert "rotation test action" in event.reason
 
 
 def test_wheat_225_kg_ha_is_08_ca_both_ways() -> None:
@@ -279,6 +291,8 @@ commands = st.one_of(
     st.builds(SeedLevelMonitoring, st.booleans()),
     st.just(ZeroTilt()),
     st.builds(SelectSeedLot, st.integers(0, 255), st.integers(0, 0xFFFF)),
+    st.builds(RotationTest, st.sampled_from(["cancel", "run", "rpm", "mass", "save"]),
+              st.integers(0, 0xFFFF).map(lambda r: r / 10)),
 )
 garbage = st.binary(min_size=1, max_size=40)
 stream_items = st.lists(st.one_of(commands, garbage), max_size=12)
