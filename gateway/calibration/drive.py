@@ -96,10 +96,12 @@ class ModbusMeterDrive:
         self._lock = asyncio.Lock()  # a write always sends the latest duty, in order
         self._keepalive: asyncio.Task[None] | None = None
         self._closed = False
+        self._switched_on = False  # a non-zero duty was sent: the off at close must succeed
 
     async def _write(self, channel: str, pct: float) -> None:
         async with self._lock:
             self._duty[channel] = pct
+            self._switched_on = self._switched_on or pct > 0
             await self.pwm.write_duty("motor" if channel == "motor" else "fan", pct)
 
     async def _keep_alive(self) -> None:
@@ -173,7 +175,7 @@ class ModbusMeterDrive:
             except (DriverError, TimeoutError) as exc:
                 failed.append(f"{channel}: {_describe(exc)}")
         await self.bus.close()
-        if failed:
+        if failed and self._switched_on:
             raise CalibrationError(
                 "could not switch the meter off (" + "; ".join(failed) + "): the PWM module's "
                 "watchdog sets both to 0 after actuators.comm_timeout_s = "
@@ -210,6 +212,7 @@ class CanMeterDrive:
         self._last_status: MeterStatus | None = None
         self._last_status_at: float | None = None
         self._closed = False
+        self._switched_on = False
 
     def _on_status(self, status: MeterStatus, _t: float) -> None:
         now = asyncio.get_running_loop().time()
@@ -263,6 +266,7 @@ class CanMeterDrive:
         start = loop.time()
         first = len(self._samples)
         try:
+            self._switched_on = True
             link.set_target(self.node, setpoint)
             await link.send_commands()  # now, not up to a command period later
             while (elapsed := loop.time() - start) < seconds:
@@ -305,7 +309,7 @@ class CanMeterDrive:
             with contextlib.suppress(BaseException):
                 await self._task
         self.bus.close()
-        if failed is not None:
+        if failed is not None and self._switched_on:
             raise CalibrationError(
                 f"could not command channel {self.channel!r} off ({failed}): its controller "
                 "stops by itself when the command frames stop"
@@ -373,6 +377,7 @@ async def drive_runs(
     whatever the reason (``close()`` in the ``finally``)."""
     turns: list[float | None] = []
     loop = asyncio.get_running_loop()
+    error: BaseException | None = None
     try:
         if drive is not None:
             await drive.open()
@@ -394,7 +399,18 @@ async def drive_runs(
             await after_run(i, turns[-1])
             if drive is not None:
                 await drive.check()
+    except BaseException as exc:
+        error = exc
+        raise
     finally:
         if drive is not None:
-            await drive.close()
+            try:
+                await drive.close()
+            except CalibrationError as off_failed:
+                # the meter may still run: that must be said, with what ended the test
+                if error is None:
+                    raise
+                stopped = isinstance(error, asyncio.CancelledError | KeyboardInterrupt)
+                why = "interrupted" if stopped else _describe(error)
+                raise CalibrationError(f"{why}; {off_failed}") from error
     return turns

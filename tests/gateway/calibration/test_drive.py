@@ -319,3 +319,30 @@ def test_the_meter_is_not_driven_while_a_daemon_owns_the_bus(tmp_path: Path) -> 
     finally:
         remove_presence(tmp_path)
     assert code == 1 and "is running and owns the bus" in " ".join(out.split()), out
+
+
+async def test_a_module_gone_silent_mid_run_is_reported_and_its_watchdog_stops_it(
+    tmp_path: Path, sim: Rs485Simulator, plant: Plant,
+) -> None:
+    """The off cannot be written to a dead module: the CLI says so, and says what stops it."""
+    cfg = paper_a_config(tmp_path, sim)
+    task = asyncio.create_task(asyncio.to_thread(
+        run, paper_a_argv(tmp_path, cfg, 5.0), lambda _q: pytest.fail("asked")))
+    await eventually(lambda: sim.duty_pct["motor"] > 0, what="run 1")
+    sim.set_silent(sim.device_ids["pwm"], True)
+    code, out = await task
+    text = " ".join(out.split())
+    assert code == 1, text
+    assert "stopped answering" in text and "could not switch the meter off" in text
+    assert "comm_timeout_s = 2 s" in text
+    await eventually(lambda: sim.duty_pct == {"motor": 0.0, "fan": 0.0}, timeout=5,
+                     what="the module's own watchdog")
+    assert sim.watchdog_trips == 1
+
+
+def test_a_port_with_nothing_on_it_says_so(tmp_path: Path) -> None:
+    cfg = tmp_path / "sowgate.toml"
+    cfg.write_text(f'[rs485]\nport = "{tmp_path / "no-such-port"}"\n')
+    code, out = run(paper_a_argv(tmp_path, cfg, 0.5), lambda _q: pytest.fail("asked"))
+    text = " ".join(out.split())
+    assert code == 1 and "does not answer" in text and "switch the meter off" not in text, text
