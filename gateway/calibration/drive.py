@@ -347,8 +347,23 @@ async def ask_in_thread(ask: Callable[[str], float], question: str) -> float:
         else:
             loop.call_soon_threadsafe(_settle, future, value, None)
 
-    threading.Thread(target=target, name="calibrate-prompt", daemon=True).start()
+    thread = threading.Thread(target=target, name="calibrate-prompt", daemon=True)
+    _PROMPTS.difference_update([t for t in _PROMPTS if not t.is_alive()])
+    _PROMPTS.add(thread)
+    thread.start()
     return await future
+
+
+_PROMPTS: set[threading.Thread] = set()
+
+
+def abandoned_prompt() -> bool:
+    """Whether a prompt thread is still blocked reading the terminal (Ctrl-C at a prompt).
+
+    Such a thread holds standard input's lock, and the interpreter's shutdown then aborts
+    (SIGABRT) when it touches standard input: ``sowgate calibrate`` ends with ``os._exit``
+    instead, once the meter is off and the output flushed."""
+    return any(t.is_alive() for t in _PROMPTS)
 
 
 def _settle(future: asyncio.Future[float], value: float | None,

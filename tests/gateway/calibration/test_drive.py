@@ -346,3 +346,31 @@ def test_a_port_with_nothing_on_it_says_so(tmp_path: Path) -> None:
     code, out = run(paper_a_argv(tmp_path, cfg, 0.5), lambda _q: pytest.fail("asked"))
     text = " ".join(out.split())
     assert code == 1 and "does not answer" in text and "switch the meter off" not in text, text
+
+
+async def test_ctrl_c_at_the_mass_prompt_switches_the_fan_off_and_exits(
+    tmp_path: Path, sim: Rs485Simulator, plant: Plant,
+) -> None:
+    """The prompt waits in its own thread; Ctrl-C there still reaches the safe-off at once."""
+    from tests.helpers import sowgate_argv
+
+    cfg = paper_a_config(tmp_path, sim)
+    proc = await asyncio.create_subprocess_exec(
+        *sowgate_argv(*paper_a_argv(tmp_path, cfg, 0.5)), env=sowgate_env(tmp_path),
+        stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE)
+    try:
+        # run 1 over: the motor stopped, the fan still on while the operator weighs
+        await eventually(lambda: motor_steps(plant)[-2:] == [round(WHEAT_DUTIES[0], 1), 0.0],
+                         what="run 1 over")
+        await asyncio.sleep(0.5)  # at the prompt now
+        assert sim.duty_pct == {"motor": 0.0, "fan": 85.0}
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = await asyncio.wait_for(proc.communicate(), 10)
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+    assert proc.returncode == 130, (stdout.decode(), stderr.decode())
+    assert "weighed mass of run 1" in stdout.decode()
+    assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
