@@ -43,7 +43,8 @@ log = logging.getLogger(__name__)
 TICK_S = 0.2  # progress report and health check while a run is on
 RUN_DOWN_MAX_S = 3.0  # after a CAN-driven run, follow the shaft until it stops (at most)
 RUN_DOWN_STOPPED_RPM = 0.5
-OFF_TIMEOUT_S = 1.0  # longest wait for one "off" write at the end
+OFF_TIMEOUT_S = 1.0
+CAN_OPEN_TIMEOUT_S = 5.0  # longest wait for one "off" write at the end
 # A controller idle for a while reports its command timeout until our first frames of the run
 # reach it; faults are believed from this long after a run starts.
 FAULT_GRACE_S = 0.5
@@ -220,7 +221,14 @@ class CanMeterDrive:
         self._last_status, self._last_status_at = status, now
 
     async def open(self) -> None:
-        await self.bus.open()
+        try:
+            async with asyncio.timeout(CAN_OPEN_TIMEOUT_S):
+                await self.bus.open()  # retries with backoff: not for ever here
+        except TimeoutError:
+            raise CalibrationError(
+                f"CAN {self.settings.can.interface} {self.settings.can.channel}: cannot be "
+                f"opened within {CAN_OPEN_TIMEOUT_S:g} s ({self.bus.stats.last_error})"
+            ) from None
         self.link = MeteringCanLink(self.bus, [self.node], command_hz=self.settings.can.command_hz)
         self.link.stop_all()
         self._task = asyncio.create_task(self.link.run(self._on_status), name="calibrate-can")

@@ -374,3 +374,11 @@ async def test_ctrl_c_at_the_mass_prompt_switches_the_fan_off_and_exits(
     assert proc.returncode == 130, (stdout.decode(), stderr.decode())
     assert "weighed mass of run 1" in stdout.decode()
     assert sim.duty_pct == {"motor": 0.0, "fan": 0.0}
+
+
+def test_a_can_controller_that_does_not_answer_is_not_driven(tmp_path: Path) -> None:
+    cfg = can_config(tmp_path, f"cal-{uuid.uuid4().hex[:8]}")  # nobody on this bus
+    argv = ["calibrate", "--config", str(cfg), "--state-dir", str(tmp_path), "rotation",
+            "--channel", "seed", "--drive", "can", "--speeds", "20,40", "--seconds", "1"]
+    code, out = run(argv, lambda _q: pytest.fail("asked"))
+    assert code == 1 and "no status from its controller (node 3)" in " ".join(out.split()), out
