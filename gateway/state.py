@@ -96,3 +96,5 @@ class MachineState:
     hopper: HopperState | None = None  # None without [hopper_scale]
     # critical alarms not acknowledged yet (active or cleared), oldest first: code -> message
     unacknowledged: tuple[tuple[str, str], ...] = ()
+    seed_lot: str = "default"  # the active seed lot of ``crop`` (gateway.calibration.lots)
+    seed_lots: Mapping[str, str] = field(default_factory=dict)  # crop -> lot, when not default

@@ -44,6 +44,11 @@ F_EMPTY = 0x04
 F_SEED_LEVEL = 0x05
 F_ZERO_TILT = 0x06
 F_ACK_ALARM = 0x07  # sowgate's addition to paper A's set: the alarm line's "ACK" button
+F_SEED_LOT = 0x08
+F_ROTATION_TEST = 0x09
+# F=09's C byte: what the operator does in the rotation test; R1R2 carry its value in 0.1 units
+ROTATION_ACTIONS = {0: "cancel", 1: "run", 2: "rpm", 3: "mass", 4: "save", 5: "save_confirmed"}
+ROTATION_SCALE = 10  # R1 R2: duty in 0.1 %, shaft speed in 0.1 r/min, mass in 0.1 g
 
 RATE_SCALE = 10  # R1 R2 carry the rate in 0.1 kg/ha
 RATE_RAW_MAX = 0xFFFF
@@ -94,6 +99,26 @@ class AckAlarm:
     Not in paper A's frame set: a screen without the button never sends it."""
 
 
+@dataclass(frozen=True, slots=True)
+class SelectSeedLot:
+    """F=0x08: make seed lot number R1R2 (big-endian) the active lot of crop code C. Lot 0
+    is ``default``; which name a number stands for is the gateway's (it shows the list)."""
+
+    crop_code: int
+    lot_number: int
+
+
+@dataclass(frozen=True, slots=True)
+class RotationTest:
+    """F=0x09: a step of the rotation test run from the screen. C is the action
+    (``ROTATION_ACTIONS``: 00 cancel, 01 run at duty R1R2, 02 the run's shaft r/min, 03 its
+    weighed mass in g, 04 fit and save, 05 save a large change the operator confirmed); R1R2
+    (big-endian) its value in 0.1 units, 0 where the action has none."""
+
+    action: str
+    value: float = 0.0
+
+
 # Kinds of rejected input: stable keys for the per-reason counters (the ``reason`` text varies).
 KIND_GARBAGE = "garbage"  # bytes that are not a 55 55 frame (noise, wrong baud rate)
 KIND_BAD_TRAILER = "bad_trailer"  # a 55 55 header without 0D 0A six bytes later
@@ -133,6 +158,7 @@ class ScreenReply:
 
 HmiCommand = (
     StartWork | StopWork | SelectCrop | EmptySeed | SeedLevelMonitoring | ZeroTilt | AckAlarm
+    | SelectSeedLot | RotationTest
 )
 HmiEvent = HmiCommand | Rejected | ScreenError | ScreenReply
 
@@ -183,6 +209,15 @@ def _decode_framed(frame: bytes) -> HmiEvent:
         return ZeroTilt()
     if function == F_ACK_ALARM:
         return AckAlarm()
+    if function == F_SEED_LOT:
+        return SelectSeedLot(crop_code=c, lot_number=(r1 << 8) | r2)
+    if function == F_ROTATION_TEST:
+        action = ROTATION_ACTIONS.get(c)
+        if action is None:
+            return Rejected(
+                f"rotation test action must be 00..05, got 0x{c:02X}", frame, KIND_BAD_FIELD
+            )
+        return RotationTest(action, ((r1 << 8) | r2) / ROTATION_SCALE)
     return Rejected(f"unknown function code 0x{function:02X}", frame, KIND_UNKNOWN_FUNCTION)
 
 
@@ -368,6 +403,22 @@ def encode_frame(command: HmiCommand) -> bytes:
             function = F_ZERO_TILT
         case AckAlarm():
             function = F_ACK_ALARM
+        case SelectSeedLot(crop_code=code, lot_number=number):
+            function = F_SEED_LOT
+            if not 0 <= code <= 0xFF:
+                raise FieldError(f"crop code must fit one byte (0..255), got {code}")
+            if not 0 <= number <= RATE_RAW_MAX:
+                raise FieldError(f"seed lot number must be 0..65535, got {number}")
+            c, rate_raw = code, number
+        case RotationTest(action=action, value=value):
+            function = F_ROTATION_TEST
+            codes = {name: code for code, name in ROTATION_ACTIONS.items()}
+            if action not in codes:
+                raise FieldError(f"unknown rotation test action {action!r}")
+            rate_raw = round(value * ROTATION_SCALE)
+            if not 0 <= rate_raw <= RATE_RAW_MAX:
+                raise FieldError(f"rotation test value must be 0..6553.5, got {value}")
+            c = codes[action]
         case _:
             raise TypeError(f"not an HMI command: {command!r}")
     return HEADER + bytes((function, c, rate_raw >> 8, rate_raw & 0xFF)) + TRAILER

@@ -22,8 +22,10 @@ from protocol.hmi import (
     AckAlarm,
     EmptySeed,
     HmiCommand,
+    RotationTest,
     SeedLevelMonitoring,
     SelectCrop,
+    SelectSeedLot,
     StartWork,
     StopWork,
     ZeroTilt,
@@ -95,6 +97,12 @@ class HmiPeer(StartClose):
 
     def zero_tilt(self) -> None:
         self.press(ZeroTilt())
+
+    def select_seed_lot(self, crop_code: int, lot_number: int) -> None:
+        self.press(SelectSeedLot(crop_code, lot_number))
+
+    def rotation_test(self, action: str, value: float = 0.0) -> None:
+        self.press(RotationTest(action, value))
 
     def send_raw(self, data: bytes) -> None:
         """Put bytes on the wire as they are (fault injection: garbage, split frames)."""

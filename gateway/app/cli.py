@@ -177,8 +177,14 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from gateway.calibration.cli import run_calibration
+    from gateway.calibration.drive import abandoned_prompt
 
-    return run_calibration(args)
+    code = run_calibration(args)
+    if abandoned_prompt():  # Ctrl-C at a prompt: the meter is off, end without the shutdown
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -43,7 +43,9 @@ from drivers.rs485_devices import Channel, HopperScale, Inclinometer, PwmModule,
 from drivers.tasks import cancel_all
 from gateway.app import wiring
 from gateway.app.calibration_check import working_speed_problem
+from gateway.app.live_calibration import LiveCalibration
 from gateway.app.parts import Parts
+from gateway.app.rotation_test import RotationTestSession
 from gateway.calibration.apply import apply_calibrations
 from gateway.calibration.fits import CalibrationStore
 from gateway.config import Settings, parts_summary, start_problems
@@ -115,6 +117,7 @@ class Daemon:
         self.state_dir = state_dir
         self.clock = clock
         self.alarms = AlarmBoard(settings.machine.id)
+        base = settings.model_copy(deep=True)  # the config alone: live reloads start from it
         self.calibrations = apply_calibrations(
             settings, state_dir, vet=working_speed_problem, alarms=self.alarms
         )
@@ -123,6 +126,11 @@ class Daemon:
         self.controller = Controller(
             settings, self.alarms, calibrations=CalibrationStore(state_dir)
         )
+        self.live_calibration = LiveCalibration(
+            base, settings, state_dir, self.alarms, self.controller,
+            vet=working_speed_problem, clock=clock, start_notes=self.calibrations,
+        )
+        self.rotation_test = RotationTestSession(settings, self.controller, self.live_calibration)
         self.rs485 = settings.rs485.enabled  # False: no radar, inclinometer or PWM module
         self.bus = ModbusBus.from_config(settings.rs485)
         self.radar = Radar(self.bus, settings.radar)
@@ -164,9 +172,11 @@ class Daemon:
                 crops=settings.control.crops,
                 execute=self.try_execute,
                 state=self.state,
+                seed_lots=self.live_calibration.lots_of,
             )
         self.parts = Parts()  # the optional parts, filled by gateway.app.wiring
         self.tick_hooks: list[Callable[[ControlOutputs], None]] = []
+        self.tick_hooks.append(lambda _out: self.live_calibration.poll())
         self.closers: list[Callable[[], None]] = []
         self.epoch_listeners: list[Callable[[Any], None]] = []
         self._build_optional()
@@ -196,6 +206,16 @@ class Daemon:
         """The one command path for HMI and MQTT (see gateway.core.commands)."""
         if isinstance(command, cmd.SetChannelRate):
             return self._set_channel_rate(command, source)
+        if isinstance(command, cmd.RotationTest):
+            reply = self.rotation_test.command(command.action, command.value, self.clock())
+            log.info("command from %s: %s", source, reply)
+            return reply
+        if isinstance(command, cmd.Stop):
+            self.rotation_test.stop()
+        if isinstance(command, cmd.SelectSeedLot):
+            reply = self.live_calibration.select_lot(command.crop, command.lot)
+            log.info("command from %s: %s", source, reply)
+            return reply
         return self.controller.execute(command, source)
 
     def _set_channel_rate(self, command: cmd.SetChannelRate, source: str) -> str:
@@ -235,6 +255,7 @@ class Daemon:
                 installed.append(sig)
         if self.rs485:
             await self.bus.start()
+        self.live_calibration.announce()
         try:
             # both outputs are 0 before anything else happens
             await self._write_outputs(0.0, 0.0, force=True)
@@ -242,6 +263,7 @@ class Daemon:
             await self._supervise()
         finally:
             await self._safe_off()  # again: the net for the paths that skipped _stop_control
+            self.live_calibration.retire()
             if self.rs485:
                 await self.bus.close()
             for close in reversed(self.closers):
@@ -377,7 +399,10 @@ class Daemon:
                     with contextlib.suppress(DriverError):
                         kg = await self.hopper_scale.read()
                     self.controller.on_hopper_weight(kg, self.clock())
-            out = self.controller.tick(self.clock())
+            out = self.rotation_test.apply(self.controller.tick(self.clock()), self.clock())
+            note = self.rotation_test.take_note()
+            if note is not None and self.hmi is not None:
+                self.hmi.show(note)
             self.outputs = out
             await self._write_outputs(out.motor_pct, out.fan_pct, reply_t=reply_t)
             await self._keep_pwm_watchdog()
@@ -540,6 +565,8 @@ class Daemon:
             rejected=parts.rejected.counts() if parts.rejected is not None else None,
             hopper=c.hopper.state(self.clock()) if c.hopper is not None else None,
             unacknowledged=tuple((a.code, a.message) for a in self.alarms.unacknowledged),
+            seed_lot=self.live_calibration.lot_of(c.crop),
+            seed_lots=dict(self.live_calibration.lots),
         )
 
 async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:

@@ -119,6 +119,8 @@ def state_payload(daemon: Daemon) -> StatePayload:
             seed_sensors=dict(rejected.seed_sensors),
         ),
         hopper=None if state.hopper is None else _hopper_info(state.hopper),
+        seed_lot=state.seed_lot,
+        seed_lots=dict(state.seed_lots),
     )
 
 

@@ -5,7 +5,8 @@ directory; the fitter's config keeps the factory values. At start the daemon lay
 calibrations over the config so a refitted machine sows with its own curves, and the
 ``undo`` of a bad calibration is a restart away.
 
-A calibration is applied at the daemon's next start, not while it runs. The daemon passes a
+A calibration saved while the daemon runs is applied by it too (``gateway.app.live_calibration``
+re-applies the file onto the config when it changes). The daemon passes a
 ``vet`` (``gateway.app.calibration_check.working_speed_problem``): a calibration that would
 make a channel sow nothing or run flat out over the machine's working speeds is refused, the
 config value kept, and ``calibration.refused`` raised naming the key and why.
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from gateway.calibration.fits import CalibrationError, CalibrationStore
+from gateway.calibration.lots import active_lots, effective_entries
 from gateway.config import Settings
 from gateway.core.alarms import AlarmBoard
 
@@ -41,10 +43,26 @@ def apply_calibrations(settings: Settings, state_dir: Path, *, vet: Vet | None =
     raised as ``calibration.refused``.
     """
     try:
-        current = CalibrationStore(state_dir).current()
+        doc = CalibrationStore(state_dir).load()
     except CalibrationError as exc:
         log.error("calibrations not applied: %s", exc)
         return [f"calibration file ignored: {exc}"]
+    current = effective_entries(settings, doc["current"], active_lots(doc))
+    applied, refused = apply_entries(settings, current, vet=vet)
+    if alarms is not None and refused:
+        alarms.raise_(REFUSED_ALARM, refused_message(refused), "warning")
+    return applied
+
+
+def refused_message(refused: list[str]) -> str:
+    return "calibration refused, config value used: " + "; ".join(refused)
+
+
+def apply_entries(settings: Settings, current: dict[str, Any], *,
+                  vet: Vet | None = None) -> tuple[list[str], list[str]]:
+    """Apply the entries of ``current`` (a calibration file's ``current``, its seed lots
+    resolved by ``lots.effective_entries``) to ``settings``;
+    (notes on what changed, ``<key> <why>`` of each entry the ``vet`` refused)."""
     applied: list[str] = []
     refused: list[str] = []
     for key, entry in sorted(current.items()):
@@ -67,10 +85,7 @@ def apply_calibrations(settings: Settings, state_dir: Path, *, vet: Vet | None =
         if note:
             applied.append(note)
             log.info("calibration applied: %s", note)
-    if alarms is not None and refused:
-        alarms.raise_(REFUSED_ALARM, "calibration refused, config value used: "
-                      + "; ".join(refused), "warning")
-    return applied
+    return applied, refused
 
 
 def _paper_a_crop(settings: Settings, name: str) -> str | None:

@@ -6,10 +6,15 @@ and in every prompt: the catch of ``--outlets-weighed N`` outlets (default all o
 channel's); g/rev is stored per outlet, paper A's eq. 6 for the whole machine. A fit outside
 the quality gates (``fits.MAX_GPR_CV_PCT`` ...) or a result more than ``fits.LARGE_CHANGE_PCT``
 from the value it replaces is shown and refused unless ``--accept-poor-fit`` /
-``--accept-large-change``. With ``--drive can`` the CLI itself commands a
-``can_pid`` channel's controller over CAN at each speed (stop the daemon first: one owner per
-bus); with ``--drive manual`` (default) the operator runs the meter from the HMI and the CLI
-only times. Results go to ``<state_dir>/calibration.json`` (previous value kept for undo).
+``--accept-large-change``.
+
+Who runs the meter: with ``--drive modbus`` the CLI drives paper A's motor on the RS485 PWM
+module (fan at its working duty, watchdog armed), with ``--drive can`` a ``can_pid`` channel's
+controller over CAN (its shaft measured); stop the daemon first (one master per bus). Set
+point after set point, the motor is off between runs (each run's prompts come then, while the
+catch is weighed) and off on any error, Ctrl-C or SIGTERM (``gateway.calibration.drive``).
+With ``--drive manual`` (default) the operator runs the meter from the HMI and the CLI only
+times. Results go to ``<state_dir>/calibration.json`` (previous value kept for undo).
 """
 
 from __future__ import annotations
@@ -18,10 +23,9 @@ import argparse
 import asyncio
 import contextlib
 import csv
-import itertools
 import json
 import logging
-import threading
+import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -35,19 +39,25 @@ from rich.prompt import FloatPrompt
 from rich.table import Table
 
 from drivers.errors import DriverError
+from gateway.calibration import drive as drive_mod
 from gateway.calibration import fits as cal
-from gateway.config import ConfigError, Settings, load_config, state_dir
+from gateway.calibration import lots, presence
+from gateway.config import ConfigError, CropModel, Settings, load_config, state_dir
 from gateway.core.errors import GatewayError
 
 log = logging.getLogger(__name__)
 
 EXIT_OK = 0
 EXIT_FAILED = 1
+EXIT_SIGINT = 130  # the shell's 128 + signal number
+EXIT_SIGTERM = 143
 DEFAULT_B_SPEEDS = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)  # paper B
 DEFAULT_B_SECONDS = 30.0
 DEFAULT_A_SECONDS = 60.0  # paper A weighs 60 s runs
+DEFAULT_A_RUNS = 6  # paper A duties over the fitted shaft speed range, when not given
 SPEED_SOURCES = ("radar", "gnss", "isobus")
-RUN_DOWN_MAX_S = 3.0  # after a CAN-driven run, follow the shaft until it stops (at most)
+# how long the CLI waits for a running daemon to apply a save (it looks every WATCH_S)
+DAEMON_PICKUP_S = 2 * presence.WATCH_S + 1.0
 PROGRESS_EVERY_S = 10.0  # without a terminal: a "10 s of 30 s" line this often
 
 
@@ -82,7 +92,10 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     r.add_argument("--model", choices=("grams_per_rev", "paper_a"), default="grams_per_rev")
     r.add_argument("--speeds", type=_floats, default=None,
                    help="shaft r/min set points (paper B: 10,20,...,60)")
-    r.add_argument("--duties", type=_floats, default=None, help="paper A: PWM duty %% per run")
+    r.add_argument("--duties", type=_floats, default=None,
+                   help="paper A: PWM duty %% per run (with --drive modbus and --config, "
+                   f"default: {DEFAULT_A_RUNS} duties spread over the crop's fitted shaft "
+                   "speed range, by its motor line)")
     r.add_argument("--rpm", type=_floats, default=None,
                    help="paper A: measured shaft r/min per run (default: the set speeds)")
     r.add_argument("--seconds", type=float, default=None, help="run length (B 30 s, A 60 s)")
@@ -100,9 +113,25 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     r.add_argument("--accept-large-change", action="store_true",
                    help=f"save a result more than {cal.LARGE_CHANGE_PCT:g} percent away from the "
                    "value it replaces (the saved one, else the config's)")
+    r.add_argument("--seed-lot", default=lots.DEFAULT_LOT, metavar="NAME",
+                   help="the seed lot this test is for (default: default); each lot of a crop "
+                   "keeps its own fit, and the one just calibrated becomes the crop's active "
+                   "lot (switch with: sowgate calibrate seed-lot, MQTT cmd/seed_lot or the "
+                   "touchscreen)")
     r.add_argument("--min-stable-rpm", type=float, default=cal.PAPER_B_MIN_STABLE_RPM)
     r.add_argument("--working-range", type=_floats, default=None, help="lo,hi r/min")
-    r.add_argument("--drive", choices=("manual", "can"), default="manual")
+    r.add_argument("--drive", choices=("manual", "modbus", "can"), default="manual",
+                   help="manual: the operator runs the meter (from the HMI), the CLI times "
+                   "the runs; modbus: the CLI drives paper A's motor (and the fan at its "
+                   "working duty) on the RS485 PWM module; can: the CLI drives a can_pid "
+                   "channel's controller and measures its shaft. Stop the daemon first (one "
+                   "master per bus). The motor is off between runs, on any error, on Ctrl-C")
+    r.add_argument("--fan-duty", type=float, default=None, metavar="PCT",
+                   help="--drive modbus: fan duty during the test (default: the crop's "
+                   "fan_high_pct, its seeding duty)")
+    r.add_argument("--fan-settle", type=float, default=drive_mod.DEFAULT_FAN_SETTLE_S,
+                   metavar="S", help="--drive modbus: seconds the fan runs before the first "
+                   "run's motor starts")
     r.add_argument("--no-wait", action="store_true", help="do not time the runs (masses known)")
 
     s = sub.add_parser("speed", help="drive a measured distance, store a correction factor")
@@ -119,6 +148,12 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     t.add_argument("--sensor", default="inclinometer")
     t.add_argument("--readings", type=_floats, default=None, help="angles in degrees")
 
+    lot = sub.add_parser("seed-lot", help="make a seed lot's rotation test the crop's active "
+                         "one (as MQTT cmd/seed_lot)")
+    lot.add_argument("--crop", required=True, help="crop (or a channel's product)")
+    lot.add_argument("--lot", required=True, help="seed lot name; default: the test saved "
+                     "without --seed-lot")
+
     u = sub.add_parser("undo", help="restore the value replaced by the last calibration")
     u.add_argument("--key", default=None, help="e.g. rotation.seed, speed.radar, tilt.inclinometer")
 
@@ -133,16 +168,6 @@ def _settings(args: argparse.Namespace) -> Settings | None:
 
 def _store(args: argparse.Namespace) -> cal.CalibrationStore:
     return cal.CalibrationStore(args.state_dir or state_dir())
-
-
-def _masses(args: argparse.Namespace, n: int, console: Console,
-            ask: Callable[[str], float], outlets_weighed: int = 1) -> list[float]:
-    if args.mass is not None:
-        if len(args.mass) != n:
-            raise cal.CalibrationError(f"--mass has {len(args.mass)} values for {n} runs")
-        return list(args.mass)
-    return [ask(f"weighed mass of run {i + 1} (g, mass from {outlets_weighed} outlet(s))")
-            for i in range(n)]
 
 
 @dataclass(frozen=True)
@@ -206,7 +231,8 @@ def _check_change(rows: Sequence[tuple[str, float, float]], source: str,
     if not rows:
         return False
     changes = [cal.change_pct(new, old) for _, old, new in rows]
-    table = _table(f"rotation.{args.channel}: new result beside the {source} value it replaces",
+    key = lots.rotation_key(args.channel, args.seed_lot)
+    table = _table(f"{key}: new result beside the {source} value it replaces",
                    ("value", f"replaces ({source})", "new", "change %"),
                    [(what, f"{old:.2f}", f"{new:.2f}", f"{c:+.1f}")
                     for (what, old, new), c in zip(rows, changes, strict=True)])
@@ -219,7 +245,7 @@ def _check_change(rows: Sequence[tuple[str, float, float]], source: str,
             f"the result is {worst:.0f} % away from the {source} value it replaces (more than "
             f"{cal.LARGE_CHANGE_PCT:g} %): check the outlets weighed (--outlets-weighed) and "
             "the masses; --accept-large-change saves it anyway (if the saved value is the "
-            f"mistake: sowgate calibrate undo --key rotation.{args.channel}). Nothing saved"
+            f"mistake: sowgate calibrate undo --key {key}). Nothing saved"
         )
     log.warning("calibration rotation.%s: %.0f %% change accepted (--accept-large-change)",
                 args.channel, worst)
@@ -227,131 +253,132 @@ def _check_change(rows: Sequence[tuple[str, float, float]], source: str,
 
 
 @dataclass
-class CanRun:
-    """One rotation-test run driven over CAN in a worker thread (the progress bar keeps
-    updating in the main one); ``revolutions`` is the shaft's measured turns, run-down
-    included, integrated from the controller's status frames."""
+class TestRuns:
+    """What the runs of one rotation test gave: each run's measured shaft turns (None: no
+    shaft sensor), the shaft speeds the operator read (paper A, else None) and the masses."""
 
-    thread: threading.Thread | None = None
-    revolutions: float | None = None
-    error: BaseException | None = None
-
-    def join(self) -> None:
-        if self.thread is not None:
-            self.thread.join()
-        if self.error is not None:
-            raise self.error
+    turns: list[float | None]
+    rpm: list[float] | None
+    masses: list[float]
 
 
-def _timed_runs(labels: Sequence[str], seconds: float, console: Console,
-                drive: Callable[[int, float], CanRun] | None, wait: bool) -> list[CanRun]:
-    runs: list[CanRun] = []
-    if not wait:
-        return runs
-    if not console.is_terminal:
-        # rich's bar is drawn only on a terminal: piped or logged, it printed nothing until
-        # every run was over (6 x 30 s). One line per event instead.
-        return _timed_runs_plain(labels, seconds, console, drive)
-    with Progress(TextColumn("{task.description}"), BarColumn(), TimeRemainingColumn(),
-                  console=console, transient=False) as progress:
-        for i, label in enumerate(labels):
-            task = progress.add_task(f"run {i + 1}: {label}", total=seconds)
-            start = time.monotonic()
-            run = drive(i, seconds) if drive is not None else None
-            while (elapsed := time.monotonic() - start) < seconds:
-                progress.update(task, completed=elapsed)
-                time.sleep(min(0.2, seconds - elapsed))
-            progress.update(task, completed=seconds)
-            if run is not None:
-                run.join()  # the shaft has run down
-                runs.append(run)
-    return runs
+class _Screen:
+    """The runs on the console: a rich bar per run on a terminal, else a line when each run
+    starts, every ``PROGRESS_EVERY_S`` while it runs, and when it is done (piped or logged,
+    rich's bar printed nothing until every run was over)."""
+
+    def __init__(self, console: Console, labels: Sequence[str], seconds: float) -> None:
+        self.console, self.labels, self.seconds = console, labels, seconds
+        self.progress: Progress | None = None
+        self.task: Any = None
+        self.next_report = PROGRESS_EVERY_S
+
+    def __call__(self, r: drive_mod.RunReport) -> None:
+        n, i = len(self.labels), r.index
+        if not self.console.is_terminal:
+            if r.event == "started":
+                self.next_report = PROGRESS_EVERY_S
+                self.console.print(f"run {i + 1}/{n}: {escape(self.labels[i])}: started",
+                                   highlight=False)
+            elif r.event == "progress" and r.elapsed_s >= self.next_report:
+                self.console.print(f"run {i + 1}/{n}: {self.next_report:g} s of "
+                                   f"{self.seconds:g} s", highlight=False)
+                self.next_report += PROGRESS_EVERY_S
+            elif r.event == "done":
+                self.console.print(f"run {i + 1}/{n}: done", highlight=False)
+            return
+        if r.event == "started":
+            self.progress = Progress(TextColumn("{task.description}"), BarColumn(),
+                                     TimeRemainingColumn(), console=self.console)
+            self.progress.start()
+            self.task = self.progress.add_task(f"run {i + 1}/{n}: {self.labels[i]}",
+                                               total=self.seconds)
+        elif self.progress is not None:
+            self.progress.update(self.task, completed=min(r.elapsed_s, self.seconds))
+            if r.event == "done":
+                self.progress.stop()
+                self.progress = None
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.stop()
+            self.progress = None
 
 
-def _timed_runs_plain(labels: Sequence[str], seconds: float, console: Console,
-                      drive: Callable[[int, float], CanRun] | None) -> list[CanRun]:
-    """The timed runs for a console that is not a terminal: a line when each run starts,
-    every ``PROGRESS_EVERY_S`` while it runs, and when it is done."""
-    runs: list[CanRun] = []
-    n = len(labels)
-    for i, label in enumerate(labels):
-        console.print(f"run {i + 1}/{n}: {escape(label)}: started", highlight=False)
-        start = time.monotonic()
-        run = drive(i, seconds) if drive is not None else None
-        next_report = PROGRESS_EVERY_S
-        while (elapsed := time.monotonic() - start) < seconds:
-            if elapsed >= next_report:
-                console.print(f"run {i + 1}/{n}: {next_report:g} s of {seconds:g} s",
-                              highlight=False)
-                next_report += PROGRESS_EVERY_S
-            time.sleep(min(0.2, seconds - elapsed, max(0.0, next_report - elapsed)))
-        if run is not None:
-            run.join()  # the shaft has run down
-            runs.append(run)
-        console.print(f"run {i + 1}/{n}: done", highlight=False)
-    return runs
+def _run_test(args: argparse.Namespace, console: Console, ask: Callable[[str], float],
+              drive: drive_mod.MeterDrive | None, labels: Sequence[str],
+              setpoints: Sequence[float], seconds: float, outlets: Outlets, *,
+              ask_rpm: bool) -> TestRuns:
+    """The runs (timed, or driven by ``drive``), then or between them the prompts.
 
+    With the meter driven or timed, each run's prompts come right after it, motor off: the
+    catch is weighed before the next run fills the bag. ``--no-wait`` skips the runs (the
+    masses are known) and so cannot drive anything."""
+    n = len(setpoints)
+    if args.mass is not None and len(args.mass) != n:
+        raise cal.CalibrationError(f"--mass has {len(args.mass)} values for {n} runs")
+    if ask_rpm and args.rpm is not None and len(args.rpm) != n:
+        raise cal.CalibrationError(f"--rpm has {len(args.rpm)} values for {n} runs")
+    rpm: list[float] = list(args.rpm) if ask_rpm and args.rpm is not None else []
+    masses: list[float] = list(args.mass) if args.mass is not None else []
 
-def shaft_revolutions(samples: Sequence[tuple[float, float]]) -> float:
-    """Turns from (time s, measured r/min) status samples (trapezoid)."""
-    return sum((t1 - t0) * (r0 + r1) / 2 / 60.0
-               for (t0, r0), (t1, r1) in itertools.pairwise(samples))
+    def mass_question(i: int) -> str:
+        return (f"weighed mass of run {i + 1} ({labels[i]}) in g, {outlets.describe()}")
 
+    def rpm_question(i: int) -> str:
+        return f"measured shaft speed of run {i + 1} ({labels[i]}) in r/min"
 
-def _can_driver(settings: Settings | None, channel: str,
-                speeds: Sequence[float]) -> Callable[[int, float], CanRun]:
-    """Drive a can_pid channel's controller at each set speed for the run's duration."""
-    from drivers.can_bus import CanBus, MeteringCanLink
+    if args.no_wait:
+        if drive is not None:
+            raise cal.CalibrationError("--no-wait skips the runs: it cannot drive the meter "
+                                       f"(--drive {args.drive})")
+        if ask_rpm and args.rpm is None:
+            rpm = [ask(rpm_question(i)) for i in range(n)]
+        if args.mass is None:
+            masses = [ask(mass_question(i)) for i in range(n)]
+        return TestRuns([None] * n, rpm if ask_rpm else None, masses)
 
-    if settings is None:
-        raise cal.CalibrationError("--drive can needs --config (CAN bus and channel node)")
-    ch = next((c for c in settings.channel if c.name == channel and c.drive == "can_pid"), None)
-    if ch is None:
-        raise cal.CalibrationError(f"no can_pid channel named {channel!r} in the config")
-    node = ch.node_id
+    async def after_run(i: int, _turns: float | None) -> None:
+        if ask_rpm and args.rpm is None:
+            rpm.append(await drive_mod.ask_in_thread(ask, rpm_question(i)))
+        if args.mass is None:
+            masses.append(await drive_mod.ask_in_thread(ask, mass_question(i)))
 
-    async def run(i: int, seconds: float, result: CanRun) -> None:
-        can = settings.can
+    screen = _Screen(console, labels, seconds)
+
+    async def session() -> list[float | None]:
         loop = asyncio.get_running_loop()
-        samples: list[tuple[float, float]] = []
-        async with CanBus(can.interface, can.channel, can.bitrate) as bus:
-            link = MeteringCanLink(bus, [node], command_hz=can.command_hz)
-            link.set_target(node, speeds[i])
-            task = asyncio.create_task(
-                link.run(lambda st, t: samples.append((t, st.measured_rpm))),
-                name="calibrate-drive",
-            )
-            try:
-                await asyncio.sleep(seconds)
-                link.stop_all()
-                # what the shaft delivers while running down lands in the catch too
-                stopped_at, deadline = time.monotonic(), loop.time() + RUN_DOWN_MAX_S
-                while loop.time() < deadline:
-                    await asyncio.sleep(0.1)
-                    if samples and samples[-1][0] > stopped_at and samples[-1][1] < 0.5:
-                        break
-            finally:
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
-                link.stop_all()
-                with contextlib.suppress(DriverError):
-                    await link.send_commands()
-        result.revolutions = shaft_revolutions(samples) if len(samples) >= 2 else None
+        me = asyncio.current_task()
+        assert me is not None
+        # SIGTERM ends the test as Ctrl-C does (asyncio.run turns SIGINT into a cancel)
+        terminated = False
+        try:
+            def on_term() -> None:
+                nonlocal terminated
+                terminated = True
+                me.cancel()
+            loop.add_signal_handler(signal.SIGTERM, on_term)
+        except (NotImplementedError, RuntimeError, ValueError):  # not the main thread
+            pass
+        try:
+            return await drive_mod.drive_runs(drive, setpoints, seconds, screen, after_run)
+        except asyncio.CancelledError:
+            if terminated:
+                raise Interrupted("terminated (SIGTERM)") from None
+            raise
+        finally:
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.remove_signal_handler(signal.SIGTERM)
 
-    def drive(i: int, seconds: float) -> CanRun:
-        result = CanRun()
+    try:
+        turns = asyncio.run(session())
+    finally:
+        screen.close()
+    return TestRuns(turns, rpm if ask_rpm else None, masses)
 
-        def target() -> None:
-            try:
-                asyncio.run(run(i, seconds, result))
-            except BaseException as exc:  # handed to the main thread by join()
-                result.error = exc
 
-        result.thread = threading.Thread(target=target, name=f"calibrate-run-{i + 1}")
-        result.thread.start()
-        return result
-
-    return drive
+class Interrupted(Exception):
+    """The test was stopped by a signal; the meter is off (``drive_runs``)."""
 
 
 def _table(title: str, headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> Table:
@@ -386,23 +413,35 @@ def _check_rotation_target(settings: Settings | None, name: str, model: str) -> 
         )
 
 
+def _previous_entry(store: cal.CalibrationStore, name: str, lot: str,
+                    model: str) -> tuple[dict[str, Any], str] | None:
+    """The saved entry a new result of ``lot`` replaces: that lot's, else (a lot's first test)
+    the default lot's, with where it comes from."""
+    for candidate in dict.fromkeys((lot, lots.DEFAULT_LOT)):
+        entry = store.get(lots.rotation_key(name, candidate))
+        if entry is not None and entry.get("model") == model:
+            return entry, ("calibration" if candidate == lot
+                           else f"calibration (lot {candidate})")
+    return None
+
+
 def _previous_gpr(store: cal.CalibrationStore, settings: Settings | None,
-                  name: str) -> tuple[float, str] | None:
+                  name: str, lot: str) -> tuple[float, str] | None:
     """The per-outlet g/rev a new result replaces: the saved one, else the config's."""
-    entry = store.get(f"rotation.{name}")
-    if entry is not None and entry.get("model") == "grams_per_rev":
-        return float(entry["result"]["grams_per_rev"]), "calibration"
+    saved = _previous_entry(store, name, lot, "grams_per_rev")
+    if saved is not None:
+        return float(saved[0]["result"]["grams_per_rev"]), saved[1]
     ch = next((c for c in settings.channel if c.name == name), None) if settings else None
     return (ch.grams_per_rev, "config") if ch is not None else None
 
 
-def _previous_paper_a(store: cal.CalibrationStore, settings: Settings | None,
-                      name: str) -> tuple[dict[str, float], dict[str, float], str] | None:
+def _previous_paper_a(store: cal.CalibrationStore, settings: Settings | None, name: str,
+                      lot: str) -> tuple[dict[str, float], dict[str, float], str] | None:
     """Eq. 5 and eq. 6 coefficients a new paper-A fit replaces: saved, else the config's."""
-    entry = store.get(f"rotation.{name}")
-    if entry is not None and entry.get("model") == "paper_a":
-        result = entry["result"]
-        return dict(result["motor"]), dict(result["meter"]), "calibration"
+    saved = _previous_entry(store, name, lot, "paper_a")
+    if saved is not None:
+        result = saved[0]["result"]
+        return dict(result["motor"]), dict(result["meter"]), saved[1]
     if settings is None:
         return None
     crop_name = name if name in settings.control.crops else next(
@@ -415,12 +454,84 @@ def _previous_paper_a(store: cal.CalibrationStore, settings: Settings | None,
     return motor, meter, "config"
 
 
-def _saved(console: Console, key: str, stored: str) -> None:
-    console.print(
-        f"saved {key}: {stored}. The daemon applies it at its next start (restart it: "
-        f"`systemctl restart sowgate`); `sowgate calibrate undo --key {key}` restores the "
-        "value it replaced."
-    )
+def _activate_lot(console: Console, store: cal.CalibrationStore, settings: Settings | None,
+                  name: str, lot: str) -> None:
+    """The lot just calibrated is the one in the hopper: make it the crop's active lot."""
+    crop = lots.crop_of(settings, name) if settings is not None else None
+    if crop is None:
+        crop = name  # without a config: a paper-A test is named after its crop
+    if lots.active_lots(store.load()).get(crop, lots.DEFAULT_LOT) != lot:
+        lots.select_lot(store, crop, lot)
+        console.print(f"seed lot {lot} is now {crop}'s active lot")
+
+
+def _need(settings: Settings | None, what: str) -> Settings:
+    if settings is None:
+        raise cal.CalibrationError(f"{what} needs --config (the bus and the machine)")
+    return settings
+
+
+def _paper_a_crop_model(settings: Settings | None, name: str) -> CropModel | None:
+    """The crop model a paper-A test of ``name`` (a crop or a pwm_modbus channel) refits."""
+    if settings is None:
+        return None
+    crops = settings.control.crops
+    if name in crops:
+        return crops[name]
+    product = next((c.product for c in settings.channel
+                    if c.name == name and c.drive == "pwm_modbus"), None)
+    return crops.get(product) if product is not None else None
+
+
+def _default_duties(crop: CropModel) -> list[float]:
+    """``DEFAULT_A_RUNS`` duties whose shafts (by the crop's motor line) span its fitted range,
+    rounded to 0.5 %, within 1..100 %."""
+    lo, hi = crop.omega_min_rpm, crop.omega_max_rpm
+    out = []
+    for i in range(DEFAULT_A_RUNS):
+        w = lo + (hi - lo) * i / (DEFAULT_A_RUNS - 1)
+        duty = (w - crop.motor_intercept) / crop.motor_slope
+        out.append(min(100.0, max(1.0, round(duty * 2) / 2)))
+    return sorted(set(out))
+
+
+def _saved(console: Console, key: str, stored: str, state: Path) -> None:
+    console.print(f"saved {key}: {stored}.")
+    _tell_daemon(console, state, key)
+    console.print(f"`sowgate calibrate undo --key {key}` restores the value it replaced.")
+
+
+def _tell_daemon(console: Console, state: Path, key: str | None) -> None:
+    """Say whether a running daemon applied what was just saved, or when it will apply."""
+    daemon = presence.running_daemon(state)
+    if daemon is None:
+        console.print("No daemon is running on this state directory: the daemon applies it "
+                      "at its next start.")
+        return
+    pid = daemon["pid"]
+    wanted = presence.calibration_signature(state)
+    deadline = time.monotonic() + DAEMON_PICKUP_S
+    while True:
+        daemon = presence.running_daemon(state)
+        applied = (daemon or {}).get("calibration") or {}
+        if daemon is not None and applied.get("signature") == wanted:
+            name = None if key is None else key.partition(".")[2].partition("@")[0]
+            notes = [n for n in applied.get("notes", []) if name is None or name in n]
+            if not applied.get("ok", True):
+                console.print(f"[red]The running daemon (pid {pid}) could not read the file; "
+                              "it keeps the values it had[/red]")
+            elif notes:
+                console.print(f"The running daemon (pid {pid}) applied the file: "
+                              f"{escape('; '.join(notes))}")
+            else:
+                console.print(f"The running daemon (pid {pid}) applied it.")
+            return
+        if daemon is None or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    console.print(f"[yellow]The running daemon (pid {pid}) has not picked it up within "
+                  f"{DAEMON_PICKUP_S:g} s[/yellow]: it applies it at its next start (see its "
+                  "log and the calibration.* alarms).")
 
 
 def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
@@ -428,25 +539,39 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     _check_rotation_target(settings, args.channel, args.model)
     outlets = _outlets(args, settings)
     store = _store(args)
-    key = f"rotation.{args.channel}"
+    lot = lots.check_lot_name(args.seed_lot)
+    key = lots.rotation_key(args.channel, lot)
+    crop = lots.crop_of(settings, args.channel) if settings is not None else None
+    daemon = presence.running_daemon(store.path.parent) if args.drive != "manual" else None
+    if daemon is not None:
+        raise cal.CalibrationError(
+            f"the daemon (pid {daemon['pid']}) is running and owns the bus: stop it first "
+            f"(systemctl stop sowgate), then run --drive {args.drive} again"
+        )
     console.print(f"masses asked for: the catch of each run, {outlets.describe()}")
     if args.model == "grams_per_rev":
         speeds = args.speeds or list(DEFAULT_B_SPEEDS)
         seconds = args.seconds or DEFAULT_B_SECONDS
-        drive = _can_driver(settings, args.channel, speeds) if args.drive == "can" else None
-        driven = _timed_runs([f"{n:g} r/min for {seconds:g} s" for n in speeds], seconds,
-                             console, drive, not args.no_wait)
-        weighed = _masses(args, len(speeds), console, ask, outlets.weighed)
+        if args.drive == "modbus":
+            raise cal.CalibrationError(
+                "--drive modbus drives paper A's motor: its rotation test is --model paper_a")
+        drive = drive_mod.CanMeterDrive(_need(settings, "--drive can"), args.channel) if (
+            args.drive == "can") else None
+        labels = [f"{n:g} r/min for {seconds:g} s" for n in speeds]
+        done = _run_test(args, console, ask, drive, labels, speeds, seconds, outlets,
+                         ask_rpm=False)
+        weighed = done.masses
         masses = [m / outlets.weighed for m in weighed]  # per outlet
         rpm = list(speeds)
+        driven = drive is not None
         if driven:
             # the shaft's measured turns, spin-up and run-down included, not the set point
-            for i, run in enumerate(driven):
-                if not run.revolutions:
+            for i, turns in enumerate(done.turns):
+                if not turns:
                     raise cal.CalibrationError(
                         f"run {i + 1}: no shaft feedback from the controller; nothing saved"
                     )
-                rpm[i] = run.revolutions / (seconds / 60.0)
+                rpm[i] = turns / (seconds / 60.0)
             console.print(_table("measured shaft speed", ("set r/min", "effective r/min"),
                                  list(zip(speeds, rpm, strict=True))))
         runs = [cal.RotationRun(n, seconds, m, set_rpm=s if driven else None)
@@ -464,7 +589,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         console.print(f"{fit.grams_per_rev:.2f} g/rev per outlet ({outlets.describe()})")
         problems = cal.grams_per_rev_problems(fit)
         _check_quality(problems, args, console)
-        previous = _previous_gpr(store, settings, args.channel)
+        previous = _previous_gpr(store, settings, args.channel, lot)
         large = False
         if previous is not None:
             large = _check_change([("g/rev per outlet", previous[0], fit.grams_per_rev)],
@@ -472,23 +597,44 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         replaces = (None if previous is None
                     else {"grams_per_rev": previous[0], "from": previous[1]})
         store.save(key, cal.to_entry(
-            fit, channel=args.channel, model="grams_per_rev",
+            fit, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
             outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
             replaces=replaces, accepted_poor_fit=problems,
             accepted_large_change=large))
-        _saved(console, key, f"{fit.grams_per_rev:.2f} g/rev per outlet")
+        _activate_lot(console, store, settings, args.channel, lot)
+        _saved(console, key, f"{fit.grams_per_rev:.2f} g/rev per outlet", store.path.parent)
         return EXIT_OK
     # paper A: duty -> speed line and speed -> rate quadratic
-    if args.duties is None:
-        raise cal.CalibrationError("paper_a rotation needs --duties (PWM % per run)")
-    duties = list(args.duties)
     seconds = args.seconds or DEFAULT_A_SECONDS
-    _timed_runs([f"duty {d:g} % for {seconds:g} s" for d in duties], seconds, console, None,
-                not args.no_wait)
-    rpm = list(args.rpm) if args.rpm is not None else [
-        ask(f"measured shaft speed of run {i + 1} (r/min)") for i in range(len(duties))
-    ]
-    weighed = _masses(args, len(duties), console, ask, outlets.weighed)
+    drive_a: drive_mod.MeterDrive | None = None
+    if args.drive == "can":
+        raise cal.CalibrationError(
+            "--drive can drives a paper-B channel: its rotation test is --model grams_per_rev")
+    crop_model = _paper_a_crop_model(settings, args.channel)
+    if args.duties is not None:
+        duties = list(args.duties)
+    elif args.drive == "modbus" and crop_model is not None:
+        duties = _default_duties(crop_model)
+    else:
+        raise cal.CalibrationError("paper_a rotation needs --duties (PWM % per run; with "
+                                   "--drive modbus and --config they default to the crop's "
+                                   "working range)")
+    if args.drive == "modbus":
+        s = _need(settings, "--drive modbus")
+        fan = args.fan_duty if args.fan_duty is not None else (
+            crop_model.fan_high_pct if crop_model is not None else 0.0)
+        if not 0.0 <= fan <= 100.0:
+            raise cal.CalibrationError(f"--fan-duty must be 0..100 % (got {fan:g})")
+        for d in duties:
+            if not 0.0 < d <= 100.0:
+                raise cal.CalibrationError(f"--duties must be in 0..100 % (got {d:g})")
+        drive_a = drive_mod.ModbusMeterDrive(s, fan_pct=fan, fan_settle_s=args.fan_settle)
+        console.print(f"driving the motor on the PWM module, fan at {fan:g} %")
+    labels = [f"duty {d:g} % for {seconds:g} s" for d in duties]
+    done = _run_test(args, console, ask, drive_a, labels, duties, seconds, outlets, ask_rpm=True)
+    assert done.rpm is not None
+    rpm = done.rpm
+    weighed = done.masses
     # eq. 6 is the whole machine's discharge: a catch from fewer rows scales up by rows/N
     scale = 1.0 if outlets.total is None else outlets.total / outlets.weighed
     rates = [m * scale / (seconds / 60.0) for m in weighed]
@@ -506,7 +652,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     console.print(f"Q = {quad.a:.4f}·ω² {quad.b:+.4f}·ω {quad.c:+.4f}  (R² {quad.r2:.4f})")
     problems = cal.paper_a_problems(line, quad, duties, rpm)
     _check_quality(problems, args, console)
-    previous_a = _previous_paper_a(store, settings, args.channel)
+    previous_a = _previous_paper_a(store, settings, args.channel, lot)
     large = False
     if previous_a is not None:
         motor, meter, source = previous_a
@@ -525,10 +671,12 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         "motor": previous_a[0], "meter": previous_a[1], "from": previous_a[2]}
     store.save(key, cal.to_entry(
         {"motor": line.__dict__, "meter": quad.__dict__, "omega_range": list(wr)},
-        channel=args.channel, model="paper_a", outlets_weighed=outlets.weighed,
+        channel=args.channel, crop=crop or args.channel, seed_lot=lot, model="paper_a",
+        outlets_weighed=outlets.weighed,
         outlets=outlets.total, weighed_mass_g=weighed, replaces=replaces_a,
         accepted_poor_fit=problems, accepted_large_change=large))
-    _saved(console, key, "eq. 5 and eq. 6 for the whole machine")
+    _activate_lot(console, store, settings, args.channel, lot)
+    _saved(console, key, "eq. 5 and eq. 6 for the whole machine", store.path.parent)
     return EXIT_OK
 
 
@@ -546,7 +694,9 @@ def _speed(args: argparse.Namespace, console: Console) -> int:
     res = cal.speed_correction(args.source, args.distance, integrated)
     console.print(f"{res.source}: measured {res.measured_m:g} m, integrated "
                   f"{res.integrated_m:.2f} m -> factor {res.factor:.4f}")
-    _store(args).save(f"speed.{res.source}", cal.to_entry(res))
+    store = _store(args)
+    store.save(f"speed.{res.source}", cal.to_entry(res))
+    _tell_daemon(console, store.path.parent, f"speed.{res.source}")
     return EXIT_OK
 
 
@@ -561,12 +711,37 @@ def _tilt(args: argparse.Namespace, console: Console, ask: Callable[[str], float
         console.print(f"zero offset {res.zero_offset_deg:+.2f}° (zeroed = raw − offset)")
     if res.critical_angle_deg is not None:
         console.print(f"critical angle {res.critical_angle_deg:+.2f}° (below → working)")
-    entry = cal.save_tilt(_store(args), f"tilt.{args.sensor}", res)
+    store = _store(args)
+    entry = cal.save_tilt(store, f"tilt.{args.sensor}", res)
     kept = entry["result"]
     if res.zero_offset_deg is None and kept.get("zero_offset_deg") is not None:
         console.print(f"kept the stored zero offset {kept['zero_offset_deg']:+.2f}°")
     if res.critical_angle_deg is None and kept.get("critical_angle_deg") is not None:
         console.print(f"kept the stored critical angle {kept['critical_angle_deg']:+.2f}°")
+    _tell_daemon(console, store.path.parent, None)
+    return EXIT_OK
+
+
+def _seed_lot(args: argparse.Namespace, console: Console, store: cal.CalibrationStore) -> int:
+    lot = lots.check_lot_name(args.lot)
+    current = store.current()
+    settings = _settings(args)
+    if settings is not None:
+        available = lots.lots_of(settings, current, args.crop)
+        if args.crop not in lots.crops(settings):
+            raise cal.CalibrationError(f"unknown crop {args.crop!r}; known: "
+                                       f"{', '.join(lots.crops(settings))}")
+    else:  # without a config: the lots of entries named after the crop
+        available = [lots.DEFAULT_LOT, *sorted({
+            split[1] for key in current
+            if (split := lots.split_rotation_key(key)) is not None and split[0] == args.crop
+            and split[1] != lots.DEFAULT_LOT})]
+    if lot not in available:
+        raise cal.CalibrationError(f"{args.crop} has no rotation test for seed lot {lot!r} "
+                                   f"(lots: {', '.join(available)})")
+    lots.select_lot(store, args.crop, lot)
+    console.print(f"{args.crop}: seed lot {lot} is the active lot")
+    _tell_daemon(console, store.path.parent, None)
     return EXIT_OK
 
 
@@ -588,14 +763,25 @@ def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
         if cmd == "tilt":
             return _tilt(args, con, asker)
         store = _store(args)
+        if cmd == "seed-lot":
+            return _seed_lot(args, con, store)
         if cmd == "undo":
             key, prev = store.undo(args.key)
             con.print(f"{key}: restored {'(no value)' if prev is None else prev['saved_at']}")
+            _tell_daemon(con, store.path.parent, None)
             return EXIT_OK
         con.print_json(json.dumps(store.current()))
         return EXIT_OK
     except ConfigError as exc:
         con.print(f"[red]config error:[/red]\n{escape(str(exc))}")
+        return EXIT_FAILED
+    except (KeyboardInterrupt, Interrupted) as exc:
+        why = "interrupted (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else str(exc)
+        con.print(f"[red]calibration {escape(why)}:[/red] the meter is off; nothing saved")
+        return EXIT_SIGINT if isinstance(exc, KeyboardInterrupt) else EXIT_SIGTERM
+    except EOFError:
+        con.print("[red]calibration stopped:[/red] no answer at the prompt (standard input "
+                  "closed; --mass and --rpm script it); the meter is off; nothing saved")
         return EXIT_FAILED
     except (GatewayError, DriverError, OSError) as exc:
         con.print(f"[red]calibration refused:[/red] {escape(str(exc))}")

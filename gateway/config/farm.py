@@ -54,6 +54,7 @@ class MqttSection(OptionalPart):
 CommandName = Literal[
     "rate", "channel_rate", "start", "stop", "zero_tilt", "tilt_critical", "speed_cal",
     "ack_alarm",
+    "seed_lot",
 ]
 
 

@@ -155,6 +155,9 @@ class HmiObjects(Section):
     message: str = "t_msg"
     # written only when [hopper_scale] is on: hopper mass, time to empty, correction
     hopper: str = "t_hopper"
+    # the active seed lot of the crop shown ("1 2026-B"); None (default): not shown, as a
+    # screen page without such an object would answer every update with an error
+    lot: str | None = None
 
 
 class HmiSection(OptionalPart):
@@ -191,6 +194,8 @@ class HmiSection(OptionalPart):
         from protocol.hmi import check_object_name
 
         for key, obj in self.objects.model_dump().items():
+            if obj is None:
+                continue
             try:
                 check_object_name(obj)
             except ValueError:
@@ -327,6 +332,8 @@ class ControlSection(Section):
     emptying_timeout_s: float = Field(120.0, gt=0, le=3600)
     emptying_motor_pct: float = Field(100.0, ge=0, le=100)
     start_working: bool = False  # start in the "work" mode without an HMI start press
+    # one run of the rotation test started from the touchscreen (paper A weighs 60 s runs)
+    rotation_test_s: float = Field(60.0, ge=1, le=600)
     crops: dict[str, CropModel] = Field(default_factory=default_crops)
     # keys older versions accepted and that never did anything: key -> value in the file
     _ignored: dict[str, Any] = PrivateAttr(default_factory=dict)

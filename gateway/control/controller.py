@@ -149,6 +149,7 @@ class Controller:
         self._attitude = AttitudeBand(
             s.inclinometer.critical_angle_deg, s.inclinometer.hysteresis_deg
         )
+        self._band = (s.inclinometer.zero_offset_deg, s.inclinometer.critical_angle_deg)
         self._odometer_start: dict[str, float] | None = None
         self._implausible_t: dict[str, float] = {}  # source -> last implausible sample
         self._tilt_raw: float | None = None
@@ -250,6 +251,20 @@ class Controller:
         if self._tilt_raw is None or self._tilt_t is None or now - self._tilt_t > TILT_STALE_S:
             return None
         return zeroed_tilt(self._tilt_raw, self.zero_offset_deg)
+
+    def recalibrated(self) -> None:
+        """Take the speed corrections and the inclinometer's zero and critical angle from the
+        settings again: a calibration saved while running (``gateway.app.live_calibration``).
+        The crop models are read from the settings at every tick already."""
+        s = self.settings
+        for name, source in self.sources.items():
+            source.correction = s.speed.correction.get(name, 1.0)
+        incl = s.inclinometer
+        band = (incl.zero_offset_deg, incl.critical_angle_deg)
+        if band != self._band:
+            self._band = band
+            self.zero_offset_deg = incl.zero_offset_deg
+            self._attitude = AttitudeBand(incl.critical_angle_deg, incl.hysteresis_deg)
 
     # ---- commands (the one path for HMI and MQTT) ----------------------------------------
     def execute(self, command: cmd.Command, source: str) -> str:

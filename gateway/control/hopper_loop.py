@@ -17,6 +17,7 @@ from collections import deque
 from dataclasses import dataclass
 
 from gateway.calibration.fits import CalibrationStore
+from gateway.calibration.lots import rotation_key
 from gateway.config import HopperScaleSection
 from gateway.control.hopper_correction import (
     HopperCorrection,
@@ -60,6 +61,7 @@ class HopperLoop:
         self.store = None if calibrations is None else HopperStore(calibrations.path.parent)
         self._extra_keys = rotation_keys or []
         self.seed_lot = DEFAULT_SEED_LOT
+        self.lots: dict[str, str] = {}  # crop -> active seed lot (gateway.calibration.lots)
         self._identity_checked_at: float | None = None
         self.gate = SteadyGate()
         self.model_kg = 0.0  # cumulative discharge the uncorrected model predicted
@@ -73,8 +75,9 @@ class HopperLoop:
 
     # ---- identity and persistence --------------------------------------------------------------
     def _identity(self, crop: str) -> Identity:
-        keys = [f"rotation.{crop}", *self._extra_keys]
-        return Identity(crop, self.seed_lot, rotation_saved_at(self.calibrations, keys))
+        lot = self.lots.get(crop, self.seed_lot)
+        keys = [rotation_key(crop, lot), *self._extra_keys]
+        return Identity(crop, lot, rotation_saved_at(self.calibrations, keys))
 
     def _fresh(self, identity: Identity) -> HopperCorrection:
         saved = self.store.load(identity) if self.store is not None else None
@@ -96,6 +99,12 @@ class HopperLoop:
             self._extra_keys = rotation_keys
         if seed_lot is not None:
             self.seed_lot = seed_lot
+        self._check_identity(crop)
+
+    def set_lots(self, lots: dict[str, str], crop: str) -> None:
+        """The active seed lot of each crop (calibration.json, reloaded live): a newly selected
+        lot of the crop sown has its own correction (or 1.0), as a new rotation test does."""
+        self.lots = dict(lots)
         self._check_identity(crop)
 
     def _check_identity(self, crop: str) -> None:

@@ -152,13 +152,21 @@ REGISTRY: tuple[AlarmCode, ...] = (
     ),
     AlarmCode(
         "calibration.refused", ("warning",),
-        "at start, a saved calibration (`calibration.json`) would make a channel's command 0 or "
-        "saturate it (shaft above `max_shaft_rpm`, duty above 100 %) at its configured rate "
-        "at a speed in `machine.working_speed_kmh` where the config value works with a 25 % "
-        "margin: it is not applied and the config value is used; the message names the "
-        "calibration key and why",
+        "at start or when saved while running, a calibration (`calibration.json`) would make a "
+        "channel's command 0 or saturate it (shaft above `max_shaft_rpm`, duty above 100 %) "
+        "at its configured rate at a speed in `machine.working_speed_kmh` where the config "
+        "value works with a 25 % margin: it is not applied and the config value is used; the "
+        "message names the calibration key and why",
         "repeat the rotation test (check `--outlets-weighed`), or `sowgate calibrate undo --key "
-        "<key>`, then restart",
+        "<key>` (a running daemon applies the file again within 2 s)",
+    ),
+    AlarmCode(
+        "calibration.file_invalid", ("warning",),
+        "`calibration.json` cannot be read or is not a calibration file (at start, or when it "
+        "changed while running): nothing in it is applied and the values in use are kept (the "
+        "config's at start); clears when a good file replaces it",
+        "`sowgate calibrate show` says what is wrong; move the file aside or restore it, or "
+        "repeat the calibration",
     ),
     AlarmCode(
         "prescription.invalid", ("critical",),

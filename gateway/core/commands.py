@@ -73,6 +73,26 @@ class AckAlarm:
     code: str | None = None
 
 
+@dataclass(frozen=True)
+class SelectSeedLot:
+    """Make ``lot`` the active seed lot of ``crop``: its rotation-test fits apply at once
+    (``gateway.calibration.lots``)."""
+
+    crop: str
+    lot: str
+
+
+@dataclass(frozen=True)
+class RotationTest:
+    """A step of paper A's rotation test run from the touchscreen
+    (``gateway.app.rotation_test``): ``run`` at duty ``value`` %, the run's shaft ``rpm`` and
+    weighed ``mass`` (g, whole machine), ``save`` (``save_confirmed``: a large change the
+    operator confirmed), ``cancel``."""
+
+    action: str
+    value: float = 0.0
+
+
 Command = (
     SetRate
     | SetChannelRate
@@ -84,6 +104,8 @@ Command = (
     | SeedLevelMonitoring
     | CalibrateSpeed
     | AckAlarm
+    | SelectSeedLot
+    | RotationTest
 )
 
 

@@ -26,6 +26,7 @@ from gateway.core.commands import (
     CalibrateSpeed,
     Command,
     CriticalTilt,
+    SelectSeedLot,
     SetChannelRate,
     SetRate,
     Start,
@@ -39,6 +40,7 @@ from gateway.link.payloads import (
     ChannelRateCommand,
     EmptyCommand,
     RateCommand,
+    SeedLotCommand,
     SpeedCalCommand,
 )
 
@@ -51,6 +53,7 @@ KNOWN_COMMANDS: dict[str, type[BaseModel]] = {
     "tilt_critical": EmptyCommand,
     "speed_cal": SpeedCalCommand,
     "ack_alarm": AckAlarmCommand,
+    "seed_lot": SeedLotCommand,
 }
 # A command is one flat JSON object; this leaves room for any future small structure and
 # refuses, before any parser recurses into it, a payload like ``[`` x 2000.
@@ -165,6 +168,8 @@ def _to_command(name: str, payload: BaseModel) -> Command:
         return AckAlarm(code=payload.code)
     if isinstance(payload, SpeedCalCommand):
         return CalibrateSpeed(action=payload.action, distance_m=payload.distance_m)
+    if isinstance(payload, SeedLotCommand):
+        return SelectSeedLot(crop=payload.crop, lot=payload.lot)
     simple: dict[str, Command] = {
         "start": Start(),
         "stop": Stop(),
@@ -181,6 +186,7 @@ _TYPE_WORDS = {
     "string_type": "must be a string",
     "bool_type": "must be true or false",
     "finite_number": "must be a finite number",
+    "string_pattern_mismatch": "must be letters, digits, '.', '_' or '-' only",
 }
 
 

@@ -45,6 +45,7 @@ __all__ = [
     "RateCommand",
     "RejectedInput",
     "SeedBatch",
+    "SeedLotCommand",
     "SpeedCalCommand",
     "StatePayload",
     "StatusPayload",
@@ -198,6 +199,15 @@ class StatePayload(_Payload):
         None, description="hopper scale and discharge correction; null without [hopper_scale]"
     )
 
+    seed_lot: str = Field(
+        "default", description="the active seed lot of `crop`: whose rotation-test fits are "
+        "applied (`cmd/seed_lot`)",
+    )
+    seed_lots: dict[str, str] = Field(
+        default_factory=dict, description="crop -> active seed lot, for each crop whose lot "
+        "was chosen (a crop not listed sows with its `default` lot)",
+    )
+
     @field_validator(*STATE_DECIMALS, mode="after")
     @classmethod
     def _to_resolution(cls, value: float | None, info: ValidationInfo) -> float | None:
@@ -207,11 +217,12 @@ class StatePayload(_Payload):
     def _urgent_part(self) -> tuple[object, ...]:
         alarms = tuple((a.code, a.severity) for a in self.alarms)
         return (self.work_state, self.crop, self.target_rate_kg_ha, alarms,
-                tuple(self.unacknowledged))
+                tuple(self.unacknowledged), self.seed_lot)
 
     def same_as(self, other: StatePayload | None) -> bool:
         """Whether ``other`` differs in nothing that must be published at once: the work
-        state, the crop, the target rate, and which alarms are active (code and severity).
+        state, the crop, the target rate, which alarms are active (code and severity) and the
+        seed lot.
 
         Everything else (speed, tilt, duties, counters, a live value in an alarm's text)
         changes on nearly every control tick while seeding: publishing each change sent the
@@ -270,6 +281,16 @@ class AckAlarmCommand(_Command):
     code: str | None = Field(None, min_length=1, max_length=128)
 
 
+class SeedLotCommand(_Command):
+    """``cmd/seed_lot``: ``{"crop": "wheat", "lot": "2026-B"}`` makes that seed lot's
+    rotation-test fits the ones applied for the crop, at once (``default``: the config's, or
+    the rotation test saved without ``--seed-lot``). A lot without a rotation test of that
+    crop is refused, naming the lots there are."""
+
+    crop: str = Field(min_length=1, max_length=64)
+    lot: str = Field(min_length=1, max_length=32, pattern=r"^[A-Za-z0-9_.-]+$")
+
+
 class EmptyCommand(_Command):
     """``cmd/start``, ``cmd/stop``, ``cmd/zero_tilt``: an empty object (or empty payload)."""
 
@@ -303,6 +324,7 @@ SCHEMA_MODELS: dict[str, type[BaseModel]] = {
     "empty_command": EmptyCommand,
     "speed_cal_command": SpeedCalCommand,
     "channel_rate_command": ChannelRateCommand,
+    "seed_lot_command": SeedLotCommand,
     "command_ack": CommandAck,
     "ack_alarm_command": AckAlarmCommand,
 }

@@ -56,11 +56,14 @@ class HmiAdapter:
         crops: Mapping[str, CropModel],
         execute: Callable[[cmd.Command, str], tuple[bool, str]],
         state: Callable[[], MachineState],
+        seed_lots: Callable[[str], list[str]] | None = None,
     ) -> None:
         self.section = section
         self.crops = crops
         self.execute = execute
         self.state = state
+        # crop -> its seed lots, numbered as F=08 numbers them (0 is "default")
+        self.seed_lots = seed_lots or (lambda _crop: ["default"])
         self.link = HmiLink(
             section.port,
             section.baudrate,
@@ -99,6 +102,17 @@ class HmiAdapter:
                 return cmd.ZeroTilt()
             case hmi.AckAlarm():
                 return cmd.AckAlarm()
+            case hmi.SelectSeedLot(crop_code=code, lot_number=number):
+                crop = self.crop_for_code(code)
+                if crop is None:
+                    return f"unknown crop code {code}"
+                lots = self.seed_lots(crop)
+                if number >= len(lots):
+                    listed = ", ".join(f"{i} {name}" for i, name in enumerate(lots))
+                    return f"{crop} has no seed lot {number} (lots: {listed})"
+                return cmd.SelectSeedLot(crop, lots[number])
+            case hmi.RotationTest(action=action, value=value):
+                return cmd.RotationTest(action, value)
             case hmi.Rejected(reason=reason):
                 return f"bad frame: {reason}"
         return f"unsupported input {event!r}"
@@ -115,6 +129,11 @@ class HmiAdapter:
         else:
             ok, text = self.execute(command, "hmi")
             self.last_message = text if ok else f"refused: {text}"
+        self._dirty.set()
+
+    def show(self, text: str) -> None:
+        """Put ``text`` on the message line now (e.g. "run 2 done: enter ...")."""
+        self.last_message = text
         self._dirty.set()
 
     def screen_texts(self) -> dict[str, str]:
@@ -145,6 +164,10 @@ class HmiAdapter:
         }
         if state.hopper is not None:  # only a screen for a machine with a hopper scale
             texts[o.hopper] = hopper_text(state.hopper)
+        if o.lot is not None:  # "1 2026-B": the number F=08 selects it by, and its name
+            lots = self.seed_lots(crop)
+            number = lots.index(state.seed_lot) if state.seed_lot in lots else 0
+            texts[o.lot] = f"{number} {state.seed_lot}"
         return texts
 
     async def refresh_loop(self) -> None:

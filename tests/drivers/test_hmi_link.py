@@ -103,13 +103,13 @@ async def test_garbage_is_rejected_and_the_link_keeps_working(
     peer.press_start()
     peer.send_raw(b"\x00\x13noise\xfe")
     peer.select(1, 6.0)
-    peer.send_raw(b"\x55\x55\x09\x00\x00\x00\x0d\x0a")  # unknown function code
+    peer.send_raw(b"\x55\x55\x0a\x00\x00\x00\x0d\x0a")  # unknown function code
     peer.press_stop()
     await eventually(lambda: len(events) >= 5, what="five events")
     assert events[0] == StartWork()
     assert isinstance(events[1], Rejected) and events[1].raw == b"\x00\x13noise\xfe"
     assert events[2] == SelectCrop(1, 6.0)
-    assert events[3] == Rejected("unknown function code 0x09", b"UU\x09\x00\x00\x00\r\n")
+    assert events[3] == Rejected("unknown function code 0x0A", b"UU\x0a\x00\x00\x00\r\n")
     assert events[4] == StopWork()
     assert link.stats.rejected == 2 and link.stats.frames_ok == 3
     assert link.available

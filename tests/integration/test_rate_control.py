@@ -55,7 +55,7 @@ async def test_invalid_rate_on_the_screen_is_refused_and_explained(
         text = await hmi.wait_text("t_msg", lambda s: "refused" in s)
         assert "120-225" in text
         assert rig.daemon.controller.rate_kg_ha == 180.0
-        hmi.send_raw(b"\x00\x13garbage\x55\x55\x09\x00\x00\x00\x0d\x0a")
+        hmi.send_raw(b"\x00\x13garbage\x55\x55\x0a\x00\x00\x00\x0d\x0a")
         await hmi.wait_text("t_msg", lambda s: "bad frame" in s)
         hmi.select(2, 150.0)
         await hmi.wait_text("t_rate", lambda s: s == "150 kg/ha")

@@ -17,10 +17,12 @@ from protocol.hmi import (
     HmiEvent,
     NextionReplyDecoder,
     Rejected,
+    RotationTest,
     ScreenError,
     ScreenReply,
     SeedLevelMonitoring,
     SelectCrop,
+    SelectSeedLot,
     StartWork,
     StopWork,
     ZeroTilt,
@@ -68,11 +70,29 @@ def decode_split(data: bytes, cut: int) -> list[HmiEvent]:
         (frame(0x05, 0x00), SeedLevelMonitoring(False)),
         (frame(0x06), ZeroTilt()),
         (frame(0x07), AckAlarm()),
+        (frame(0x08, 0x02, 0x00, 0x01), SelectSeedLot(2, 1)),
+        (frame(0x08, 0x01, 0x01, 0x00), SelectSeedLot(1, 256)),
+        (frame(0x09, 0x01, 0x01, 0xC2), RotationTest("run", 45.0)),
+        (frame(0x09, 0x03, 0x10, 0x04), RotationTest("mass", 410.0)),
+        (frame(0x09, 0x00), RotationTest("cancel", 0.0)),
+        (frame(0x09, 0x05), RotationTest("save_confirmed", 0.0)),
     ],
 )
 def test_every_function_code_decodes_to_its_command(raw: bytes, event: HmiEvent) -> None:
     """Each documented F byte maps to one typed command."""
     assert HmiDecoder().feed(raw) == [event]
+
+
+def test_seed_lot_frame_is_crop_code_and_a_big_endian_lot_number_both_ways() -> None:
+    assert encode_frame(SelectSeedLot(2, 1)) == bytes.fromhex("5555080200010D0A")
+    assert HmiDecoder().feed(encode_frame(SelectSeedLot(1, 300))) == [SelectSeedLot(1, 300)]
+
+
+@pytest.mark.parametrize("c", [0x06, 0x80, 0xFF])
+def test_a_rotation_test_action_beyond_05_is_rejected(c: int) -> None:
+    [event] = HmiDecoder().feed(frame(0x09, c))
+    assert isinstance(event, Rejected) and event.kind == "bad_field"
+    assert "rotation test action" in event.reason
 
 
 def test_wheat_225_kg_ha_is_08_ca_both_ways() -> None:
@@ -102,7 +122,7 @@ def test_seed_level_flag_other_than_0_or_1_is_rejected(c: int) -> None:
     assert "seed-level" in event.reason and event.raw == frame(0x05, c)
 
 
-@pytest.mark.parametrize("f", [0x00, 0x08, 0x55, 0xFF])
+@pytest.mark.parametrize("f", [0x00, 0x0A, 0x55, 0xFF])
 def test_unknown_function_code_is_rejected_with_the_code(f: int) -> None:
     [event] = HmiDecoder().feed(frame(f))
     assert event == Rejected(f"unknown function code 0x{f:02X}", frame(f))
@@ -274,6 +294,9 @@ commands = st.one_of(
     st.builds(SeedLevelMonitoring, st.booleans()),
     st.just(ZeroTilt()),
     st.just(AckAlarm()),
+    st.builds(SelectSeedLot, st.integers(0, 255), st.integers(0, 0xFFFF)),
+    st.builds(RotationTest, st.sampled_from(["cancel", "run", "rpm", "mass", "save"]),
+              st.integers(0, 0xFFFF).map(lambda r: r / 10)),
 )
 garbage = st.binary(min_size=1, max_size=40)
 stream_items = st.lists(st.one_of(commands, garbage), max_size=12)
@@ -337,7 +360,7 @@ def test_fuzz_set_text_is_one_well_formed_instruction(text: str, encoding: str) 
     ("data", "kind"),
     [
         (b"hello noise", "garbage"),
-        (frame(0x09), "unknown_function"),
+        (frame(0x0A), "unknown_function"),
         (frame(0x05, 7), "bad_field"),
         (frame(0x01, trailer=b"\x0d\x0b"), "bad_trailer"),
         (b"\x55\x55\x03\x02", "incomplete_frame"),

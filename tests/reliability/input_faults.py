@@ -37,7 +37,7 @@ from tests.reliability.rows import (
 
 # every command, and names that are none (the daemon listens on cmd/+, so "" is a name too)
 COMMAND_NAMES = ("rate", "channel_rate", "start", "stop", "zero_tilt", "tilt_critical",
-                 "speed_cal", "no_such_command", "", "RATE", "r\u00e4te")
+                 "speed_cal", "seed_lot", "no_such_command", "", "RATE", "r\u00e4te")
 
 
 def command_corpus(seed: int = 5, random_count: int = 120) -> list[tuple[str, bytes]]:
@@ -56,6 +56,8 @@ def command_corpus(seed: int = 5, random_count: int = 120) -> list[tuple[str, by
         b"{\"crop\": \"rapeseed\", \"rate_kg_ha\": 6, \"request_id\": {\"a\": [1, 2]}}",
         b"{\"channel\": \"\\u0000\", \"rate_kg_ha\": 6}",
         b"{\"action\": \"finish\", \"distance_m\": \"12\"}",
+        b"{\"crop\": \"rapeseed\", \"lot\": \"../../etc\"}",
+        b"{\"crop\": \"rapeseed\", \"lot\": \"no-such-lot\"}",
         b"{\"action\": " + b"\"" + b"x" * 3000 + b"\"}",
         json.dumps({"crop": "rapeseed", "rate_kg_ha": 6, "extra": "x" * 3900}).encode(),
     ]
@@ -88,7 +90,7 @@ async def group_commands(tmp: Path) -> dict[str, RowResult]:
     with Mosquitto() as broker:
         async with dashboard(broker.port) as dash, machine:
             commands = {"enabled": ["rate", "channel_rate", "start", "stop", "zero_tilt",
-                                    "tilt_critical", "speed_cal"]}
+                                    "tilt_critical", "speed_cal", "seed_lot"]}
             cfg = machine.write_config(tmp / "sowgate.toml", commands=commands,
                                        **mqtt_overrides(broker.port))
             daemon = DaemonProcess(cfg, tmp / "state", tmp / "daemon.log")

@@ -102,6 +102,7 @@ def test_run_exits_78_on_a_config_error_found_while_building_the_daemon(
         ["calibrate", "tilt"],
         ["calibrate", "undo"],
         ["calibrate", "show"],
+        ["calibrate", "seed-lot"],
     ],
 )
 def test_every_command_has_working_help(

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import io
-import itertools
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -313,71 +312,6 @@ def test_cli_speed_source_must_be_a_known_source(tmp_path: Path) -> None:
     with pytest.raises(SystemExit):
         parse(["calibrate", "--state-dir", str(tmp_path), "speed", "--source", "raddar",
                "--integrated-m", "49"])
-
-
-async def test_can_driven_rotation_test_uses_the_measured_shaft_turns(tmp_path: Path) -> None:
-    """--drive can: the CLI commands the controller over CAN (progress bar live meanwhile),
-    and g/rev is mass over the turns the encoder reported, spin-up and run-down included."""
-    import asyncio
-    import time
-    import uuid
-
-    from drivers.can_bus import CanBus
-    from simulator.can_pid import MeteringControllerSim, MeterPlant
-
-    can_channel = f"cal-{uuid.uuid4().hex[:8]}"
-    cfg = tmp_path / "sowgate.toml"
-    cfg.write_text(
-        f'[can]\nenabled = true\ninterface = "virtual"\nchannel = "{can_channel}"\n'
-        '[[channel]]\nname = "seed"\ntarget_rate_kg_ha = 225\nnode_id = 3\n'
-    )
-    plant = MeterPlant(grams_per_rev=11.2)
-    boundaries: list[tuple[float, float]] = []  # (mass, revs) each time the shaft has stopped
-
-    async def watch() -> None:
-        running = False
-        while True:
-            await asyncio.sleep(0.02)
-            if plant.rpm > 1.0:
-                running = True
-            elif running and plant.target_rpm == 0.0 and plant.rpm < 0.5:
-                running = False
-                boundaries.append((plant.mass_g, plant.revs))
-
-    def masses() -> list[float]:
-        cumulative = [0.0] + [m for m, _ in boundaries]
-        return [b - a for a, b in itertools.pairwise(cumulative)]
-
-    answers: list[float] = []
-
-    def ask(_question: str) -> float:  # the "scale": runs in the CLI's thread
-        deadline = time.monotonic() + 3.0
-        while len(boundaries) < 2 and time.monotonic() < deadline:
-            time.sleep(0.02)
-        if not answers:
-            answers.extend(masses())
-        return answers.pop(0)
-
-    async with CanBus("virtual", can_channel) as bus:
-        sim = asyncio.create_task(MeteringControllerSim(bus, {3: plant}).run())
-        watcher = asyncio.create_task(watch())
-        try:
-            argv = ["calibrate", "--config", str(cfg), "--state-dir", str(tmp_path), "rotation",
-                    "--channel", "seed", "--drive", "can", "--speeds", "20,40", "--seconds", "2"]
-            code, out = await asyncio.to_thread(run, argv, None, ask)
-        finally:
-            for task in (sim, watcher):
-                task.cancel()
-            await asyncio.gather(sim, watcher, return_exceptions=True)
-    assert code == 0, out
-    assert len(boundaries) == 2 and "effective r/min" in out
-    true_rpm = [revs / (2.0 / 60) for revs in
-                (boundaries[0][1], boundaries[1][1] - boundaries[0][1])]
-    saved = cal.CalibrationStore(tmp_path).get("rotation.seed")
-    assert saved is not None
-    used = [r["rpm"] for r in saved["result"]["used"]]
-    assert used == pytest.approx(true_rpm, rel=0.03)  # the encoder's turns, not 20 / 40
-    assert saved["result"]["grams_per_rev"] == pytest.approx(11.2, rel=0.03)
 
 
 def test_timed_runs_without_a_terminal_print_progress_as_they_go(tmp_path: Path) -> None:

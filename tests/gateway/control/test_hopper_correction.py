@@ -284,6 +284,23 @@ def test_another_seed_lot_or_crop_has_its_own_correction(tmp_path: Path) -> None
     assert loop.identity == Identity("wheat", "lot-7", None)
 
 
+def test_selecting_a_seed_lot_switches_to_that_lots_own_correction(tmp_path: Path) -> None:
+    """The lot chosen from MQTT or the screen (calibration.json's ``seed_lots``, reloaded
+    live) is part of the identity, and its own rotation test's date is what it is keyed to."""
+    store = cal.CalibrationStore(tmp_path)
+    store.save("rotation.wheat@2026-B", {"saved_at": "2026-11-20T08:00:00+00:00",
+                                         "model": "paper_a", "result": {}})
+    loop = HopperLoop(_section(), AlarmBoard(), "wheat", calibrations=store)
+    _learn(loop, 6.0)
+    learnt = loop.factor
+    assert learnt > 1.05
+    loop.set_lots({"wheat": "2026-B"}, "wheat")
+    assert loop.factor == 1.0
+    assert loop.identity == Identity("wheat", "2026-B", "2026-11-20T08:00:00+00:00")
+    loop.set_lots({"rapeseed": "x"}, "wheat")  # back to wheat's default lot: its evidence
+    assert loop.factor == pytest.approx(learnt)
+
+
 def test_an_unreadable_file_starts_at_one(tmp_path: Path) -> None:
     (tmp_path / HOPPER_FILE).write_text("{not json")
     loop = HopperLoop(_section(), AlarmBoard(), "wheat", calibrations=cal.CalibrationStore(

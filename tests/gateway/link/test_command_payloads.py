@@ -14,7 +14,15 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from gateway.core.commands import AckAlarm, CalibrateSpeed, SetChannelRate, SetRate, Start, Stop
+from gateway.core.commands import (
+    AckAlarm,
+    CalibrateSpeed,
+    SelectSeedLot,
+    SetChannelRate,
+    SetRate,
+    Start,
+    Stop,
+)
 from gateway.core.errors import CommandError
 from gateway.link.command_payloads import (
     KNOWN_COMMANDS,
@@ -59,12 +67,28 @@ def test_the_documented_commands_parse() -> None:
     assert parse("speed_cal", b'{"action": "finish", "distance_m": 50}').command == (
         CalibrateSpeed("finish", 50.0)
     )
+    assert parse("seed_lot", b'{"crop": "wheat", "lot": "2026-B"}').command == (
+        SelectSeedLot("wheat", "2026-B")
+    )
     assert parse("start", b"{}").command == Start()
     assert parse("stop", b"  \n").command == Stop()  # an empty payload is fine for these
     assert parse("ack_alarm", b'{"code": "pwm.unavailable"}').command == (
         AckAlarm("pwm.unavailable")
     )
     assert parse("ack_alarm", b"{}").command == AckAlarm(None)  # every one waiting
+
+
+@pytest.mark.parametrize(("payload", "said"), [
+    (b'{"crop": "wheat"}', "lot"),
+    (b'{"crop": "wheat", "lot": 2}', "lot: must be a string"),
+    (b'{"crop": "wheat", "lot": "a b"}', "lot"),
+    (b'{"crop": "wheat", "lot": "x", "rate": 1}', "rate"),
+])
+def test_a_seed_lot_command_is_strict(payload: bytes, said: str) -> None:
+    with pytest.raises(CommandPayloadError) as info:
+        parse("seed_lot", payload)
+    assert said in str(info.value)
+    assert_clear(info.value)
 
 
 def test_a_json_integer_is_a_number_and_arrives_as_a_float() -> None:

@@ -86,7 +86,7 @@ async def test_a_storm_of_bad_frames_costs_a_few_log_lines_and_is_counted_per_re
     caplog.set_level(logging.INFO)
     async with HmiPeer() as screen, open_link({"port": screen.device_path}, tmp_path) as link:
         bad_frames = 500
-        screen.send_raw(b"\x55\x55\x09\x00\x00\x00\x0d\x0a" * bad_frames)
+        screen.send_raw(b"\x55\x55\x0a\x00\x00\x00\x0d\x0a" * bad_frames)
         screen.send_raw(b"\x55\x55\x05\x07\x00\x00\x0d\x0a" * 3)  # seed-level flag 7
         await eventually(lambda: link.stats.rejected >= bad_frames + 3,
                          what="every bad frame")

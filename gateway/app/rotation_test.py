@@ -1,0 +1,202 @@
+"""Paper A's rotation test started from the touchscreen (HMI F=09), run by the daemon itself.
+
+The daemon owns the RS485 bus, so the CLI cannot drive the meter while it runs; from the cab
+screen the operator runs the same test through the daemon's own control loop: with the
+machine stopped (mode ``stopped``), "run" turns the metering motor at the given duty, with the
+fan at the crop's seeding duty, for ``control.rotation_test_s``, then off; the operator reads
+the shaft speed and weighs the catch of all ``machine.rows`` outlets and types both; after a
+few runs "save" fits eq. 5 and eq. 6 with the CLI's gates (``gateway.calibration.fits``), for
+the crop on the screen and its active seed lot. A result more than ``LARGE_CHANGE_PCT`` from
+the value it replaces is shown and saved only on "save_confirmed". The saved calibration is
+applied at once (``LiveCalibration.reload``) and can be undone with ``sowgate calibrate undo``.
+
+Safety: a run is only motor and fan duties laid over the controller's outputs for the run's
+length (``apply``): the PWM module is written by the control loop as ever (keep-alive,
+watchdog, safe-off at stop); "cancel", the stop button, a start of work or any mode other
+than ``stopped`` end the run at once with the motor at 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+from gateway.app.live_calibration import LiveCalibration
+from gateway.calibration import fits as cal
+from gateway.calibration import lots
+from gateway.config import Settings
+from gateway.control.controller import Controller, ControlOutputs
+from gateway.control.work_state import Mode
+from gateway.core.errors import CommandError
+
+log = logging.getLogger(__name__)
+
+MIN_RUNS = 3  # eq. 6 is a quadratic
+
+
+@dataclass
+class _Run:
+    duty_pct: float
+    rpm: float | None = None
+    mass_g: float | None = None
+
+
+@dataclass
+class RotationTestSession:
+    """The touchscreen's rotation test: its runs so far and the run in progress."""
+
+    settings: Settings
+    controller: Controller
+    live: LiveCalibration
+    runs: list[_Run] = field(default_factory=list)
+    crop: str | None = None
+    running_until: float | None = None
+    last_note: str | None = None  # what the screen should say when a run ends
+
+    @property
+    def running(self) -> bool:
+        return self.running_until is not None
+
+    def command(self, action: str, value: float, now: float) -> str:
+        if action == "cancel":
+            self.running_until, self.runs, self.crop = None, [], None
+            return "rotation test cancelled: motor off, runs discarded"
+        if action == "run":
+            return self._start_run(value, now)
+        if action in ("rpm", "mass"):
+            return self._enter(action, value)
+        if action in ("save", "save_confirmed"):
+            return self._save(confirmed=action == "save_confirmed")
+        raise CommandError(f"unknown rotation test action {action!r}")
+
+    def _start_run(self, duty: float, now: float) -> str:
+        if self.controller.mode is not Mode.STOPPED:
+            raise CommandError("stop work first: the rotation test runs with the machine stopped")
+        if self.running:
+            raise CommandError("a run is in progress; cancel it first")
+        if not 0.0 < duty <= 100.0:
+            raise CommandError(f"duty must be in 0..100 % (got {duty:g})")
+        crop = self.controller.crop
+        if self.crop not in (None, crop):
+            raise CommandError(f"this test is of {self.crop}: save or cancel it first")
+        if self.runs and (self.runs[-1].rpm is None or self.runs[-1].mass_g is None):
+            raise CommandError(f"enter run {len(self.runs)}'s shaft r/min and mass first")
+        seconds = self.settings.control.rotation_test_s
+        self.crop = crop
+        self.runs.append(_Run(duty))
+        self.running_until = now + seconds
+        return (f"rotation run {len(self.runs)} ({crop}): duty {duty:g} % for {seconds:g} s, "
+                "then enter the shaft r/min and the mass of all outlets in g")
+
+    def _enter(self, what: str, value: float) -> str:
+        if not self.runs:
+            raise CommandError("no run yet: start one first")
+        if self.running:
+            raise CommandError("wait until the run has ended")
+        run = self.runs[-1]
+        if what == "rpm":
+            if value <= 0:
+                raise CommandError("shaft speed must be above 0 r/min")
+            run.rpm = value
+            return f"run {len(self.runs)}: shaft {value:g} r/min"
+        run.mass_g = value
+        return (f"run {len(self.runs)}: {value:g} g from all {self.settings.machine.rows} "
+                "outlets")
+
+    def _save(self, *, confirmed: bool) -> str:
+        if self.running:
+            raise CommandError("wait until the run has ended")
+        done = [r for r in self.runs if r.rpm is not None and r.mass_g is not None]
+        if len(done) < MIN_RUNS:
+            raise CommandError(f"need {MIN_RUNS} runs with shaft r/min and mass (have "
+                               f"{len(done)})")
+        crop = self.crop or self.controller.crop
+        seconds = self.settings.control.rotation_test_s
+        duties = [r.duty_pct for r in done]
+        rpm = [r.rpm for r in done if r.rpm is not None]
+        masses = [r.mass_g for r in done if r.mass_g is not None]
+        rates = [m / (seconds / 60.0) for m in masses]  # whole machine: every outlet weighed
+        wr = (min(rpm), max(rpm))
+        try:
+            line = cal.fit_motor_line(duties, rpm)
+            quad = cal.fit_meter_quadratic(rpm, rates, wr)
+        except cal.CalibrationError as exc:
+            raise CommandError(f"not saved: {exc}") from None
+        problems = cal.paper_a_problems(line, quad, duties, rpm)
+        if problems:
+            raise CommandError("not saved, repeat the runs: " + "; ".join(problems))
+        lot = self.live.lot_of(crop)
+        change, replaces = self._change(crop, lot, line, quad, duties, wr)
+        large = abs(change) > cal.LARGE_CHANGE_PCT
+        if large and not confirmed:
+            raise CommandError(
+                f"{change:+.0f} % from the value it replaces (more than "
+                f"{cal.LARGE_CHANGE_PCT:g} %): check the masses; confirm to save anyway"
+            )
+        key = lots.rotation_key(crop, lot)
+        entry = cal.to_entry(
+            {"motor": line.__dict__, "meter": quad.__dict__, "omega_range": list(wr)},
+            channel=crop, crop=crop, seed_lot=lot, model="paper_a", source="hmi",
+            outlets_weighed=self.settings.machine.rows, outlets=self.settings.machine.rows,
+            weighed_mass_g=masses, replaces=replaces, accepted_poor_fit=[],
+            accepted_large_change=large)
+        try:
+            cal.CalibrationStore(self.live.state_dir).save(key, entry)
+        except (cal.CalibrationError, OSError) as exc:
+            raise CommandError(f"not saved: {exc}") from None
+        if large:
+            log.warning("%s: %+.0f %% change confirmed on the touchscreen", key, change)
+        notes = self.live.reload()
+        self.runs, self.crop = [], None
+        mine = [n for n in notes if crop in n]
+        return (f"saved {key}: R = {line.slope:.4f}K {line.intercept:+.2f}, R2 {line.r2:.3f}/"
+                f"{quad.r2:.3f}; {'; '.join(mine) or 'applied'}")
+
+    def _change(self, crop: str, lot: str, line: cal.LineFit, quad: cal.QuadFit,
+                duties: list[float], wr: tuple[float, float]) -> tuple[float, dict[str, Any]]:
+        """The largest change in % against what it replaces (eq. 5 at mid duty, eq. 6 at mid
+        speed), and that value as the entry's ``replaces``."""
+        entry = self.live.active_rotation(crop)
+        if entry is not None and entry.get("model") == "paper_a":
+            motor, meter, source = entry["result"]["motor"], entry["result"]["meter"], (
+                f"calibration (lot {entry['seed_lot']})")
+        else:
+            m = self.settings.control.crops[crop]
+            motor = {"slope": m.motor_slope, "intercept": m.motor_intercept}
+            meter = {"a": m.meter_a, "b": m.meter_b, "c": m.meter_c}
+            source = "config"
+        mid_duty, mid_w = (min(duties) + max(duties)) / 2, (wr[0] + wr[1]) / 2
+        old_w = motor["slope"] * mid_duty + motor["intercept"]
+        old_q = meter["a"] * mid_w * mid_w + meter["b"] * mid_w + meter["c"]
+        change = max((cal.change_pct(line.predict(mid_duty), old_w),
+                      cal.change_pct(quad.predict(mid_w), old_q)), key=abs)
+        return change, {"motor": dict(motor), "meter": dict(meter), "from": source}
+
+    def stop(self) -> None:
+        """The stop button: a run in progress ends at once (its runs so far are kept)."""
+        if self.running_until is not None:
+            self.running_until = None
+            self.last_note = "rotation run stopped"
+
+    def take_note(self) -> str | None:
+        note, self.last_note = self.last_note, None
+        return note
+
+    def apply(self, out: ControlOutputs, now: float) -> ControlOutputs:
+        """The control loop's outputs with the run's duties laid over them while it runs."""
+        if self.running_until is None:
+            return out
+        if self.controller.mode is not Mode.STOPPED:
+            self.running_until = None
+            self.last_note = "rotation run ended: work mode changed"
+            return out
+        if now >= self.running_until:
+            self.running_until = None
+            self.last_note = (f"run {len(self.runs)} done: enter its shaft r/min and the "
+                              "mass of all outlets")
+            return out
+        crop = self.settings.control.crops[self.crop or self.controller.crop]
+        return dataclasses.replace(out, motor_pct=self.runs[-1].duty_pct,
+                                   fan_pct=crop.fan_high_pct)
