@@ -33,6 +33,7 @@ BENCHMARKS = [
     ("bench_held_records", "records held while the disk is full"),
     ("bench_mqtt", "MQTT outbox throughput, control latency under load, RSS/CPU"),
     ("bench_multichannel", "multi-channel metering (paper B)"),
+    ("bench_report", "field report and export on a day-sized store"),
 ]
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "latest.md"

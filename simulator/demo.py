@@ -282,6 +282,9 @@ def end_text(machine: SimulatedMachine, state: Path, channels: bool) -> str:
         outputs,
         f"next: the seeds it recorded, with per-row spacing quality: "
         f"sowgate export --state-dir {_shown(state)} --output demo-seeds.csv",
+        f"      the field report (seed map, per-row quality, rate, alarms; opens offline): "
+        f"sowgate report --config {_shown(state / CONFIG_FILE)} --state-dir {_shown(state)} "
+        f"--output demo-report.html",
     ]
     if channels:
         lines.append(

@@ -86,8 +86,9 @@ class FieldReport:
                      f"({_duration(s.seeding_s)} sowing)"),
             ("window asked", window + (f", rows {_rows_text(self.rows)}" if self.rows else "")),
             ("seeds", f"{s.seeds:,}"),
-            ("area sown", f"{s.area_ha:,.2f} ha ({s.sown_length_m / 1000:,.1f} km of row "
-                          f"× {s.row_spacing_m * 100:.1f} cm row spacing)"),
+            ("area sown", f"{s.area_ha:,.{2 if s.area_ha >= 10 else 4}f} ha "
+                          f"({s.sown_length_m / 1000:,.{1 if s.sown_length_m >= 1e4 else 3}f} "
+                          f"km of row × {s.row_spacing_m * 100:.1f} cm row spacing)"),
             ("seed mass", mass),
             ("applied rate", rate),
             ("mean speed", f"{s.speed_mean_kmh:.1f} km/h"),

@@ -111,10 +111,10 @@ def _map_axes(ax: Axes, how: str) -> None:
 def spacing_histograms(s: FieldSummary, rows: Sequence[int]) -> Figure:
     cols = min(6, max(1, len(rows)))
     nrows = math.ceil(len(rows) / cols)
-    height = 2.0 * nrows + 0.9
+    height = 2.0 * nrows + 1.4
     fig = Figure(figsize=(2.6 * cols + 0.6, height))
     # laid out by hand: constrained layout over 48 axes costs seconds
-    fig.subplots_adjust(left=0.6 / (2.6 * cols + 0.6), right=0.99, top=1 - 0.35 / height,
+    fig.subplots_adjust(left=0.6 / (2.6 * cols + 0.6), right=0.99, top=1 - 0.8 / height,
                         bottom=0.6 / height, hspace=0.45, wspace=0.25)
     axes = fig.subplots(nrows, cols, squeeze=False, sharex=True)
     edges_cm = s.hist_edges_m * 100
@@ -191,7 +191,10 @@ def rate_along_drive(s: FieldSummary, tsw_g: float | None) -> Figure:
     fig = Figure(figsize=(11, 6.5), layout="constrained")
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
     st = _drive_stretches(s)
-    top.plot(st["km"], st["pop"] / 1000, color="#1f5f99", lw=1.2,
+    x, unit = st["km"], "km"
+    if x.size and x[-1] < 2.0:  # a short drive in metres
+        x, unit = x * 1000, "m"
+    top.plot(x, st["pop"] / 1000, color="#1f5f99", lw=1.2,
              label="applied (measured by the seed sensors)")
     target = s.target_population_per_ha
     if target is not None:
@@ -205,9 +208,9 @@ def rate_along_drive(s: FieldSummary, tsw_g: float | None) -> Figure:
         k = tsw_g / 1000.0  # k seeds/ha x g per seed = kg/ha
         sec = top.secondary_yaxis("right", functions=(lambda v: v * k, lambda v: v / k))
         sec.set_ylabel("kg/ha")
-    bottom.plot(st["km"], st["speed"], color="#555", lw=1)
+    bottom.plot(x, st["speed"], color="#555", lw=1)
     bottom.set_ylabel("speed (km/h)")
-    bottom.set_xlabel("distance driven while sowing (km; headland turns and stops left out)")
+    bottom.set_xlabel(f"distance driven while sowing ({unit}; headland turns and stops left out)")
     bottom.grid(alpha=0.3)
     return fig
 
