@@ -137,3 +137,22 @@ def test_a_bad_config_is_a_config_error(tmp_path: Path) -> None:
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[machine]\nrows = 0\n")
     assert report(cfg, tmp_path / "r.html") == EXIT_CONFIG
+
+
+@pytest.mark.parametrize(
+    "seeds",
+    [
+        drops(1),  # one seed: no spacing, no distance, a map of one point
+        [d.model_copy(update={"speed_kmh": 0.0}) for d in drops(50)],  # standing still
+        [d.model_copy(update={"spacing_m": None}) for d in drops(50)],  # no spacing at all
+    ],
+    ids=["one-seed", "speed-zero", "no-spacings"],
+)
+def test_degenerate_stores_still_give_a_whole_report(
+    tmp_path: Path, seeds: list[SeedDrop]
+) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, seeds))
+    for out in (tmp_path / "r.html", tmp_path / "r.pdf"):
+        assert report(cfg, out) == 0
+    assert embedded(tmp_path / "r.html")["seeds"] == len(seeds)
+    assert (tmp_path / "r.pdf").read_bytes().startswith(b"%PDF-")
