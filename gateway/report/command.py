@@ -31,6 +31,13 @@ EXIT_NO_RECORDS = 66  # EX_NOINPUT: no store, or no seed record in it or in the 
 # alarm events kept for the timeline and the table; more are counted (a flapping sensor)
 MAX_ALARM_EVENTS = 20_000
 
+REPORT_DESCRIPTION = """\
+Write a field report from the record store (read-only; safe while the daemon runs): a summary,
+the seed map by spacing class, per-row spacing histograms and the ISO 7256-1 table (the same
+numbers as sowgate export), the applied rate against the target along the drive and against
+speed, and the alarm timeline. One self-contained file that opens offline. The map draws
+every seed up to 200 000 seeds, above that shares per square of the field."""
+
 HELP_EPILOG = f"""\
 exit status:
   0   the report was written
@@ -50,10 +57,7 @@ def add_report_command(sub: argparse._SubParsersAction[argparse.ArgumentParser])
     r = sub.add_parser(
         "report",
         help="field report (seed map, per-row quality, rate, alarms) as HTML or PDF",
-        description="Write a field report from the record store: seed map by spacing class, "
-        "per-row spacing histograms and ISO 7256-1 table, applied against target rate along "
-        "the drive and against speed, alarm timeline and a summary. One self-contained file "
-        "that opens offline.",
+        description=REPORT_DESCRIPTION,
         epilog=HELP_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -278,8 +278,10 @@ def to_pdf(report: FieldReport) -> bytes:
     with PdfPages(buf) as pdf:
         pdf.savefig(_summary_page(report))
         for heading, caption, fig in report.figures():
-            fig.suptitle(heading, fontsize=13, fontweight="bold")
-            fig.text(0.01, 0.995, caption, fontsize=7, va="top", color="#555", wrap=True)
+            own = fig.get_suptitle()  # the raster map explains itself there: keep it
+            fig.suptitle(f"{heading}\n{own}" if own else heading, fontsize=11 if own else 13,
+                         fontweight="bold")
+            fig.text(0.01, 0.002, caption, fontsize=7, va="bottom", color="#555", wrap=True)
             pdf.savefig(fig)
         info = pdf.infodict()
         info["Title"] = report.title

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from gateway.app.cli import main as sowgate
+from gateway.recording.field_stats import MAP_POINTS_MAX
 from gateway.recording.store import RecordStore
 from gateway.report.command import EXIT_NO_RECORDS, EXIT_USAGE
 from simulator.machine import SimulatedMachine
@@ -173,3 +174,5 @@ def test_help_documents_the_exit_codes(capsys: pytest.CaptureFixture[str]) -> No
     text = capsys.readouterr().out
     assert f"{EXIT_NO_RECORDS}  nothing to report" in text
     assert "--since" in text and "--rows" in text and "--format" in text
+    # the documented point count is the one the map uses
+    assert f"every seed up to {MAP_POINTS_MAX:,} seeds".replace(",", " ") in text
