@@ -143,7 +143,8 @@ def export_seeds(
     out: TextIO,
     quality: Mapping[int, SpacingQuality] | None = None,
 ) -> int:
-    """Write ``records`` to ``out``; returns how many were written."""
+    """Write ``records`` (already in memory, e.g. a test's) to ``out``; returns how many were
+    written. The command streams the store's rows through ``export_rows`` instead."""
     machine = ""
     rows: list[StoredSeedRow] = []
     for r in records:
