@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Literal
 
 from gateway.config import EXIT_CONFIG, ConfigError, load_config, store_path
-from gateway.core.records import AlarmEvent
+from gateway.core.records import AlarmEvent, utc_to_us
 from gateway.recording.export import ExportError, parse_rows, parse_time
 from gateway.recording.store import RecordStore, StoreError
 
@@ -146,7 +146,7 @@ def main_report(args: argparse.Namespace) -> int:
         print(f"sowgate report: cannot read the record store {path}: {exc}", file=sys.stderr)
         return EXIT_FAILED
     intervals = alarm_intervals(
-        [(int(a.utc.timestamp() * 1e6), a.code, a.active, a.severity) for a in alarms],
+        [(utc_to_us(a.utc), a.code, a.active, a.severity) for a in alarms],
         summary.first_us, summary.last_us,
     )
     report = FieldReport(

@@ -134,7 +134,15 @@ class FieldReport:
                "line falling at high speed means the meter could not keep up.",
                figures.rate_against_speed(s, self.tsw_g))
         yield ("Alarm timeline", "Every alarm raised or cleared in the window.",
-               figures.alarm_timeline(self.intervals, s.first_us, s.last_us))
+               figures.alarm_timeline(self.intervals, *self.timeline_span()))
+
+    def timeline_span(self) -> tuple[int, int]:
+        """The seeds' time span, widened to alarms of the window outside it (raised before
+        the first seed or after the last), so every period shows."""
+        start, end = self.summary.first_us, self.summary.last_us
+        for _code, _sev, a, b, _cleared in self.intervals:
+            start, end = min(start, a), max(end, b)
+        return start, end
 
 
 def _rate_note(s: FieldSummary) -> str:
