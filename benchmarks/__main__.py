@@ -34,6 +34,7 @@ BENCHMARKS = [
     ("bench_mqtt", "MQTT outbox throughput, control latency under load, RSS/CPU"),
     ("bench_multichannel", "multi-channel metering (paper B)"),
     ("bench_dashboard", "dashboard seed map render time (headless chromium)"),
+    ("bench_report", "field report and export on a day-sized store"),
 ]
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "latest.md"

@@ -3,9 +3,9 @@
 It is the first thing a newcomer runs, so it says what it does: at start, the simulated
 devices and their ptys, the config (written to ``<state dir>/demo.toml``), the record store,
 MQTT (off, and how to turn it on, or the broker and topics) and how to stop it; at the end,
-the applied rate, that motor and fan were set to 0, and the export to try next. The store is
-kept (``./sowgate-demo`` unless ``--state-dir`` says otherwise), never the real state
-directory, so simulated seeds never mix with a field's.
+the applied rate, that motor and fan were set to 0, and the export and the field report to try
+next. The store is kept (``./sowgate-demo`` unless ``--state-dir`` says otherwise), never the
+real state directory, so simulated seeds never mix with a field's.
 
 With ``channels=True`` paper B's three metering channels (shallow and deep fertiliser, seed)
 run as well: simulated PID controllers and hydraulic motors (``simulator.can_pid``) answer on
@@ -405,6 +405,9 @@ def end_text(machine: SimulatedMachine, state: Path, channels: bool) -> str:
         outputs,
         f"next: the seeds it recorded, with per-row spacing quality: "
         f"sowgate export --state-dir {_shown(state)} --output demo-seeds.csv",
+        f"      the field report (seed map, per-row quality, rate, alarms; opens offline): "
+        f"sowgate report --config {_shown(state / CONFIG_FILE)} --state-dir {_shown(state)} "
+        f"--output demo-report.html",
     ]
     if channels:
         lines.append(

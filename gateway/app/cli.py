@@ -30,7 +30,7 @@ EXIT_NOT_SAFE = 1
 
 DESCRIPTION = """\
 sowgate: the seeder daemon, config checking, a demo on a simulated machine,
-and field tools (export, calibration, GNSS decoding)."""
+and field tools (export, field report, calibration, GNSS decoding)."""
 EPILOG = """\
 Try it:       sowgate demo                  (Ctrl-C to stop)
 On a tractor: sowgate check-config FILE, then sowgate run --config FILE
@@ -175,6 +175,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     return int(main_export(args) or 0)
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from gateway.report.command import main_report
+
+    return main_report(args)
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from gateway.calibration.cli import run_calibration
     from gateway.calibration.drive import abandoned_prompt
@@ -244,6 +250,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="read the store here (e.g. sowgate-demo), not in $SOWGATE_STATE_DIR",
     )
     e.set_defaults(func=cmd_export)
+
+    from gateway.report.command import add_report_command
+
+    add_report_command(sub)
+    sub.choices["report"].set_defaults(func=cmd_report)
 
     try:
         from gateway.calibration.cli import add_calibration_commands

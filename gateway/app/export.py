@@ -39,10 +39,10 @@ from gateway.recording.export import (
     ExportFormat,
     export_format,
     export_quality_csv,
-    export_seeds,
+    export_rows,
     parse_rows,
     parse_time,
-    quality_by_row,
+    quality_by_row_chunks,
 )
 
 
@@ -87,10 +87,12 @@ def main_export(args: argparse.Namespace) -> int:
         path = store_path(settings, state)
         x_ref = settings.positioning.target_spacing_m
         with RecordStore.open_readonly(path, settings.machine.id) as store:
-            quality = quality_by_row(store.query_seeds(since, until, rows), x_ref)
+            # two passes over the store, each streaming: the quality goes before the features
+            quality = quality_by_row_chunks(store.query_seed_rows(since, until, rows), x_ref)
             with atomic_output(args.output) as out:
-                n = export_seeds(
-                    store.query_seeds(since, until, rows),
+                n = export_rows(
+                    store.query_seed_rows(since, until, rows),
+                    settings.machine.id,
                     fmt,
                     out,
                     quality if fmt == "geojson" else None,

@@ -6,11 +6,13 @@
 - ``spacing_quality``: ISO 7256-1 per-row quality (multiples, misses, precision);
 - ``store`` and ``id_ranges``: the durable SQLite record store and its delivered-id ranges;
 - ``health``: the recording alarms (GNSS, sensors, store);
-- ``export``: GeoJSON/CSV exports; ``gnss_diagnostics``: ``sowgate decode-gnss``.
+- ``export``: GeoJSON/CSV exports; ``gnss_diagnostics``: ``sowgate decode-gnss``;
+- ``field_stats``: the field report's streamed sums and map (``sowgate report`` draws them).
 """
 
 __all__ = [
     "export",
+    "field_stats",
     "gnss_diagnostics",
     "health",
     "id_ranges",

@@ -88,7 +88,7 @@ PRUNE_INTERVAL_S = 3600.0
 # is millions of rows, and deleting them in one statement would stall the control loop (and
 # the watchdog) for seconds on an SD card.
 PRUNE_CHUNK_ROWS = 5000
-QUERY_CHUNK_ROWS = 5000  # rows fetched per step by query_seeds, so exports stream
+QUERY_CHUNK_ROWS = 5000  # rows fetched per step by query_seed_rows, so exports stream
 # Rows the outbox can read from memory: about 5 s of a 48-row planter at 16 km/h (~3 MB). A
 # link further behind than that reads SQLite, as after an outage.
 TAIL_MAX_ROWS = 10_000
@@ -158,6 +158,9 @@ _SEED_COLUMNS = (
     "id, utc_us, row, lat, lon, fix, speed_kmh, heading_deg, heading_source, extrapolated, "
     "method, spacing_m"
 )
+# what query_seed_rows yields, one tuple a seed: the columns above, in that order
+STORED_SEED_COLUMNS = tuple(_SEED_COLUMNS.replace(" ", "").split(","))
+StoredSeedRow = tuple[Any, ...]
 
 BacklogCallback = Callable[[int, bool], None]
 
@@ -925,6 +928,23 @@ class RecordStore:
         rows: Sequence[int] | None = None,
     ) -> Iterator[SeedRecord]:
         """Committed records (delivered or not) in id order, ``since <= utc < until``."""
+        for chunk in self.query_seed_rows(since, until, rows):
+            for r in chunk:
+                yield self._seed(r)
+
+    def query_seed_rows(
+        self,
+        since: datetime | None = None,
+        until: datetime | None = None,
+        rows: Sequence[int] | None = None,
+    ) -> Iterator[list[StoredSeedRow]]:
+        """``query_seeds`` as the stored tuples (``STORED_SEED_COLUMNS``), a chunk at a time.
+
+        The one streaming reader of ``sowgate export`` and ``sowgate report``: at most
+        ``QUERY_CHUNK_ROWS`` rows are in memory at once, and no model is built per seed (a
+        ``SeedRecord`` costs several times the read itself, and a day of a 48-row planter is
+        ~70 M records).
+        """
         sql = f"SELECT {_SEED_COLUMNS} FROM seeds WHERE id > ? AND id <= ?"
         args: list[Any] = []
         since_us = None if since is None else utc_to_us(since)
@@ -951,8 +971,56 @@ class RecordStore:
             after, ceiling = max(after, span[0]), min(ceiling, span[1])
         while True:
             chunk = self._db.execute(sql, (after, ceiling, *args, QUERY_CHUNK_ROWS)).fetchall()
-            for r in chunk:
-                yield self._seed(r)
+            if chunk:
+                yield chunk
+            if len(chunk) < QUERY_CHUNK_ROWS:
+                return
+            after = chunk[-1][0]
+
+    def seed_time_span(
+        self, since: datetime | None = None, until: datetime | None = None
+    ) -> tuple[int, int] | None:
+        """First and last ``utc_us`` that seeds in the window can have (from the batch spans,
+        without reading the seeds), clipped to the window; None when no batch overlaps it.
+
+        A bound, not the exact span: a batch crossing ``since`` counts from ``since``. A store
+        without spans (an older one, read-only) is read from its seeds' time index.
+        """
+        lo = -(2**63) if since is None else utc_to_us(since)
+        hi = 2**63 - 1 if until is None else utc_to_us(until)
+        if self._has_table("seed_spans"):
+            row = self._db.execute(
+                "SELECT MIN(min_utc_us), MAX(max_utc_us) FROM seed_spans "
+                "WHERE max_utc_us >= ? AND min_utc_us < ?",
+                (lo, hi),
+            ).fetchone()
+        else:
+            row = self._db.execute(
+                "SELECT MIN(utc_us), MAX(utc_us) FROM seeds WHERE utc_us >= ? AND utc_us < ?",
+                (lo, hi),
+            ).fetchone()
+        if row is None or row[0] is None:
+            return None
+        return max(int(row[0]), lo), min(int(row[1]), hi - 1)
+
+    def query_alarms(
+        self, since: datetime | None = None, until: datetime | None = None
+    ) -> Iterator[AlarmEvent]:
+        """Stored alarm events in id order, ``since <= utc < until`` (a chunk at a time)."""
+        lo = -(2**63) if since is None else utc_to_us(since)
+        hi = 2**63 - 1 if until is None else utc_to_us(until)
+        after = 0
+        while True:
+            chunk = self._db.execute(
+                "SELECT id, utc_us, code, active, severity, message FROM alarms "
+                "WHERE id > ? AND utc_us >= ? AND utc_us < ? ORDER BY id LIMIT ?",
+                (after, lo, hi, QUERY_CHUNK_ROWS),
+            ).fetchall()
+            for i, us, code, active, severity, message in chunk:
+                yield AlarmEvent(
+                    id=i, machine_id=self.machine_id, code=code, active=bool(active),
+                    severity=severity, message=message, utc=us_to_utc(us),
+                )
             if len(chunk) < QUERY_CHUNK_ROWS:
                 return
             after = chunk[-1][0]

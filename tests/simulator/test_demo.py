@@ -119,6 +119,14 @@ def test_the_demo_says_what_runs_keeps_its_store_and_says_what_to_do_next(
                      str(tmp_path / "demo-seeds.csv")])
     assert code == 0
     assert (tmp_path / "demo-seeds.csv").read_text().startswith("id,")
+    # and so does the field report it printed after it
+    assert ("sowgate report --config sowgate-demo/demo.toml --state-dir sowgate-demo "
+            "--output demo-report.html") in out, out
+    assert (tmp_path / "demo-seeds.csv").read_text().count("\n") > 1  # it sowed
+    code = cli_main(["report", "--config", str(state / "demo.toml"), "--state-dir", str(state),
+                     "--output", str(tmp_path / "demo-report.html")])
+    assert code == 0
+    assert "<h2>Seed map</h2>" in (tmp_path / "demo-report.html").read_text()
 
 
 def test_the_demo_uses_the_state_dir_it_is_given_and_names_it_in_the_export_command(

@@ -394,3 +394,27 @@ def test_export_help_says_how_the_format_is_chosen(capsys: pytest.CaptureFixture
     out = " ".join(capsys.readouterr().out.split())
     assert "default: from the --output extension" in out
     assert ".quality.csv" in out
+
+
+def test_features_carry_exactly_the_records_own_fields_without_a_model_per_seed() -> None:
+    """The writer builds each feature from the stored row; its properties are still the
+    record's JSON dump, value for value (what the model-per-seed writer produced)."""
+    buf = io.StringIO()
+    export_seeds(records(), "geojson", buf)
+    features = json.loads(buf.getvalue())["features"]
+    for f, r in zip(features, records(), strict=True):
+        want = r.model_dump(mode="json")
+        want["utc"] = r.utc.isoformat(timespec="microseconds").replace("+00:00", "Z")
+        assert f["properties"] == want
+        assert list(f["properties"]) == list(want)  # the same order too
+    rows = list(csv.DictReader(io.StringIO(_csv_text())))
+    for row, r in zip(rows, records(), strict=True):
+        assert row["extrapolated"] == str(r.extrapolated)
+        assert row["heading_deg"] == ("" if r.heading_deg is None else str(r.heading_deg))
+        assert row["spacing_m"] == ("" if r.spacing_m is None else str(r.spacing_m))
+
+
+def _csv_text() -> str:
+    buf = io.StringIO()
+    export_seeds(records(), "csv", buf)
+    return buf.getvalue()

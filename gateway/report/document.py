@@ -1,0 +1,317 @@
+"""The field report as one self-contained HTML file, or as a PDF with the same content.
+
+HTML: inline CSS, every plot a base64 PNG in an ``<img src="data:...">``, no script run, no
+external reference of any kind, so it opens offline on the cab box, a laptop or a phone and
+can be mailed as one file. The numbers it shows are also embedded as JSON
+(``<script type="application/json" id="report-data">``) for scripts that want them.
+PDF: matplotlib's PdfPages, a page for the summary and the quality table, then one per plot.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any
+
+from matplotlib.backends.backend_pdf import PdfPages
+from matplotlib.figure import Figure
+
+from gateway.core.records import AlarmEvent, us_to_utc
+from gateway.recording.export import quality_json
+from gateway.recording.field_stats import CLASS_NAMES, FieldSummary, MapResult
+from gateway.report import figures
+
+PNG_DPI = 90
+ALARM_ROWS_SHOWN = 200  # alarm events listed in the HTML table (all are in the timeline)
+
+
+@dataclass
+class FieldReport:
+    """What one report shows: built by ``gateway.report.command``, written here."""
+
+    machine_id: str
+    machine_rows: int
+    working_width_m: float
+    crop: str
+    summary: FieldSummary
+    seed_map: MapResult
+    alarms: list[AlarmEvent]
+    alarms_total: int
+    intervals: list[tuple[str, str, int, int, bool]]
+    since: datetime | None
+    until: datetime | None
+    rows: list[int] | None
+    tsw_g: float | None
+    created: datetime = field(default_factory=lambda: datetime.now(UTC))
+
+    @property
+    def title(self) -> str:
+        return f"Field report: {self.machine_id}, {_day(self.summary.first_us)}"
+
+    def shown_rows(self) -> list[int]:
+        return sorted(self.summary.seeds_by_row)
+
+    def summary_lines(self) -> list[tuple[str, str]]:
+        s = self.summary
+        fixes = ", ".join(f"{k} {100 * v / s.seeds:.1f} %" for k, v in s.fixes.items())
+        mass = (
+            f"{s.seeds * self.tsw_g / 1e6:,.1f} kg (seeds × thousand-seed mass "
+            f"{self.tsw_g:g} g)"
+            if self.tsw_g is not None
+            else "not stored (give --tsw GRAMS, the thousand-seed mass, to compute it)"
+        )
+        pop = s.population_mean_per_ha
+        target = s.target_population_per_ha
+        rate = "–" if pop is None else f"{pop:,.0f} seeds/ha"
+        if pop is not None and self.tsw_g is not None:
+            rate += f" ({pop * self.tsw_g / 1e6:.1f} kg/ha)"
+        if target is not None:
+            rate += f", target {target:,.0f} seeds/ha"
+            if pop is not None:
+                rate += f" ({100 * (pop / target - 1):+.1f} %)"
+        window = (
+            f"{_when(self.since) if self.since else 'start of the store'} to "
+            f"{_when(self.until) if self.until else 'end of the store'}"
+        )
+        return [
+            ("machine", f"{self.machine_id}: {self.machine_rows} rows, "
+                        f"{self.working_width_m:g} m working width "
+                        f"({s.row_spacing_m * 100:.1f} cm rows), crop {self.crop}"),
+            ("time", f"{_when_us(s.first_us)} to {_when_us(s.last_us)} "
+                     f"({_duration(s.seeding_s)} sowing)"),
+            ("window asked", window + (f", rows {_rows_text(self.rows)}" if self.rows else "")),
+            ("seeds", f"{s.seeds:,}"),
+            ("area sown", f"{s.area_ha:,.{2 if s.area_ha >= 10 else 4}f} ha "
+                          f"({s.sown_length_m / 1000:,.{1 if s.sown_length_m >= 1e4 else 3}f} "
+                          f"km of row × {s.row_spacing_m * 100:.1f} cm row spacing)"),
+            ("seed mass", mass),
+            ("applied rate", rate),
+            ("mean speed", f"{s.speed_mean_kmh:.1f} km/h"),
+            ("position quality", f"RTK fixed {100 * s.rtk_fixed_share:.1f} % of the seeds; "
+                                 f"extrapolated {100 * s.extrapolated_share:.2f} % "
+                                 f"({fixes})"),
+            ("alarms", f"{self.alarms_total} events, {len(self.intervals)} alarm periods"),
+        ]
+
+    def data(self) -> dict[str, Any]:
+        s = self.summary
+        return {
+            "machine_id": self.machine_id,
+            "seeds": s.seeds,
+            "first_utc": _iso_us(s.first_us),
+            "last_utc": _iso_us(s.last_us),
+            "area_ha": s.area_ha,
+            "seeds_by_row": {str(k): v for k, v in s.seeds_by_row.items()},
+            "fixes": s.fixes,
+            "extrapolated": s.extrapolated,
+            "rtk_fixed_share": s.rtk_fixed_share,
+            "extrapolated_share": s.extrapolated_share,
+            "population_per_ha": s.population_mean_per_ha,
+            "target_population_per_ha": s.target_population_per_ha,
+            "seed_mass_kg": None if self.tsw_g is None else s.seeds * self.tsw_g / 1e6,
+            "quality": quality_json(s.quality),
+            "map_classes": dict(zip(CLASS_NAMES, self.seed_map.class_counts,
+                                    strict=True)),
+            "alarm_events": self.alarms_total,
+        }
+
+    def figures(self) -> Iterator[tuple[str, str, Figure]]:
+        """(heading, caption, figure) in the report's order, drawn one at a time."""
+        s = self.summary
+        yield ("Seed map", "Each seed where it landed, coloured by the spacing to the previous "
+               "seed of its row (ISO 7256-1: a multiple at ≤ 0.5 × the target, a miss at "
+               "> 1.5 ×).", figures.seed_map(self.seed_map, "Seed map by spacing class"))
+        yield ("Spacing per row", "How far apart the seeds of each row fell, against the "
+               "target spacing.", figures.spacing_histograms(s, self.shown_rows()))
+        yield ("Applied rate along the drive", _rate_note(s),
+               figures.rate_along_drive(s, self.tsw_g))
+        yield ("Applied rate against speed", "The same measured rate grouped by speed: a "
+               "line falling at high speed means the meter could not keep up.",
+               figures.rate_against_speed(s, self.tsw_g))
+        yield ("Alarm timeline", "Every alarm raised or cleared in the window.",
+               figures.alarm_timeline(self.intervals, *self.timeline_span()))
+
+    def timeline_span(self) -> tuple[int, int]:
+        """The seeds' time span, widened to alarms of the window outside it (raised before
+        the first seed or after the last), so every period shows."""
+        start, end = self.summary.first_us, self.summary.last_us
+        for _code, _sev, a, b, _cleared in self.intervals:
+            start, end = min(start, a), max(end, b)
+        return start, end
+
+
+def _rate_note(s: FieldSummary) -> str:
+    note = ("The applied rate is the population the seed sensors counted: seeds per metre "
+            "of row (from the stored spacings) over the row spacing. The controller's "
+            "commanded rate is not in the record store.")
+    if s.target_population_per_ha is None:
+        note += (" No target spacing is configured ([positioning] target_spacing_m), so "
+                 "there is no target line.")
+    return note
+
+
+def _day(us: int) -> str:
+    return us_to_utc(us).strftime("%Y-%m-%d")
+
+
+def _when(t: datetime) -> str:
+    return t.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+def _when_us(us: int) -> str:
+    return _when(us_to_utc(us))
+
+
+def _iso_us(us: int) -> str:
+    return us_to_utc(us).isoformat().replace("+00:00", "Z")
+
+
+def _duration(seconds: float) -> str:
+    h, rest = divmod(round(seconds), 3600)
+    return f"{h} h {rest // 60:02d} min" if h else f"{rest // 60} min {rest % 60:02d} s"
+
+
+def _rows_text(rows: Sequence[int]) -> str:
+    return ",".join(str(r) for r in rows)
+
+
+def _pct(v: float | None, digits: int = 1) -> str:
+    return "–" if v is None else f"{v:.{digits}f}"
+
+
+def quality_table(report: FieldReport) -> tuple[list[str], list[list[str]]]:
+    head = ["row", "spacings", "multiples %", "misses %", "quality of feed %",
+            "precision %", "mean spacing cm", "reference cm"]
+    body = []
+    for row, q in sorted(report.summary.quality.items()):
+        body.append([
+            str(row), f"{q.n:,}", _pct(q.multiples_index), _pct(q.miss_index),
+            _pct(q.quality_of_feed_index), _pct(q.precision),
+            _pct(None if q.mean_spacing_m is None else q.mean_spacing_m * 100),
+            _pct(None if q.x_ref_m is None else q.x_ref_m * 100),
+        ])
+    return head, body
+
+
+def _png(fig: Figure) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=PNG_DPI)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+CSS = """
+body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:0 auto;
+max-width:1100px;padding:1em 1.5em;color:#222;line-height:1.4}
+h1{font-size:1.6em;margin-bottom:.2em}h2{margin-top:1.6em;border-bottom:2px solid #2e9e44}
+table{border-collapse:collapse;margin:.5em 0}td,th{padding:.25em .7em;border-bottom:1px solid #ddd}
+th{text-align:left;background:#f3f6f3}td.n{text-align:right;font-variant-numeric:tabular-nums}
+table.summary th{width:11em;vertical-align:top}
+img{max-width:100%;height:auto;border:1px solid #eee}.note{color:#555;font-size:.9em}
+.bad{color:#d62728;font-weight:600}
+"""
+
+
+def to_html(report: FieldReport) -> bytes:
+    e = html.escape
+    parts = [
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">",
+        "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">",
+        f"<title>{e(report.title)}</title><style>{CSS}</style></head><body>",
+        f"<h1>{e(report.title)}</h1>",
+        f"<p class=\"note\">Made by sowgate report on {_when(report.created)} from the record "
+        "store. Opens offline: everything is in this one file.</p>",
+        "<h2>Summary</h2><table class=\"summary\">",
+    ]
+    for k, v in report.summary_lines():
+        parts.append(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>")
+    parts.append("</table>")
+    figs = report.figures()
+    heading, caption, fig = next(figs)
+    parts.append(_figure_html(heading, caption, fig))
+    parts.append("<h2>Spacing quality per row (ISO 7256-1)</h2>")
+    parts.append(
+        "<p class=\"note\">Multiples: spacings ≤ 0.5 × the reference; misses: > 1.5 ×; "
+        "quality of feed = 100 − multiples − misses (the singles); precision: the spread "
+        "of the singles relative to the reference (lower is better). The reference is the "
+        "target spacing, or each row's median spacing without one. The same figures as "
+        "<code>sowgate export</code>.</p>"
+    )
+    head, body = quality_table(report)
+    parts.append("<table><tr>" + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>")
+    for cells in body:
+        parts.append("<tr>" + "".join(f"<td class=\"n\">{e(c)}</td>" for c in cells) + "</tr>")
+    parts.append("</table>")
+    for heading, caption, fig in figs:
+        parts.append(_figure_html(heading, caption, fig))
+    parts.append(_alarm_table(report))
+    data = json.dumps(report.data()).replace("</", "<\\/")
+    parts.append(f"<script type=\"application/json\" id=\"report-data\">{data}</script>")
+    parts.append("</body></html>\n")
+    return "\n".join(parts).encode("utf-8")
+
+
+def _figure_html(heading: str, caption: str, fig: Figure) -> str:
+    e = html.escape
+    return (f"<h2>{e(heading)}</h2><p class=\"note\">{e(caption)}</p>"
+            f"<img alt=\"{e(heading)}\" src=\"data:image/png;base64,{_png(fig)}\">")
+
+
+def _alarm_table(report: FieldReport) -> str:
+    e = html.escape
+    if not report.alarms:
+        return "<h2>Alarm events</h2><p>No alarm was raised or cleared in this window.</p>"
+    out = ["<h2>Alarm events</h2><table><tr><th>time (UTC)</th><th>alarm</th>"
+           "<th>severity</th><th></th><th>message</th></tr>"]
+    for a in report.alarms[:ALARM_ROWS_SHOWN]:
+        cls = " class=\"bad\"" if a.severity == "critical" and a.active else ""
+        out.append(
+            f"<tr><td>{e(a.utc.strftime('%Y-%m-%d %H:%M:%S'))}</td><td>{e(a.code)}</td>"
+            f"<td{cls}>{e(a.severity)}</td><td>{'raised' if a.active else 'cleared'}</td>"
+            f"<td>{e(a.message)}</td></tr>"
+        )
+    out.append("</table>")
+    if report.alarms_total > ALARM_ROWS_SHOWN:
+        out.append(f"<p class=\"note\">The first {ALARM_ROWS_SHOWN} of "
+                   f"{report.alarms_total} events; all are in the timeline.</p>")
+    return "".join(out)
+
+
+def to_pdf(report: FieldReport) -> bytes:
+    buf = io.BytesIO()
+    with PdfPages(buf) as pdf:
+        pdf.savefig(_summary_page(report))
+        for heading, caption, fig in report.figures():
+            own = fig.get_suptitle()  # the raster map explains itself there: keep it
+            fig.suptitle(f"{heading}\n{own}" if own else heading, fontsize=11 if own else 13,
+                         fontweight="bold")
+            fig.text(0.01, 0.002, caption, fontsize=7, va="bottom", color="#555", wrap=True)
+            pdf.savefig(fig)
+        info = pdf.infodict()
+        info["Title"] = report.title
+        info["Creator"] = "sowgate report"
+    return buf.getvalue()
+
+
+def _summary_page(report: FieldReport) -> Figure:
+    head, body = quality_table(report)
+    fig = Figure(figsize=(8.27, 11.69))  # A4
+    fig.text(0.06, 0.96, report.title, fontsize=15, fontweight="bold", va="top")
+    y = 0.92
+    for k, v in report.summary_lines():
+        fig.text(0.06, y, k, fontsize=8.5, fontweight="bold", va="top")
+        fig.text(0.26, y, v, fontsize=8.5, va="top", wrap=True)
+        y -= 0.03
+    fig.text(0.06, y - 0.01, "Spacing quality per row (ISO 7256-1)", fontsize=11,
+             fontweight="bold", va="top")
+    ax = fig.add_axes((0.06, 0.03, 0.88, max(0.05, y - 0.06)))
+    ax.axis("off")
+    table = ax.table(cellText=body or [["–"] * len(head)], colLabels=head, loc="upper center")
+    table.auto_set_font_size(False)
+    table.set_fontsize(7 if len(body) <= 24 else 5.5)
+    table.scale(1, 1.0 if len(body) <= 24 else 0.62)
+    return fig

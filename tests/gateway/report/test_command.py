@@ -1,0 +1,158 @@
+"""``sowgate report`` on small stores made here: nothing to report, alarms, the seed mass,
+a store without a target spacing, and outputs that cannot be written."""
+
+from __future__ import annotations
+
+import html
+import json
+import re
+from collections.abc import Sequence
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import pytest
+
+from gateway.app.cli import main as sowgate
+from gateway.config import EXIT_CONFIG
+from gateway.core.records import AlarmEvent, SeedDrop
+from gateway.recording.store import RecordStore
+from gateway.report.command import EXIT_FAILED, EXIT_NO_RECORDS
+
+T0 = datetime(2026, 5, 2, 6, 0, tzinfo=UTC)
+
+
+def drops(n: int = 400) -> list[SeedDrop]:
+    return [
+        SeedDrop(row=1 + i % 6, utc=T0 + timedelta(milliseconds=25 * i), lat=52.0 + i * 2e-7,
+                 lon=13.0 + (i % 6) * 5e-6, fix="rtk_fixed", speed_kmh=8.0, heading_deg=0.0,
+                 heading_source="dual_antenna", spacing_m=None if i < 6 else 0.2)
+        for i in range(n)
+    ]
+
+
+def make_store(tmp_path: Path, seeds: list[SeedDrop], alarms: Sequence[AlarmEvent] = ()) -> Path:
+    path = tmp_path / "records.sqlite3"
+    store = RecordStore(path, "seeder-01")
+    if seeds:
+        store.add_seeds(seeds)
+    for a in alarms:
+        store.add_alarm(a)
+    store.flush()
+    store.close()
+    return path
+
+
+def config(tmp_path: Path, store: Path, target: float | None = 0.2) -> Path:
+    cfg = tmp_path / "sowgate.toml"
+    text = f'[machine]\nid = "seeder-01"\n[store]\npath = "{store}"\n'
+    if target is not None:
+        text += f"[positioning]\ntarget_spacing_m = {target}\n"
+    cfg.write_text(text)
+    return cfg
+
+
+def report(cfg: Path, out: Path, *extra: str) -> int:
+    return sowgate(["report", "--config", str(cfg), "--output", str(out), *extra])
+
+
+def embedded(out: Path) -> dict[str, object]:
+    m = re.search(r'id="report-data">(.*?)</script>', out.read_text(), re.S)
+    assert m is not None
+    data: dict[str, object] = json.loads(m.group(1).replace("<\\/", "</"))
+    return data
+
+
+def test_an_empty_store_is_nothing_to_report(tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, []))
+    out = tmp_path / "out" / "r.html"
+    out.parent.mkdir()
+    assert report(cfg, out) == EXIT_NO_RECORDS
+    assert "nothing to report: no seed records in" in capsys.readouterr().err
+    assert list(out.parent.iterdir()) == []
+
+
+def test_no_store_at_all_is_nothing_to_report(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = config(tmp_path, tmp_path / "nowhere.sqlite3")
+    assert report(cfg, tmp_path / "r.html") == EXIT_NO_RECORDS
+    assert "no record store at" in capsys.readouterr().err
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_rows_with_no_seeds_in_the_window_are_nothing_to_report(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, [d for d in drops() if d.row != 6]))
+    assert report(cfg, tmp_path / "r.html", "--rows", "6") == EXIT_NO_RECORDS
+    assert "on rows 6" in capsys.readouterr().err
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_alarms_are_listed_with_their_times(tmp_path: Path) -> None:
+    alarms = [
+        AlarmEvent(code="radar.lost", active=True, severity="critical",
+                   message="radar speed sensor not answering", utc=T0 + timedelta(seconds=2)),
+        AlarmEvent(code="radar.lost", active=False, severity="critical",
+                   message="radar back", utc=T0 + timedelta(seconds=5)),
+    ]
+    cfg = config(tmp_path, make_store(tmp_path, drops(), alarms))
+    out = tmp_path / "r.html"
+    assert report(cfg, out) == 0
+    text = html.unescape(out.read_text())
+    assert "2026-05-02 06:00:02" in text and "radar speed sensor not answering" in text
+    assert "2 events, 1 alarm periods" in text
+    assert embedded(out)["alarm_events"] == 2
+
+
+def test_the_seed_mass_needs_the_thousand_seed_mass(tmp_path: Path) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, drops(400)))
+    out = tmp_path / "r.html"
+    assert report(cfg, out) == 0
+    assert embedded(out)["seed_mass_kg"] is None
+    assert "not stored (give --tsw GRAMS" in html.unescape(out.read_text())
+    assert report(cfg, out, "--tsw", "350") == 0
+    assert embedded(out)["seed_mass_kg"] == pytest.approx(400 * 0.35 / 1000)
+
+
+def test_without_a_target_spacing_the_rows_median_is_the_reference(tmp_path: Path) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, drops()), target=None)
+    out = tmp_path / "r.html"
+    assert report(cfg, out) == 0
+    data = embedded(out)
+    assert data["target_population_per_ha"] is None
+    q = data["quality"]
+    assert isinstance(q, dict) and q["1"]["x_ref_m"] == pytest.approx(0.2)
+    assert "No target spacing is configured" in html.unescape(out.read_text())
+
+
+def test_an_output_that_cannot_be_written_is_one_line(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, drops()))
+    assert report(cfg, tmp_path / "missing-dir" / "r.html") == EXIT_FAILED
+    assert "cannot write" in capsys.readouterr().err
+
+
+def test_a_bad_config_is_a_config_error(tmp_path: Path) -> None:
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[machine]\nrows = 0\n")
+    assert report(cfg, tmp_path / "r.html") == EXIT_CONFIG
+
+
+@pytest.mark.parametrize(
+    "seeds",
+    [
+        drops(1),  # one seed: no spacing, no distance, a map of one point
+        [d.model_copy(update={"speed_kmh": 0.0}) for d in drops(50)],  # standing still
+        [d.model_copy(update={"spacing_m": None}) for d in drops(50)],  # no spacing at all
+    ],
+    ids=["one-seed", "speed-zero", "no-spacings"],
+)
+def test_degenerate_stores_still_give_a_whole_report(
+    tmp_path: Path, seeds: list[SeedDrop]
+) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, seeds))
+    for out in (tmp_path / "r.html", tmp_path / "r.pdf"):
+        assert report(cfg, out) == 0
+    assert embedded(tmp_path / "r.html")["seeds"] == len(seeds)
+    assert (tmp_path / "r.pdf").read_bytes().startswith(b"%PDF-")
