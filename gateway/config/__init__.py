@@ -39,6 +39,7 @@ from gateway.config.metering import (
 )
 from gateway.config.recording import (
     GnssSection,
+    HitchSection,
     PositioningSection,
     SeedSensorsSection,
     StoreSection,
@@ -69,6 +70,7 @@ __all__ = [
     "ControlSection",
     "CropModel",
     "GnssSection",
+    "HitchSection",
     "HmiSection",
     "InclinometerSection",
     "IsobusSection",
@@ -246,6 +248,8 @@ class Settings(BaseSettings):
                 uses.append("speed.source includes radar")
             if "inclinometer" in self.isobus.work_state_source:
                 uses.append("isobus.work_state_source includes inclinometer")
+            if self.positioning.attitude_source == "inclinometer":
+                uses.append("positioning.attitude_source is inclinometer")
             uses += [f"channel {c.name} is pwm_modbus" for c in self.channel
                      if c.drive == "pwm_modbus"]
             if uses:

@@ -45,6 +45,9 @@ CSV_FIELDS = [
     "extrapolated",
     "method",
     "spacing_m",
+    "attitude",
+    "roll_deg",
+    "pitch_deg",
 ]
 QUALITY_FIELDS = [
     "row",

@@ -53,6 +53,57 @@ def rotate_offset(offset: RowOffset, heading_deg: float) -> tuple[float, float]:
     )
 
 
+# ---------------------------------------------------------------- terrain (attitude)
+#
+# Sign convention, in the machine's frame X forward, Y left, Z up: positive roll = right side
+# down, positive pitch = nose up (docs/positioning.md, positioning.attitude_source).
+
+
+def terrain_offset(
+    offset: RowOffset, roll_deg: float, pitch_deg: float, antenna_height_m: float
+) -> RowOffset:
+    """The horizontal antenna → outlet lever arm on a slope.
+
+    The antenna stands ``antenna_height_m`` above the ground point it represents, along the
+    machine's Z axis: rolled right side down it leans right by H·sin(roll), pitched nose up
+    it leans back by H·sin(pitch), so the ground point is that far the other way. The outlets'
+    offsets, measured along the (tilted) implement, shorten to their horizontal projection.
+    Level ground returns ``offset`` unchanged.
+    """
+    r, p = math.radians(roll_deg), math.radians(pitch_deg)
+    return RowOffset(
+        offset.behind_m * math.cos(p) - antenna_height_m * math.sin(p),
+        offset.right_m * math.cos(r) - antenna_height_m * math.sin(r),
+    )
+
+
+def antenna_ground_shift(
+    roll_deg: float, pitch_deg: float, antenna_height_m: float
+) -> tuple[float, float]:
+    """(forward, right) metres from the antenna to the ground point below it."""
+    r, p = math.radians(roll_deg), math.radians(pitch_deg)
+    return antenna_height_m * math.sin(p), -antenna_height_m * math.sin(r)
+
+
+def baseline_attitude(
+    baseline_pitch_deg: float, heading_offset_deg: float
+) -> tuple[float | None, float | None]:
+    """(roll, pitch) of the machine from the dual-antenna baseline's elevation.
+
+    The UM982's #HEADINGA "pitch" is the elevation of its baseline (primary → secondary
+    antenna); ``gnss.heading_offset_deg`` says where the baseline points: machine heading =
+    baseline heading + offset, so the baseline points ``offset`` degrees left of forward.
+    Its elevation is pitch·cos(offset) + roll·sin(offset) for small angles: side by side
+    (offset ±90) it is ± the roll, fore and aft (0/180) ± the pitch. One baseline measures one
+    tilt: the other is None (not measured), and whichever axis the baseline is closer to is
+    the one reported.
+    """
+    off = math.radians(heading_offset_deg)
+    s, c = math.sin(off), math.cos(off)
+    if abs(s) >= abs(c):
+        return baseline_pitch_deg / s, None
+    return None, baseline_pitch_deg / c
+
 
 def wrap_deg(angle: float) -> float:
     """Angle in [0, 360); guards the float case where ``x % 360`` returns 360.0."""
