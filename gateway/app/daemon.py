@@ -127,6 +127,14 @@ class Daemon:
         self.bus = ModbusBus.from_config(settings.rs485)
         self.radar = Radar(self.bus, settings.radar)
         self.inclinometer = Inclinometer(self.bus, settings.inclinometer)
+        # terrain compensation from the inclinometer's roll axis (positioning.attitude_source):
+        # a second read of the same sensor; its configured axis keeps telling raised/lowered
+        self.roll_sensor: Inclinometer | None = None
+        if settings.positioning.attitude_source == "inclinometer":
+            self.roll_sensor = Inclinometer(
+                self.bus, settings.inclinometer.model_copy(update={"axis": "roll"})
+            )
+        self.roll_listeners: list[Callable[[float, float], None]] = []
         self.pwm = PwmModule(self.bus, settings.actuators)
         self.latencies_s: deque[float] = deque(maxlen=LATENCY_SAMPLES)
         self.outputs: ControlOutputs | None = None
@@ -368,6 +376,8 @@ class Daemon:
                     self.controller.on_tilt(tilt, reply_t)
                 except DriverError:
                     pass
+                if self.roll_sensor is not None:
+                    await self._read_roll()
             out = self.controller.tick(self.clock())
             self.outputs = out
             await self._write_outputs(out.motor_pct, out.fan_pct, reply_t=reply_t)
@@ -414,6 +424,18 @@ class Daemon:
         if refresh or force:
             self._written_at = now
         return failed
+
+    async def _read_roll(self) -> None:
+        """The inclinometer's roll axis for the seed positioner's terrain correction; a
+        missed reading only leaves the seeds of the next second uncorrected (and flagged)."""
+        assert self.roll_sensor is not None
+        try:
+            roll = await self.roll_sensor.read()
+        except DriverError:
+            return
+        t = self.clock()
+        for listener in self.roll_listeners:
+            listener(t, roll)
 
     async def _keep_pwm_watchdog(self) -> None:
         """Program the PWM module's communication-loss timeout and verify it by reading back.

@@ -86,11 +86,17 @@ def main_export(args: argparse.Namespace) -> int:
         rows = parse_rows(getattr(args, "rows", None), settings.machine.rows)
         path = store_path(settings, state)
         x_ref = settings.positioning.target_spacing_m
+        moved = None
+        if getattr(args, "reposition", False):
+            from gateway.app.position_calibration import Repositioner, calibrated_settings
+
+            moved = Repositioner(calibrated_settings(settings, state))
         with RecordStore.open_readonly(path, settings.machine.id) as store:
             quality = quality_by_row(store.query_seeds(since, until, rows), x_ref)
+            records = store.query_seeds(since, until, rows)
             with atomic_output(args.output) as out:
                 n = export_seeds(
-                    store.query_seeds(since, until, rows),
+                    records if moved is None else moved(records),
                     fmt,
                     out,
                     quality if fmt == "geojson" else None,
@@ -108,6 +114,12 @@ def main_export(args: argparse.Namespace) -> int:
     except (StoreError, OSError) as exc:
         print(f"sowgate export: {exc}", file=sys.stderr)
         return EXIT_FAILED
+    if moved is not None:
+        print(
+            f"re-positioned with the current position model and calibration; "
+            f"{moved.kept_as_stored} records keep no raw data and are as stored",
+            file=sys.stderr,
+        )
     if args.output != "-":
         print(f"wrote {n} seed records to {args.output} ({fmt})", file=sys.stderr)
         if fmt == "csv":

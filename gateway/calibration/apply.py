@@ -5,7 +5,8 @@ directory; the fitter's config keeps the factory values. At start the daemon lay
 calibrations over the config so a refitted machine sows with its own curves, and the
 ``undo`` of a bad calibration is a restart away.
 
-A calibration is applied at the daemon's next start, not while it runs. The daemon passes a
+A calibration is applied at the daemon's next start, not while it runs (the seed position
+calibration too: the positioner is built with it at start). The daemon passes a
 ``vet`` (``gateway.app.calibration_check.working_speed_problem``): a calibration that would
 make a channel sow nothing or run flat out over the machine's working speeds is refused, the
 config value kept, and ``calibration.refused`` raised naming the key and why.
@@ -126,4 +127,17 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
                     channel.grams_per_rev = float(result["grams_per_rev"])
                     return f"{name} {channel.grams_per_rev:.2f} g/rev"
         raise ValueError(f"no crop or channel named {name!r} in the config")
+    if kind == "positions":
+        # sowgate calibrate positions (gateway.app.position_calibration): absolute values
+        pos = settings.positioning
+        lateral = [float(x) for x in result["row_lateral_m"]]
+        if len(lateral) != settings.machine.rows:
+            raise ValueError(
+                f"fitted for {len(lateral)} rows, machine.rows is {settings.machine.rows}"
+            )
+        pos.delay_correction_ms = float(result["delay_correction_ms"])
+        pos.outlet_behind_antenna_m = float(result["outlet_behind_antenna_m"])
+        pos.row_lateral_m = lateral
+        return (f"seed positions: outlets {pos.outlet_behind_antenna_m:.3f} m behind the "
+                f"antenna, delay {pos.delay_correction_ms:+.1f} ms (surveyed seeds)")
     raise ValueError(f"unknown calibration {key!r}")
