@@ -216,6 +216,9 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
                 "delay_correction_ms": new.delay_correction_ms,
                 "outlet_behind_antenna_m": new.outlet_behind_antenna_m,
                 "row_lateral_m": new.lateral_offsets(),
+                "outlets_behind_hitch_m": (
+                    None if new.hitch is None else new.hitch.outlets_behind_hitch_m
+                ),
                 "fitted": {"delay_ms": fit.delay_ms, "behind_m": fit.behind_m,
                            "right_m": fit.right_m, "delay_fitted": fit.delay_fitted},
                 "before": fit.before.__dict__,

@@ -138,6 +138,11 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
         pos.delay_correction_ms = float(result["delay_correction_ms"])
         pos.outlet_behind_antenna_m = float(result["outlet_behind_antenna_m"])
         pos.row_lateral_m = lateral
+        behind_hitch = result.get("outlets_behind_hitch_m")
+        if behind_hitch is not None and pos.hitch is not None:
+            pos.hitch = pos.hitch.model_copy(
+                update={"outlets_behind_hitch_m": float(behind_hitch)}
+            )
         return (f"seed positions: outlets {pos.outlet_behind_antenna_m:.3f} m behind the "
                 f"antenna, delay {pos.delay_correction_ms:+.1f} ms (surveyed seeds)")
     raise ValueError(f"unknown calibration {key!r}")

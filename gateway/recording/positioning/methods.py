@@ -104,6 +104,8 @@ class AntennaSample:
     # the machine's attitude at this epoch (positioning.attitude_source), None = not measured
     roll_deg: float | None = None
     pitch_deg: float | None = None
+    # a trailed implement's heading ([positioning.hitch]), None without one
+    implement_heading_deg: float | None = None
 
 
 def lerp_optional(a: float | None, b: float | None, f: float) -> float | None:
@@ -143,6 +145,7 @@ class AntennaState:
     extrapolated: bool
     roll_deg: float | None = None
     pitch_deg: float | None = None
+    implement_heading_deg: float | None = None
 
 
 def worst_fix(a: FixQuality, b: FixQuality) -> FixQuality:
@@ -176,6 +179,12 @@ def interpolate_state(
         extrapolated=False,
         roll_deg=lerp_optional(s0.roll_deg, s1.roll_deg, a),
         pitch_deg=lerp_optional(s0.pitch_deg, s1.pitch_deg, a),
+        implement_heading_deg=(
+            interpolate_heading(s0.implement_heading_deg, s1.implement_heading_deg, a)
+            if s0.implement_heading_deg is not None and s1.implement_heading_deg is not None
+            else s1.implement_heading_deg if s0.implement_heading_deg is None
+            else s0.implement_heading_deg
+        ),
     )
 
 
@@ -226,5 +235,6 @@ def extrapolate_state(
         extrapolated=True,
         roll_deg=last.roll_deg,
         pitch_deg=last.pitch_deg,
+        implement_heading_deg=last.implement_heading_deg,
     )
     return state, capped

@@ -34,11 +34,16 @@ from gateway.recording.positioning.geometry import (
     FloatArray,
     LocalFrame,
     RowOffset,
+    antenna_ground_shift,
     baseline_attitude,
+    follow_hitch,
     heading_diff,
+    hitch_point,
+    implement_heading,
     rotate_offset,
     row_offset,
     terrain_offset,
+    trailed_offset,
     wrap_deg,
 )
 from gateway.recording.positioning.landing import (
@@ -131,6 +136,12 @@ class PositionerStats:
 _Pending = tuple[int, float, float]
 # An inclinometer roll older than this (s) at an epoch is not used (the bus polls at ~3 Hz).
 ATTITUDE_STALE_S = 1.0
+# A trailed implement's axle is pulled after its hitch in steps of at most this (m): the
+# discrete tractrix is then within ~0.01 % of the continuous one on any field curve.
+HITCH_STEP_M = 0.02
+# The hitch point jumping further than this between epochs (a fix jump, an outage) restarts
+# the implement straight behind the tractor instead of dragging it across.
+HITCH_RESET_M = 5.0
 
 
 class _Pair(NamedTuple):
@@ -189,6 +200,10 @@ class SeedPositioner:
         # gnss.heading_offset_deg: where the dual-antenna baseline points (baseline_attitude)
         self.baseline_offset_deg = baseline_offset_deg
         self._incl_roll: tuple[float, float] | None = None  # (t_mono, roll) from add_attitude
+        # a trailed implement: its axle line's position, and the hitch point it was pulled to
+        self.hitch = settings.hitch
+        self._axle: tuple[float, float] | None = None
+        self._hitch_at: tuple[float, float] | None = None
         self.method: Method = method or settings.method
         rows = len(settings.lateral_offsets())
         self.offsets = [row_offset(settings, r) for r in range(1, rows + 1)]
@@ -249,6 +264,7 @@ class SeedPositioner:
         speed = max(0.0, speed or 0.0)
         heading, source = choose_heading(epoch.heading_valid, epoch.heading_deg, course, speed)
         roll, pitch = self._attitude_of(epoch)
+        implement = self._follow_hitch(east, north, heading)
         if self._defer and self._would_move_held(epoch.t_mono, utc_s):
             out += self._resolve_ready(force=True)
         self._samples.append(
@@ -267,6 +283,7 @@ class SeedPositioner:
                 fix=epoch.fix,
                 roll_deg=roll,
                 pitch_deg=pitch,
+                implement_heading_deg=implement,
             )
         )
         self.clock.observe(epoch.t_mono, utc_s)
@@ -303,6 +320,28 @@ class SeedPositioner:
         roll = None if roll is None else max(-90.0, min(90.0, sign * roll))
         pitch = None if pitch is None else max(-90.0, min(90.0, sign * pitch))
         return roll, pitch
+
+    def _follow_hitch(self, east: float, north: float, heading: float | None) -> float | None:
+        """Pull the trailed implement after the hitch to this epoch; its heading (None
+        without a hitch or a tractor heading)."""
+        hitch = self.hitch
+        if hitch is None or heading is None:
+            return None
+        at = hitch_point(east, north, heading, hitch.behind_antenna_m)
+        length = hitch.outlets_behind_hitch_m
+        last, axle = self._hitch_at, self._axle
+        if last is None or axle is None or math.dist(last, at) > HITCH_RESET_M:
+            axle = hitch_point(at[0], at[1], heading, length)  # straight behind
+        else:
+            steps = max(1, math.ceil(math.dist(last, at) / HITCH_STEP_M))
+            for k in range(1, steps + 1):
+                f = k / steps
+                axle = follow_hitch(
+                    axle, (last[0] + f * (at[0] - last[0]), last[1] + f * (at[1] - last[1])),
+                    length,
+                )
+        self._axle, self._hitch_at = axle, at
+        return implement_heading(axle, at)
 
     def _fall_for_newest(self, newest: AntennaSample) -> float:
         if newest is not self._fall_for:
@@ -485,6 +524,10 @@ class SeedPositioner:
         Seeds outside the newest pairs' span take the general path. Long runs go to
         ``_interpolate_vector``.
         """
+        if self.hitch is not None:
+            # a trailed implement: the general path (its lever arm turns apart from the
+            # tractor's, which the fast paths do not model)
+            return [self._interpolate(p) for p in ready]
         if len(ready) >= VECTOR_MIN_SEEDS and len(self._samples) >= 2:
             return self._interpolate_vector(ready)
         assert self.frame is not None
@@ -589,6 +632,26 @@ class SeedPositioner:
             self.antenna_height_m,
         )
         return -t.behind_m, t.right_m
+
+    def _trailed(
+        self, row: int, heading: float, implement: float, roll: float | None,
+        pitch: float | None,
+    ) -> tuple[float, float]:
+        """Antenna → outlet of a trailed implement, with the terrain correction of the
+        antenna (tractor attitude) and of the outlets' lateral offsets."""
+        hitch = self.hitch
+        assert hitch is not None
+        right = self.offsets[row - 1].right_m
+        shift_e = shift_n = 0.0
+        if roll is not None or pitch is not None:
+            r, p = 0.0 if roll is None else roll, 0.0 if pitch is None else pitch
+            forward, sideways = antenna_ground_shift(r, p, self.antenna_height_m)
+            shift_e, shift_n = rotate_offset(RowOffset(-forward, sideways), heading)
+            right *= math.cos(math.radians(r))
+        de, dn = trailed_offset(
+            heading, implement, hitch.behind_antenna_m, hitch.outlets_behind_hitch_m, right
+        )
+        return de + shift_e, dn + shift_n
 
     def _attitude_fields(
         self, roll: float | None, pitch: float | None
@@ -867,7 +930,11 @@ class SeedPositioner:
         heading = state.heading_deg
         lever_heading = heading if heading is not None else self._last_known_heading()
         roll, pitch = state.roll_deg, state.pitch_deg
-        if lever_heading is not None:
+        implement = state.implement_heading_deg
+        hitch = self.hitch
+        if lever_heading is not None and hitch is not None and implement is not None:
+            de, dn = self._trailed(row, lever_heading, implement, roll, pitch)
+        elif lever_heading is not None:
             nb, r = self._lever_arm(row, roll, pitch)
             de, dn = rotate_offset(RowOffset(-nb, r), lever_heading)
         else:

@@ -217,12 +217,20 @@ class SurveyFit:
 def apply_fit(
     base: PositioningSection, delay_ms: float, behind_m: float, right_m: float
 ) -> PositioningSection:
+    """``base`` with a fit's corrections; with a trailed implement the outlets move along
+    its drawbar (``hitch.outlets_behind_hitch_m``), the hitch staying where it was measured."""
     lateral = [r + right_m for r in base.lateral_offsets()]
-    return base.model_copy(update={
+    update: dict[str, object] = {
         "delay_correction_ms": base.delay_correction_ms + delay_ms,
-        "outlet_behind_antenna_m": base.outlet_behind_antenna_m + behind_m,
         "row_lateral_m": lateral,
-    })
+    }
+    if base.hitch is None:
+        update["outlet_behind_antenna_m"] = base.outlet_behind_antenna_m + behind_m
+    else:
+        update["hitch"] = base.hitch.model_copy(
+            update={"outlets_behind_hitch_m": base.hitch.outlets_behind_hitch_m + behind_m}
+        )
+    return base.model_copy(update=update)
 
 
 def speed_spread_kmh(speeds: Sequence[float]) -> float:
