@@ -238,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--reposition",
         action="store_true",
         help="seeds where the current position model says they landed (config + the saved "
-        "`calibrate positions`), not as stored; records stored before they kept raw data "
+        "'calibrate positions'), not as stored; records stored before they kept raw data "
         "are written as stored (counted)",
     )
     e.add_argument("--config", type=Path, default=None, help="config file (for the store path)")
