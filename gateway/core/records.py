@@ -150,7 +150,8 @@ def seed_batch_json(machine_id: str, ids: Sequence[int], rows: Sequence[SeedRow]
     last_s = -1
     second = ""
     for i, (us, row, lat, lon, fix, speed, heading, source, extrapolated, method, spacing,
-            attitude, roll, pitch, *_store_only) in zip(ids, rows, strict=True):
+            attitude, roll, pitch, _delay, _off_e, _off_n) in zip(ids, rows, strict=True):
+        # (delay and offsets: kept in the store for re-positioning, not published)
         s, frac = divmod(us, 1_000_000)
         if s != last_s:
             last_s, second = s, time.strftime(_UTC_SECOND_FORMAT, time.gmtime(s))
