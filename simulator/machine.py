@@ -154,6 +154,10 @@ class SimulatedMachine(StartClose):
             + self.rng.gauss(0.0, self.noise.tilt_sigma_deg)
         )
 
+    def roll_reading(self) -> float:
+        """The inclinometer's roll axis: the side slope, with the tilt axis's noise."""
+        return self.roll_deg + self.rng.gauss(0.0, self.noise.tilt_sigma_deg)
+
     def on_duty(self, channel: str, pct: float) -> None:
         if channel == "motor":
             self.plant.duty_pct = pct
@@ -188,6 +192,8 @@ class SimulatedMachine(StartClose):
                     on_duty=self.on_duty,
                     rng=random.Random(self.seed + 2),
                     pwm_watchdog=self.pwm_watchdog,
+                    # (level ground: the roll axis reads 0 and draws no noise, as before)
+                    roll_deg=self.roll_reading if self.roll_deg else None,
                 )
             )
             self.hmi = await self._stack.enter_async_context(HmiPeer())

@@ -145,3 +145,34 @@ async def test_fifty_surveyed_seeds_fix_a_wrong_lever_arm_on_a_side_slope(
     assert mean_after < 0.025, f"mean error on the other seeds {mean_after * 1000:.1f} mm"
     assert mean_after < 0.5 * statistics.fmean(before)
 
+
+
+async def test_the_inclinometer_roll_axis_corrects_seeds_on_a_side_slope(tmp_path: Path) -> None:
+    """attitude_source = "inclinometer": the daemon reads the WitMotion's roll axis beside
+    its raised/lowered pitch axis and positions each seed from the ground below the antenna."""
+    drive = Drive(legs=[Leg(3.0, 0.0), Leg(5.0, 8.0), Leg(600.0, 0.0)], dt=0.02,
+                  start_heading_deg=37.0)
+    machine = SimulatedMachine(drive=drive, with_gnss=True, with_seed_tubes=True,
+                               roll_deg=ROLL_DEG, antenna_height_m=ANTENNA_HEIGHT_M)
+    async with machine:
+        data = machine.config(control={"start_working": True}, positioning={
+            "antenna_height_m": ANTENNA_HEIGHT_M, "attitude_source": "inclinometer"})
+        daemon = Daemon(parse_config(data), tmp_path / "state")
+        task = asyncio.create_task(daemon.run(), name="daemon")
+        try:
+            await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
+            await asyncio.sleep(1.0)
+        finally:
+            daemon.request_stop()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(task, 5.0)
+        truth = list(machine.seed_tubes.truth)
+    with RecordStore.open_readonly(tmp_path / "state" / "records.sqlite3", MACHINE_ID) as s:
+        records = list(s.query_seeds())
+    true = truth_by_id(records, truth)
+    corrected = [r for r in records if r.attitude == "inclinometer"]
+    assert len(corrected) > 0.9 * len(records)
+    assert statistics.fmean(r.roll_deg or 0.0 for r in corrected) == pytest.approx(ROLL_DEG,
+                                                                                   abs=0.2)
+    errors = [error_m(r.lat, r.lon, true[r.id]) for r in corrected]
+    assert statistics.median(errors) < 0.03  # uncorrected, the antenna's lean alone is 13 cm
