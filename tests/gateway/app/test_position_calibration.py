@@ -147,3 +147,19 @@ def test_a_bad_survey_file_is_named_line_by_line(
     f.write_text(text)
     assert calibrate(config, state, "positions", "--survey", str(f)) == 1
     assert problem in capsys.readouterr().out.replace("\n", "")
+
+
+def test_surveyed_seeds_can_be_matched_by_landing_time_and_row(
+    field: tuple[Path, Path, list[SeedDrop]], tmp_path: Path,
+) -> None:
+    config, state, drops = field
+    points = survey(drops)
+    f = tmp_path / "by_utc.csv"
+    with f.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["utc", "row", "lat", "lon"])
+        for d, (lat, lon) in list(zip(drops, points, strict=True))[::2]:
+            w.writerow([d.utc.isoformat().replace("+00:00", "Z"), d.row, lat, lon])
+    assert calibrate(config, state, "positions", "--survey", str(f)) == 0
+    result = CalibrationStore(state).get("positions.survey")["result"]  # type: ignore[index]
+    assert result["outlet_behind_antenna_m"] == pytest.approx(1.2, abs=0.01)
