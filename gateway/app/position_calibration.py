@@ -124,15 +124,21 @@ def match_survey(
     """Surveyed seeds paired with their records (by id, else by utc and row); the reasons
     for the ones left unmatched."""
     by_id: dict[int, SurveyedSeed] = {s.id: s for s in seeds if s.id is not None}
-    by_utc = [s for s in seeds if s.id is None]
+    by_ms: dict[int, list[SurveyedSeed]] = {}  # surveyed by utc, by whole millisecond
+    for s in seeds:
+        if s.id is None and s.utc is not None:
+            by_ms.setdefault(_ms(s.utc), []).append(s)
     found: dict[int, SeedRecord] = {}  # survey line -> record
     ambiguous: set[int] = set()
-    for r in records:
-        s = by_id.get(r.id)
-        if s is not None:
-            found[s.line] = r
+    for r in records:  # one pass over the store, a dictionary look-up a record
+        s_id = by_id.get(r.id)
+        if s_id is not None:
+            found[s_id.line] = r
             continue
-        for s in by_utc:
+        if not by_ms:
+            continue
+        ms = _ms(r.utc)
+        for s in (*by_ms.get(ms - 1, ()), *by_ms.get(ms, ()), *by_ms.get(ms + 1, ())):
             assert s.utc is not None
             if abs((r.utc - s.utc) / timedelta(seconds=1)) <= UTC_MATCH_S and (
                 s.row is None or s.row == r.row
@@ -161,6 +167,10 @@ def match_survey(
     return matched, surveyed, problems
 
 
+def _ms(t: datetime) -> int:
+    return round(t.timestamp() * 1000.0)
+
+
 def calibrated_settings(settings: Settings, state: Path | None) -> Settings:
     """``settings`` with the saved calibrations laid over it, as the daemon starts with."""
     current = settings.model_copy(deep=True)
@@ -182,7 +192,7 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
     """Fit, show, and (unless refused) save the seed position calibration."""
     from gateway.recording.store import RecordStore, StoreError
 
-    con = console or Console()
+    con = console or Console(soft_wrap=True)  # paths and messages unbroken (copyable)
     try:
         config = getattr(args, "config", None)
         settings = load_config(config) if config else parse_config({})
