@@ -70,6 +70,10 @@ class GnssEpoch:
     heading_deg: float | None  # None when the receiver had no heading solution at all
     heading_valid: bool  # ambiguity-fixed dual-antenna heading (see protocol.unicore)
     num_sv: int | None
+    # #HEADINGA's "pitch": the elevation of the antenna baseline (primary -> secondary),
+    # positive when the secondary is higher; None without a Unicore heading solution. The
+    # machine's roll or pitch depending on how the antennas sit (gnss.heading_offset_deg).
+    baseline_pitch_deg: float | None = None
 
 
 def fix_from_gga_quality(quality: int) -> Fix:
@@ -236,11 +240,13 @@ def _build_epoch(p: _Partial, utc: datetime, heading_offset_deg: float = 0.0) ->
     if course is None and p.vtg is not None:
         course = p.vtg.course_deg
     heading_deg: float | None = None
+    baseline_pitch: float | None = None
     valid = False
     h = p.heading
     if isinstance(h, Heading):
         if h.quality != "none":
             heading_deg, valid = h.heading_deg, h.valid
+            baseline_pitch = h.pitch_deg
     elif isinstance(h, Ths):
         heading_deg, valid = h.heading_deg, h.valid
     elif isinstance(h, Hdt):
@@ -261,6 +267,7 @@ def _build_epoch(p: _Partial, utc: datetime, heading_offset_deg: float = 0.0) ->
         heading_deg=heading_deg,
         heading_valid=valid,
         num_sv=gga.num_sv if gga is not None else None,
+        baseline_pitch_deg=baseline_pitch,
     )
 
 

@@ -96,6 +96,13 @@ class SimulatedMachine(StartClose):
     # a hopper on load cells, read by a weight transmitter on the RS485 bus ([hopper_scale])
     hopper: HopperTruth | None = None
     settings_overrides: dict[str, Any] = field(default_factory=dict)
+    # Terrain and the receiver's mounting: a side slope (positive = right side down), the
+    # antenna's height above the ground, and how the two antennas sit (gnss.heading_offset_deg:
+    # 90 = secondary on the left, so #HEADINGA's pitch is the roll). The drive's pose is the
+    # ground point below the antenna; the seeds land on the rolled ground.
+    roll_deg: float = 0.0
+    antenna_height_m: float = 0.0
+    heading_offset_deg: float = 0.0
 
     def __post_init__(self) -> None:
         self.rng = random.Random(self.seed)
@@ -154,6 +161,10 @@ class SimulatedMachine(StartClose):
         assert self.hopper is not None
         return self.hopper.reading_kg(self.now(), self.plant.mass_g / 1000.0)
 
+    def roll_reading(self) -> float:
+        """The inclinometer's roll axis: the side slope, with the tilt axis's noise."""
+        return self.roll_deg + self.rng.gauss(0.0, self.noise.tilt_sigma_deg)
+
     def on_duty(self, channel: str, pct: float) -> None:
         if channel == "motor":
             self.plant.duty_pct = pct
@@ -190,6 +201,8 @@ class SimulatedMachine(StartClose):
                     pwm_watchdog=self.pwm_watchdog,
                     hopper_kg=self.hopper_reading_kg if self.hopper is not None else None,
                     hopper=self.base_settings.hopper_scale,
+                    # (level ground: the roll axis reads 0 and draws no noise, as before)
+                    roll_deg=self.roll_reading if self.roll_deg else None,
                 )
             )
             self.hmi = await self._stack.enter_async_context(HmiPeer())
@@ -213,17 +226,21 @@ class SimulatedMachine(StartClose):
                 output_latency_s=GNSS_OUTPUT_LATENCY_S,
                 seed=self.seed + 3,
                 t0_mono=self._t0,
+                antenna_height_m=self.antenna_height_m,
+                roll_deg=self.roll_deg,
+                heading_offset_deg=self.heading_offset_deg,
             )
         )
 
     async def _start_seed_tubes(self) -> None:
-        from simulator.seed_tubes import SeedTubeEmulator
+        from simulator.seed_tubes import PlanterModel, SeedTubeEmulator
 
         positioning = self.base_settings.positioning.model_copy(
             update={"target_spacing_m": SEED_SPACING_M}
         )
+        model = PlanterModel.from_positioning(positioning, roll_deg=self.roll_deg)
         self.seed_tubes = await self._stack.enter_async_context(
-            SeedTubeEmulator(self.drive, positioning, seed=self.seed + 4, t0_mono=self._t0)
+            SeedTubeEmulator(self.drive, model, seed=self.seed + 4, t0_mono=self._t0)
         )
 
     async def close(self) -> None:
@@ -244,6 +261,8 @@ class SimulatedMachine(StartClose):
             data["hopper_scale"] = {"enabled": True}
         if self.gnss is not None:
             data["gnss"] = {"enabled": True, "port": self.gnss.device_path}
+            if self.heading_offset_deg:
+                data["gnss"]["heading_offset_deg"] = self.heading_offset_deg
             data["speed"] = {"source": "radar_then_gnss"}
             data["positioning"] = {
                 "gnss_output_latency_ms": GNSS_OUTPUT_LATENCY_S * 1000,

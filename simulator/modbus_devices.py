@@ -104,6 +104,7 @@ class Rs485Simulator(StartClose):
         pwm_watchdog: bool = True,
         hopper_kg: Callable[[], float] | None = None,
         hopper: HopperScaleSection | None = None,
+        roll_deg: Callable[[], float] | None = None,
     ) -> None:
         self.radar = radar or RadarSection()
         # the hopper's weight transmitter, only when ``hopper_kg`` says what it weighs
@@ -118,6 +119,9 @@ class Rs485Simulator(StartClose):
             raise ValueError(f"RS485 device ids must be distinct (radar, incl., pwm = {ids})")
         self._radar_kmh = radar_kmh
         self._tilt_deg = tilt_deg
+        # the machine's roll on the roll axis (when that is not the configured tilt axis);
+        # None: the other axes read 0
+        self._roll_deg = roll_deg
         self._on_duty = on_duty
         self._radar_format = RadarFormat(
             data_type=self.radar.data_type,
@@ -532,10 +536,12 @@ class Rs485Simulator(StartClose):
             return ExcCodes.DEVICE_FAILURE
         first, _ = inclinometer_span(layout, self.inclinometer.axis)
         zero = encode_angle(0.0, layout)
+        roll = zero if self._roll_deg is None else encode_angle(self._roll_deg(), layout)
         for axis in ("roll", "pitch", "yaw"):
             axis_first, n = inclinometer_span(layout, axis)
             offset = axis_first - start_address
-            registers[offset : offset + n] = words if axis_first == first else zero
+            other = roll if axis == "roll" else zero
+            registers[offset : offset + n] = words if axis_first == first else other
         return None
 
     async def _pwm_action(

@@ -75,6 +75,9 @@ class PlanterModel:
     fall_time_table: Sequence[tuple[float, float]] = tuple(DEFAULT_FALL_TIME_TABLE)
     fall_time_sigma_s: float = 0.0015
     bounce_sigma_m: float = 0.0
+    # the field's side slope (positive = right side down): the outlets, spread along the
+    # tilted toolbar, sit r·cos(roll) to the side of the ground point below the antenna
+    roll_deg: float = 0.0
 
     @classmethod
     def from_positioning(cls, section: PositioningSection, **kw: Any) -> PlanterModel:
@@ -106,11 +109,14 @@ class PlanterModel:
 def landing_point(
     pose_at: Callable[[float], Pose], model: PlanterModel, row: int, t_land: float
 ) -> tuple[float, float]:
-    """The row outlet's true position at ``t_land`` (no bounce): behind the antenna along
-    the heading, and to its right for a positive lateral offset."""
+    """The row outlet's true position at ``t_land`` (no bounce): behind the ground point
+    below the antenna (the pose) along the heading, and to its right for a positive lateral
+    offset."""
     p = pose_at(t_land)
     h = math.radians(p.heading_deg)
     back, right = model.outlet_behind_antenna_m, model.row_lateral_m[row - 1]
+    if model.roll_deg:
+        right *= math.cos(math.radians(model.roll_deg))
     east = p.east - back * math.sin(h) + right * math.cos(h)
     north = p.north - back * math.cos(h) - right * math.sin(h)
     return east, north

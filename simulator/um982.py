@@ -184,6 +184,9 @@ class Um982Emulator(StartClose):
         t0_mono: float | None = None,
         link_path: str | os.PathLike[str] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        antenna_height_m: float = 0.0,
+        roll_deg: float = 0.0,
+        heading_offset_deg: float = 0.0,
     ) -> None:
         if not 0 < rate_hz <= 50:
             raise ValueError(f"rate_hz must be in (0, 50], got {rate_hz}")
@@ -196,6 +199,14 @@ class Um982Emulator(StartClose):
         self.heading_sigma_deg = heading_sigma_deg
         self.output_latency_s = output_latency_s
         self.fix: Fix = fix
+        # Terrain: the pose is the ground point below the antenna; on a side slope of
+        # ``roll_deg`` (positive = right side down) the antenna, ``antenna_height_m`` up,
+        # leans H·sin(roll) to the right of it. The antennas sit as ``heading_offset_deg``
+        # says (the daemon's gnss.heading_offset_deg): #HEADINGA reports the baseline's
+        # heading (machine heading − offset) and its elevation (roll·sin(offset)).
+        self.antenna_height_m = antenna_height_m
+        self.roll_deg = roll_deg
+        self.heading_offset_deg = heading_offset_deg
         self._rng = random.Random(seed)
         self._clock = clock
         self._utc_start = utc_start
@@ -295,20 +306,31 @@ class Um982Emulator(StartClose):
         utc = self._utc_start + timedelta(milliseconds=round(k * 1000.0 / self.rate_hz))
         pose = self._pose_at(t_sim)
         lat0, lon0, h0 = self.origin
-        true_lat, true_lon, _ = pymap3d.enu2geodetic(pose.east, pose.north, 0.0, lat0, lon0, h0)
+        h_rad = math.radians(pose.heading_deg)
+        lean = self.antenna_height_m * math.sin(math.radians(self.roll_deg))  # to the right
+        ant_e = pose.east + lean * math.cos(h_rad)
+        ant_n = pose.north - lean * math.sin(h_rad)
+        true_lat, true_lon, _ = pymap3d.enu2geodetic(ant_e, ant_n, 0.0, lat0, lon0, h0)
         self.truth.append(
             TruthEpoch(utc, t_mono, t_sim, pose, float(true_lat), float(true_lon))
         )
         sigma = self.rtk_sigma_m * _SIGMA_FACTOR[self.fix]
-        east = pose.east + self._rng.gauss(0.0, sigma)
-        north = pose.north + self._rng.gauss(0.0, sigma)
+        east = ant_e + self._rng.gauss(0.0, sigma)
+        north = ant_n + self._rng.gauss(0.0, sigma)
         up = self._rng.gauss(0.0, 2.0 * sigma)
         lat, lon, h = pymap3d.enu2geodetic(east, north, up, lat0, lon0, h0)
-        heading = (pose.heading_deg + self._rng.gauss(0.0, self.heading_sigma_deg)) % 360.0
+        heading = (
+            pose.heading_deg - self.heading_offset_deg
+            + self._rng.gauss(0.0, self.heading_sigma_deg)
+        ) % 360.0
+        baseline_pitch = self.roll_deg * math.sin(math.radians(self.heading_offset_deg))
+        if baseline_pitch:
+            baseline_pitch += self._rng.gauss(0.0, 2 * self.heading_sigma_deg)
         speed = max(0.0, pose.speed_kmh + self._rng.gauss(0.0, SPEED_SIGMA_KMH))
         lines = um982_sentences(
             utc, float(lat), float(lon), float(h) - GEOID_SEP_M, speed, pose.heading_deg,
             heading, self.fix, heading_ok=True, hdg_std=max(self.heading_sigma_deg, 0.01),
+            pitch_deg=baseline_pitch,
         )
         if self._drop_heading:
             lines = lines[:2]

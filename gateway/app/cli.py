@@ -182,6 +182,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    if args.calibrate_command == "positions":  # joins the record store: an app command
+        from gateway.app.position_calibration import main_calibrate_positions
+
+        return main_calibrate_positions(args)
     from gateway.calibration.cli import run_calibration
     from gateway.calibration.drive import abandoned_prompt
 
@@ -242,6 +246,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--since", default=None, help="ISO 8601 UTC start time")
     e.add_argument("--until", default=None, help="ISO 8601 UTC end time")
     e.add_argument("--rows", default=None, help="comma-separated row numbers")
+    e.add_argument(
+        "--reposition",
+        action="store_true",
+        help="seeds where the current position model says they landed (config + the saved "
+        "'calibrate positions'), not as stored; records stored before they kept raw data "
+        "are written as stored (counted)",
+    )
     e.add_argument("--config", type=Path, default=None, help="config file (for the store path)")
     e.add_argument(
         "--state-dir",

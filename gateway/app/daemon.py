@@ -135,6 +135,14 @@ class Daemon:
         self.bus = ModbusBus.from_config(settings.rs485)
         self.radar = Radar(self.bus, settings.radar)
         self.inclinometer = Inclinometer(self.bus, settings.inclinometer)
+        # terrain compensation from the inclinometer's roll axis (positioning.attitude_source):
+        # a second read of the same sensor; its configured axis keeps telling raised/lowered
+        self.roll_sensor: Inclinometer | None = None
+        if settings.positioning.attitude_source == "inclinometer":
+            self.roll_sensor = Inclinometer(
+                self.bus, settings.inclinometer.model_copy(update={"axis": "roll"})
+            )
+        self.roll_listeners: list[Callable[[float, float], None]] = []
         self.pwm = PwmModule(self.bus, settings.actuators)
         self.hopper_scale = (
             HopperScale(self.bus, settings.hopper_scale)
@@ -394,6 +402,8 @@ class Daemon:
                     self.controller.on_tilt(tilt, reply_t)
                 except DriverError:
                     pass
+                if self.roll_sensor is not None:
+                    await self._read_roll()
                 if self.hopper_scale is not None:  # lost: the controller keeps its factor
                     kg: float | None = None
                     with contextlib.suppress(DriverError):
@@ -448,6 +458,18 @@ class Daemon:
         if refresh or force:
             self._written_at = now
         return failed
+
+    async def _read_roll(self) -> None:
+        """The inclinometer's roll axis for the seed positioner's terrain correction; a
+        missed reading only leaves the seeds of the next second uncorrected (and flagged)."""
+        assert self.roll_sensor is not None
+        try:
+            roll = await self.roll_sensor.read()
+        except DriverError:
+            return
+        t = self.clock()
+        for listener in self.roll_listeners:
+            listener(t, roll)
 
     async def _keep_pwm_watchdog(self) -> None:
         """Program the PWM module's communication-loss timeout and verify it by reading back.

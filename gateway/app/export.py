@@ -37,6 +37,7 @@ from gateway.recording.export import (
     QUALITY_SUFFIX,
     ExportError,
     ExportFormat,
+    chunks_of_records,
     export_format,
     export_quality_csv,
     export_rows,
@@ -86,12 +87,20 @@ def main_export(args: argparse.Namespace) -> int:
         rows = parse_rows(getattr(args, "rows", None), settings.machine.rows)
         path = store_path(settings, state)
         x_ref = settings.positioning.target_spacing_m
+        moved = None
+        if getattr(args, "reposition", False):
+            from gateway.app.position_calibration import Repositioner, calibrated_settings
+
+            moved = Repositioner(calibrated_settings(settings, state))
         with RecordStore.open_readonly(path, settings.machine.id) as store:
             # two passes over the store, each streaming: the quality goes before the features
             quality = quality_by_row_chunks(store.query_seed_rows(since, until, rows), x_ref)
+            chunks = store.query_seed_rows(since, until, rows)
+            if moved is not None:  # re-positioned: a record at a time, still streamed
+                chunks = chunks_of_records(moved(store.query_seeds(since, until, rows)))
             with atomic_output(args.output) as out:
                 n = export_rows(
-                    store.query_seed_rows(since, until, rows),
+                    chunks,
                     settings.machine.id,
                     fmt,
                     out,
@@ -110,6 +119,12 @@ def main_export(args: argparse.Namespace) -> int:
     except (StoreError, OSError) as exc:
         print(f"sowgate export: {exc}", file=sys.stderr)
         return EXIT_FAILED
+    if moved is not None:
+        print(
+            f"re-positioned with the current position model and calibration; "
+            f"{moved.kept_as_stored} records keep no raw data and are as stored",
+            file=sys.stderr,
+        )
     if args.output != "-":
         print(f"wrote {n} seed records to {args.output} ({fmt})", file=sys.stderr)
         if fmt == "csv":

@@ -57,6 +57,7 @@ class Daemon(Protocol):
     tick_hooks: list[Callable[[ControlOutputs], None]]
     closers: list[Callable[[], None]]
     epoch_listeners: list[Callable[[Any], None]]
+    roll_listeners: list[Callable[[float, float], None]]
 
     def clock(self) -> float: ...
 
@@ -259,6 +260,8 @@ def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
         # wake-up the epoch brought, so they need none of their own (drivers.seed_sensors)
         daemon.epoch_listeners.append(lambda _epoch: sensors.read_pending())
     daemon.epoch_listeners.append(recorder.on_epoch)
+    if daemon.settings.positioning.attitude_source == "inclinometer":
+        daemon.roll_listeners.append(recorder.on_roll)
     daemon.parts.seed_sensors = sensors
     daemon.add_task("seed-sensors", sensors.run, stop_stage=STOP_FIRST)
     daemon.add_task("seed-recorder", recorder.run, stop_stage=STOP_RECORDER)

@@ -6,7 +6,8 @@ calibrations over the config so a refitted machine sows with its own curves, and
 ``undo`` of a bad calibration is a restart away.
 
 A calibration saved while the daemon runs is applied by it too (``gateway.app.live_calibration``
-re-applies the file onto the config when it changes). The daemon passes a
+re-applies the file onto the config when it changes), except the seed position calibration,
+which the positioner is built with at the daemon's next start. The daemon passes a
 ``vet`` (``gateway.app.calibration_check.working_speed_problem``): a calibration that would
 make a channel sow nothing or run flat out over the machine's working speeds is refused, the
 config value kept, and ``calibration.refused`` raised naming the key and why.
@@ -141,4 +142,22 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
                     channel.grams_per_rev = float(result["grams_per_rev"])
                     return f"{name} {channel.grams_per_rev:.2f} g/rev"
         raise ValueError(f"no crop or channel named {name!r} in the config")
+    if kind == "positions":
+        # sowgate calibrate positions (gateway.app.position_calibration): absolute values
+        pos = settings.positioning
+        lateral = [float(x) for x in result["row_lateral_m"]]
+        if len(lateral) != settings.machine.rows:
+            raise ValueError(
+                f"fitted for {len(lateral)} rows, machine.rows is {settings.machine.rows}"
+            )
+        pos.delay_correction_ms = float(result["delay_correction_ms"])
+        pos.outlet_behind_antenna_m = float(result["outlet_behind_antenna_m"])
+        pos.row_lateral_m = lateral
+        behind_hitch = result.get("outlets_behind_hitch_m")
+        if behind_hitch is not None and pos.hitch is not None:
+            pos.hitch = pos.hitch.model_copy(
+                update={"outlets_behind_hitch_m": float(behind_hitch)}
+            )
+        return (f"seed positions: outlets {pos.outlet_behind_antenna_m:.3f} m behind the "
+                f"antenna, delay {pos.delay_correction_ms:+.1f} ms (surveyed seeds)")
     raise ValueError(f"unknown calibration {key!r}")

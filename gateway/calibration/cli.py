@@ -154,8 +154,24 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     lot.add_argument("--lot", required=True, help="seed lot name; default: the test saved "
                      "without --seed-lot")
 
+    ps = sub.add_parser(
+        "positions",
+        help="fit the seed position model (delay, lever arm) to surveyed seeds",
+        description="Match surveyed seeds to stored records, fit the along-track delay and "
+        "the outlets' lever arm by robust least squares, print the errors before and after "
+        "(mean, SD, CV) and save the fit (undo: --key positions.survey). Needs at least "
+        "20 seeds sown over 3 km/h of speed spread (or --lever-only).",
+    )
+    ps.add_argument("--survey", type=Path, required=True,
+                    help="CSV with a header: id (record id) or utc, lat, lon, optional row")
+    ps.add_argument("--lever-only", action="store_true",
+                    help="keep the delay, fit the lever arm alone (seeds of one speed)")
+    ps.add_argument("--accept-poor-fit", action="store_true",
+                    help="save a fit that moves the outlets > 0.5 m or does not help")
+
     u = sub.add_parser("undo", help="restore the value replaced by the last calibration")
-    u.add_argument("--key", default=None, help="e.g. rotation.seed, speed.radar, tilt.inclinometer")
+    u.add_argument("--key", default=None,
+                   help="e.g. rotation.seed, speed.radar, tilt.inclinometer, positions.survey")
 
     sub.add_parser("show", help="print the stored calibration")
     return p

@@ -40,6 +40,7 @@ from gateway.config.metering import (
 )
 from gateway.config.recording import (
     GnssSection,
+    HitchSection,
     PositioningSection,
     SeedSensorsSection,
     StoreSection,
@@ -71,6 +72,7 @@ __all__ = [
     "CropModel",
     "DashboardSection",
     "GnssSection",
+    "HitchSection",
     "HmiSection",
     "HopperScaleSection",
     "InclinometerSection",
@@ -255,6 +257,8 @@ class Settings(BaseSettings):
                 uses.append("isobus.work_state_source includes inclinometer")
             if self.hopper_scale.enabled:
                 uses.append("hopper_scale is enabled")
+            if self.positioning.attitude_source == "inclinometer":
+                uses.append("positioning.attitude_source is inclinometer")
             uses += [f"channel {c.name} is pwm_modbus" for c in self.channel
                      if c.drive == "pwm_modbus"]
             if uses:

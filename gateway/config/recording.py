@@ -89,6 +89,23 @@ def row_lateral_from_width(working_width_m: float, rows: int) -> list[float]:
     return [spacing * (i - (rows - 1) / 2.0) for i in range(rows)]
 
 
+class HitchSection(Section):
+    """A trailed implement on a drawbar hitch, the antenna on the tractor.
+
+    On a curve the implement cuts inside the tractor's path: its heading lags the tractor's,
+    so its outlets are not on the tractor's rigid lever arm. With this table the outlet
+    lever arm (``positioning.outlet_behind_antenna_m``, ``row_lateral_m``) is ignored along
+    the machine axis: the outlets sit ``outlets_behind_hitch_m`` behind the hitch point and
+    ``row_lateral_m`` to the side of the implement's centre line, and the implement's heading
+    is integrated from the hitch point's path (the drawbar follows its hitch).
+    """
+
+    # hitch point: this far behind the antenna, on the tractor's centre line (m)
+    behind_antenna_m: float = Field(ge=0, le=20)
+    # the implement's outlets (its axle line, where the seeds fall): this far behind the hitch
+    outlets_behind_hitch_m: float = Field(gt=0, le=30)
+
+
 class PositioningSection(Section):
     method: Literal["interpolated", "paper"] = "interpolated"
     outlet_behind_antenna_m: float = Field(1.2, ge=-20, le=20)
@@ -114,6 +131,28 @@ class PositioningSection(Section):
     # a row's spacing restarts (None) after a gap this long: raised at the headland, stopped
     spacing_reset_gap_s: float = Field(3.0, gt=0, le=60)
     target_spacing_m: float | None = Field(None, gt=0, le=10)
+    # Terrain compensation (docs/positioning.md). On a slope the antenna, high on the cab
+    # roof, is not above the ground point it stands for: 3 deg of roll at 2.5 m moves it
+    # 13 cm sideways. With the antenna's height above the ground and an attitude source, each
+    # seed is positioned from the ground point below the antenna and the outlets' offsets are
+    # projected by the same attitude; each record says which source corrected it (its
+    # ``attitude`` field, "none" = not corrected).
+    # Sign convention (sensor frame X forward, Y left, Z up): positive roll = right side
+    # down, positive pitch = nose up.
+    antenna_height_m: float = Field(0.0, ge=0, le=6)
+    # "none": no correction. "dual_antenna": the UM982's #HEADINGA pitch, the elevation of its
+    # antenna baseline: the machine's roll when the antennas sit side by side
+    # (gnss.heading_offset_deg = 90 or -90) and its pitch when fore and aft (0 or 180).
+    # "inclinometer": the RS485 WitMotion's roll axis (its pitch axis keeps telling raised
+    # from lowered, inclinometer.axis; it is never read as ground slope).
+    attitude_source: Literal["none", "dual_antenna", "inclinometer"] = "none"
+    # a sensor mounted the other way round (inclinometer facing backwards): flip the signs
+    attitude_invert: bool = False
+    # added to every seed's fall time (ms): what `sowgate calibrate positions` fits from
+    # surveyed seeds (fall time and latencies the table and the config do not know)
+    delay_correction_ms: float = Field(0.0, ge=-300, le=300)
+    # A trailed implement (see HitchSection): its outlets follow the implement's path.
+    hitch: HitchSection | None = None
 
     @model_validator(mode="after")
     def _table_sorted(self) -> PositioningSection:

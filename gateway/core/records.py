@@ -18,6 +18,10 @@ from pydantic import BaseModel, ConfigDict, Field
 FixQuality = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
 HeadingSource = Literal["dual_antenna", "course", "none"]
 PositionMethod = Literal["interpolated", "paper", "oracle"]
+# What corrected a seed's position for terrain (positioning.attitude_source); "none": nothing
+# did (no source configured, or none measured at that instant): the antenna was taken as
+# being above the ground point it stands for.
+AttitudeSource = Literal["dual_antenna", "inclinometer", "none"]
 
 
 class _Payload(BaseModel):
@@ -40,6 +44,32 @@ class SeedDrop(_Payload):
     spacing_m: float | None = Field(
         None, ge=0, description="distance to the previous seed of the row"
     )
+    attitude: AttitudeSource = Field(
+        "none",
+        description="the attitude source that corrected this position for terrain "
+        "(positioning.attitude_source); none = not corrected",
+    )
+    roll_deg: float | None = Field(
+        None, ge=-90, le=90,
+        description="machine roll used, positive = right side down; null = not measured",
+    )
+    pitch_deg: float | None = Field(
+        None, ge=-90, le=90,
+        description="machine pitch used, positive = nose up; null = not measured",
+    )
+    # What re-positioning needs (sowgate export --reposition, calibrate positions): kept in
+    # the store, not published (dashboards have the corrected lat/lon).
+    delay_ms: float | None = Field(
+        None, exclude=True,
+        description="host edge stamp to landing: fall time - edge latency + correction "
+        "(the raw edge time is utc - delay_ms)",
+    )
+    offset_east_m: float | None = Field(
+        None, exclude=True,
+        description="east displacement (m) from the main antenna as received at the landing "
+        "instant to this seed: lever arm and terrain correction (antenna = seed - offset)",
+    )
+    offset_north_m: float | None = Field(None, exclude=True, description="the same, north")
 
 
 class SeedRecord(SeedDrop):
@@ -69,12 +99,15 @@ class AlarmEvent(_Payload):
 UNIX_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 # One seed as the record store writes it: (utc_us, row, lat, lon, fix, speed_kmh,
-# heading_deg, heading_source, extrapolated, method, spacing_m), the column order of its
-# INSERT. The positioner produces these directly on the hot path (no ``SeedDrop`` per seed).
+# heading_deg, heading_source, extrapolated, method, spacing_m, attitude, roll_deg,
+# pitch_deg, delay_ms, offset_east_m, offset_north_m), the column order of its INSERT. The
+# positioner produces these directly on the hot path (no ``SeedDrop`` per seed).
 SeedRow = tuple[
     int, int, float, float, FixQuality, float, float | None, HeadingSource, bool,
-    PositionMethod, float | None,
+    PositionMethod, float | None, AttitudeSource, float | None, float | None, float | None,
+    float | None, float | None,
 ]
+SEED_ROW_FIELDS = 17
 
 
 def utc_to_us(t: datetime) -> int:
@@ -94,6 +127,8 @@ def drop_row(drop: SeedDrop) -> SeedRow:
     return (
         utc_to_us(drop.utc), drop.row, drop.lat, drop.lon, drop.fix, drop.speed_kmh,
         drop.heading_deg, drop.heading_source, drop.extrapolated, drop.method, drop.spacing_m,
+        drop.attitude, drop.roll_deg, drop.pitch_deg, drop.delay_ms, drop.offset_east_m,
+        drop.offset_north_m,
     )
 
 
@@ -114,9 +149,9 @@ def seed_batch_json(machine_id: str, ids: Sequence[int], rows: Sequence[SeedRow]
     append = records.append
     last_s = -1
     second = ""
-    for i, (us, row, lat, lon, fix, speed, heading, source, extrapolated, method, spacing) in zip(
-        ids, rows, strict=True
-    ):
+    for i, (us, row, lat, lon, fix, speed, heading, source, extrapolated, method, spacing,
+            attitude, roll, pitch, _delay, _off_e, _off_n) in zip(ids, rows, strict=True):
+        # (delay and offsets: kept in the store for re-positioning, not published)
         s, frac = divmod(us, 1_000_000)
         if s != last_s:
             last_s, second = s, time.strftime(_UTC_SECOND_FORMAT, time.gmtime(s))
@@ -124,6 +159,7 @@ def seed_batch_json(machine_id: str, ids: Sequence[int], rows: Sequence[SeedRow]
             "row": row, "utc": f"{second}.{frac:06d}Z", "lat": lat, "lon": lon, "fix": fix,
             "speed_kmh": speed, "heading_deg": heading, "heading_source": source,
             "extrapolated": bool(extrapolated), "method": method, "spacing_m": spacing,
+            "attitude": attitude, "roll_deg": roll, "pitch_deg": pitch,
             "id": i, "machine_id": machine_id,
         })
     return orjson.dumps({"machine_id": machine_id, "records": records})

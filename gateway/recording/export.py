@@ -22,7 +22,7 @@ from __future__ import annotations
 import csv
 import json
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal, TextIO
@@ -49,6 +49,9 @@ CSV_FIELDS = [
     "extrapolated",
     "method",
     "spacing_m",
+    "attitude",
+    "roll_deg",
+    "pitch_deg",
 ]
 QUALITY_FIELDS = [
     "row",
@@ -129,8 +132,24 @@ def _row_of(r: SeedRecord) -> StoredSeedRow:
     """A record back in the store's column order (``STORED_SEED_COLUMNS``)."""
     return (
         r.id, utc_to_us(r.utc), r.row, r.lat, r.lon, r.fix, r.speed_kmh, r.heading_deg,
-        r.heading_source, r.extrapolated, r.method, r.spacing_m,
+        r.heading_source, r.extrapolated, r.method, r.spacing_m, r.attitude, r.roll_deg,
+        r.pitch_deg, r.delay_ms, r.offset_east_m, r.offset_north_m,
     )
+
+
+def chunks_of_records(
+    records: Iterable[SeedRecord], size: int = 10_000
+) -> Iterator[list[StoredSeedRow]]:
+    """Records (e.g. re-positioned ones) as the store's chunks of stored rows, for
+    ``export_rows``: never more than ``size`` of them in memory."""
+    chunk: list[StoredSeedRow] = []
+    for r in records:
+        chunk.append(_row_of(r))
+        if len(chunk) >= size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
 
 
 def quality_json(quality: Mapping[int, SpacingQuality]) -> dict[str, dict[str, Any]]:
@@ -210,11 +229,12 @@ def _geojson(
                     "row": row, "utc": utc(us), "lat": lat, "lon": lon, "fix": fix,
                     "speed_kmh": speed, "heading_deg": heading, "heading_source": source,
                     "extrapolated": bool(extrapolated), "method": method, "spacing_m": spacing,
+                    "attitude": attitude, "roll_deg": roll, "pitch_deg": pitch,
                     "id": i, "machine_id": machine_id,
                 },
             })
             for (i, us, row, lat, lon, fix, speed, heading, source, extrapolated, method,
-                 spacing) in chunk
+                 spacing, attitude, roll, pitch, *_) in chunk
         ]
         if not features:
             continue
@@ -233,9 +253,10 @@ def _csv(chunks: Iterable[Sequence[StoredSeedRow]], machine_id: str, out: TextIO
         w.writerows(
             (i, machine_id, row, utc(us), lat, lon, fix, speed,
              "" if heading is None else heading, source, bool(extrapolated), method,
-             "" if spacing is None else spacing)
+             "" if spacing is None else spacing, attitude, "" if roll is None else roll,
+             "" if pitch is None else pitch)
             for (i, us, row, lat, lon, fix, speed, heading, source, extrapolated, method,
-                 spacing) in chunk
+                 spacing, attitude, roll, pitch, *_) in chunk
         )
         n += len(chunk)
     return n

@@ -120,7 +120,9 @@ class SeedRecorder:
         self.on_records = on_records
         self._clock = clock
         self._log = RateLimitedLog(log, clock=clock)
-        self.positioner = SeedPositioner(settings.positioning)
+        self.positioner = SeedPositioner(
+            settings.positioning, baseline_offset_deg=settings.gnss.heading_offset_deg
+        )
         rows = settings.machine.rows
         x_ref = settings.positioning.target_spacing_m
         self.quality = {r: RowQualityAccumulator(x_ref) for r in range(1, rows + 1)}
@@ -146,6 +148,11 @@ class SeedRecorder:
 
     def on_edge(self, event: SeedEdgeEvent) -> None:
         self._queue(event)
+
+    def on_roll(self, t_mono: float, roll_deg: float) -> None:
+        """An inclinometer roll reading (positioning.attitude_source = "inclinometer"): the
+        epochs after it take it while it is fresh (SeedPositioner.add_attitude)."""
+        self.positioner.add_attitude(t_mono, roll_deg)
 
     def _queue(self, event: AntennaEpoch | SeedEdgeEvent) -> None:
         events = self._events

@@ -124,7 +124,13 @@ CREATE TABLE IF NOT EXISTS seeds (
     heading_source TEXT NOT NULL,
     extrapolated INTEGER NOT NULL,
     method TEXT NOT NULL,
-    spacing_m REAL
+    spacing_m REAL,
+    attitude TEXT NOT NULL DEFAULT 'none',
+    roll_deg REAL,
+    pitch_deg REAL,
+    delay_ms REAL,
+    offset_east_m REAL,
+    offset_north_m REAL
 );
 -- the ids and time span of each batch of seeds appended (one a flush, ~2 a second): what
 -- time-range queries and pruning look up, instead of an index entry for every seed
@@ -154,10 +160,25 @@ CREATE TABLE IF NOT EXISTS delivered (
 
 _TABLES = ("seeds", "alarms")
 
-_SEED_COLUMNS = (
-    "id, utc_us, row, lat, lon, fix, speed_kmh, heading_deg, heading_source, extrapolated, "
-    "method, spacing_m"
+# Columns added after the first stores were written (terrain compensation and what
+# re-positioning needs, issue 16): an older store gets them with ALTER TABLE at open (its old
+# rows read attitude 'none' and NULL for the rest), and a read-only open of an older store
+# reads those defaults in their place. (name, declaration, value for older rows)
+_ADDED_SEED_COLUMNS = (
+    ("attitude", "TEXT NOT NULL DEFAULT 'none'", "'none'"),
+    ("roll_deg", "REAL", "NULL"),
+    ("pitch_deg", "REAL", "NULL"),
+    ("delay_ms", "REAL", "NULL"),
+    ("offset_east_m", "REAL", "NULL"),
+    ("offset_north_m", "REAL", "NULL"),
 )
+_ROW_COLUMNS = (
+    "utc_us, row, lat, lon, fix, speed_kmh, heading_deg, heading_source, extrapolated, "
+    "method, spacing_m, " + ", ".join(name for name, _, _ in _ADDED_SEED_COLUMNS)
+)
+_SEED_COLUMNS = "id, " + _ROW_COLUMNS
+_ROW_PARAMS = "(" + ",".join("?" * (_ROW_COLUMNS.count(",") + 1)) + ")"
+_ROW_PARAMS_WITH_ID = "(" + ",".join("?" * (_ROW_COLUMNS.count(",") + 2)) + ")"
 # what query_seed_rows yields, one tuple a seed: the columns above, in that order
 STORED_SEED_COLUMNS = tuple(_SEED_COLUMNS.replace(" ", "").split(","))
 StoredSeedRow = tuple[Any, ...]
@@ -169,7 +190,7 @@ class StoreError(GatewayError):
     """The record store cannot be opened or written (disk full, read-only, corrupt file)."""
 
 
-# rows per INSERT: 512 rows is 5 632 parameters (SQLite allows 32 766 since 3.32), and a
+# rows per INSERT: 512 rows is 8 704 parameters (SQLite allows 32 766 since 3.32), and a
 # 512-row statement costs a quarter less per row than a 128-row one (the recorder stores
 # ~1 050 rows a flush)
 _INSERT_CHUNKS = (512, 128, 32, 8, 1)
@@ -178,20 +199,14 @@ _UTC_US = itemgetter(0)  # of a SeedRow
 
 @functools.cache
 def _insert_sql(rows: int) -> str:
-    return (
-        "INSERT INTO seeds (utc_us, row, lat, lon, fix, speed_kmh, heading_deg, "
-        "heading_source, extrapolated, method, spacing_m) VALUES "
-        + ",".join(["(?,?,?,?,?,?,?,?,?,?,?)"] * rows)
-    )
+    return f"INSERT INTO seeds ({_ROW_COLUMNS}) VALUES " + ",".join([_ROW_PARAMS] * rows)
 
 
 @functools.cache
 def _insert_with_ids_sql(rows: int) -> str:
     """For held rows written back: they keep the ids they were given when they came."""
-    return (
-        "INSERT INTO seeds (id, utc_us, row, lat, lon, fix, speed_kmh, heading_deg, "
-        "heading_source, extrapolated, method, spacing_m) VALUES "
-        + ",".join(["(?,?,?,?,?,?,?,?,?,?,?,?)"] * rows)
+    return f"INSERT INTO seeds ({_SEED_COLUMNS}) VALUES " + ",".join(
+        [_ROW_PARAMS_WITH_ID] * rows
     )
 
 
@@ -269,6 +284,8 @@ class RecordStore:
                 self._db.executescript(SCHEMA)
                 self._convert_delivered_columns()
                 self._convert_time_index()
+                self._add_seed_columns()
+            self._seed_columns = self._readable_seed_columns()
             self._acked = {table: IdRanges(self._load_delivered(table)) for table in _TABLES}
         except sqlite3.Error as exc:
             raise StoreError(f"cannot open record store {self.path}: {exc}") from exc
@@ -380,6 +397,34 @@ class RecordStore:
             self._db.execute("ROLLBACK")
             raise
         log.info("record store %s: delivery flags converted to id ranges", self.path)
+
+    def _add_seed_columns(self) -> None:
+        """Give an older store the columns added since it was made (no rewrite of its rows:
+        SQLite's ADD COLUMN only changes the schema; old rows read the defaults)."""
+        missing = [c for c in _ADDED_SEED_COLUMNS if not self._has_column("seeds", c[0])]
+        if not missing:
+            return
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            for name, declaration, _ in missing:
+                self._db.execute(f"ALTER TABLE seeds ADD COLUMN {name} {declaration}")
+            self._db.execute("COMMIT")
+        except sqlite3.Error:
+            self._db.execute("ROLLBACK")
+            raise
+        log.info("record store %s: seed columns added (%s)", self.path,
+                 ", ".join(c[0] for c in missing))
+
+    def _readable_seed_columns(self) -> str:
+        """``_SEED_COLUMNS`` as this store can answer them: an older store opened read-only
+        (``sowgate export`` next to an older daemon) reads defaults for the added ones."""
+        if all(self._has_column("seeds", name) for name, _, _ in _ADDED_SEED_COLUMNS):
+            return _SEED_COLUMNS
+        cols = ("id, utc_us, row, lat, lon, fix, speed_kmh, heading_deg, heading_source, "
+                "extrapolated, method, spacing_m")
+        for name, _, default in _ADDED_SEED_COLUMNS:
+            cols += f", {name}" if self._has_column("seeds", name) else f", {default}"
+        return cols
 
     def _convert_time_index(self) -> None:
         """Replace an older store's per-seed time index by one span over its rows.
@@ -806,7 +851,7 @@ class RecordStore:
                 break
             if lo < tail_first:
                 cold = self._db.execute(
-                    f"SELECT {_SEED_COLUMNS} FROM seeds WHERE id BETWEEN ? AND ? "
+                    f"SELECT {self._seed_columns} FROM seeds WHERE id BETWEEN ? AND ? "
                     "ORDER BY id LIMIT ?",
                     (lo, min(hi, tail_first - 1), need),
                 ).fetchall()
@@ -917,7 +962,9 @@ class RecordStore:
         return _fast_record({
             "row": r[2], "utc": us_to_utc(r[1]), "lat": r[3], "lon": r[4], "fix": r[5],
             "speed_kmh": r[6], "heading_deg": r[7], "heading_source": r[8],
-            "extrapolated": bool(r[9]), "method": r[10], "spacing_m": r[11], "id": r[0],
+            "extrapolated": bool(r[9]), "method": r[10], "spacing_m": r[11],
+            "attitude": r[12], "roll_deg": r[13], "pitch_deg": r[14], "delay_ms": r[15],
+            "offset_east_m": r[16], "offset_north_m": r[17], "id": r[0],
             "machine_id": self.machine_id,
         })
 
@@ -945,7 +992,7 @@ class RecordStore:
         ``SeedRecord`` costs several times the read itself, and a day of a 48-row planter is
         ~70 M records).
         """
-        sql = f"SELECT {_SEED_COLUMNS} FROM seeds WHERE id > ? AND id <= ?"
+        sql = f"SELECT {self._seed_columns} FROM seeds WHERE id > ? AND id <= ?"
         args: list[Any] = []
         since_us = None if since is None else utc_to_us(since)
         until_us = None if until is None else utc_to_us(until)

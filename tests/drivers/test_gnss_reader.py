@@ -312,6 +312,18 @@ def test_heading_offset_turns_the_antenna_baseline_into_the_machine_heading(
     assert epoch.course_deg == 90.0  # the course over ground is not the antennas' business
 
 
+def test_the_baseline_pitch_of_headinga_rides_on_the_epoch_for_terrain_compensation() -> None:
+    """#HEADINGA's pitch (the antenna baseline's elevation) is the machine's roll with the
+    antennas side by side: the epoch carries it as received, the positioner turns it."""
+    lines = um982_sentences(T0, 45.0, 7.0, 250.0, 8.0, 90.0, 1.0, "rtk_fixed", True,
+                            pitch_deg=2.75)
+    asm = EpochAssembler(heading_offset_deg=90.0)
+    (epoch,) = _feed(asm, [decode_line(ln) for ln in lines])
+    assert epoch.baseline_pitch_deg == pytest.approx(2.75)
+    (no_heading,) = _feed(EpochAssembler(), _events(T0, heading_ok=False))
+    assert no_heading.baseline_pitch_deg is None
+
+
 def test_heading_offset_is_configurable_and_bounded() -> None:
     from gateway.config import ConfigError, parse_config
 

@@ -10,7 +10,16 @@ The package is split by what each part owns; the names callers use are re-export
   extrapolated between epochs (the model in plain per-seed form);
 - :mod:`.landing`: :class:`Landing`, a positioned seed and the record it becomes;
 - :mod:`.positioner`: :class:`SeedPositioner`, the stateful part (epoch history, pending
-  seeds, timeouts, the fast paths) and its :class:`PositionerStats`.
+  seeds, timeouts, the fast paths, the machine's attitude and a trailed implement's
+  heading per epoch) and its :class:`PositionerStats`;
+- :mod:`.survey`: re-positioning stored records with another model, and fitting delay and
+  lever arm to surveyed seeds (``sowgate calibrate positions``).
+
+On a slope the antenna is not above the ground point it stands for: with
+``positioning.antenna_height_m`` and an ``attitude_source`` the lever arm is corrected by
+the machine's roll and pitch (:func:`.geometry.terrain_offset`; positive roll = right side
+down, positive pitch = nose up). With ``[positioning.hitch]`` a trailed implement's outlets
+follow its own heading (:func:`.geometry.follow_hitch`). See docs/positioning.md.
 
 The benchmarks' oracle (the best any method could do with the same receiver) is not part of
 the product: it lives in ``benchmarks/positioning_oracle.py``.

@@ -36,10 +36,20 @@ class RowOffset:
 
 
 def row_offset(settings: PositioningSection, row: int) -> RowOffset:
+    """``row``'s outlet on a rigid lever arm; with a trailed implement (``[positioning.hitch]``)
+    the lever arm it has when driving straight (hitch + drawbar behind the antenna)."""
     lateral = settings.lateral_offsets()
     if not 1 <= row <= len(lateral):
         raise ValueError(f"row {row} outside 1..{len(lateral)} (positioning.row_lateral_m)")
-    return RowOffset(settings.outlet_behind_antenna_m, lateral[row - 1])
+    return RowOffset(rigid_behind_m(settings), lateral[row - 1])
+
+
+def rigid_behind_m(settings: PositioningSection) -> float:
+    """The outlets' distance behind the antenna on a straight line."""
+    hitch = settings.hitch
+    if hitch is None:
+        return settings.outlet_behind_antenna_m
+    return hitch.behind_antenna_m + hitch.outlets_behind_hitch_m
 
 
 def rotate_offset(offset: RowOffset, heading_deg: float) -> tuple[float, float]:
@@ -52,6 +62,118 @@ def rotate_offset(offset: RowOffset, heading_deg: float) -> tuple[float, float]:
         -offset.behind_m * fwd_n + offset.right_m * right_n,
     )
 
+
+# ---------------------------------------------------------------- terrain (attitude)
+#
+# Sign convention, in the machine's frame X forward, Y left, Z up: positive roll = right side
+# down, positive pitch = nose up (docs/positioning.md, positioning.attitude_source).
+
+
+def terrain_offset(
+    offset: RowOffset, roll_deg: float, pitch_deg: float, antenna_height_m: float
+) -> RowOffset:
+    """The horizontal antenna → outlet lever arm on a slope.
+
+    The antenna stands ``antenna_height_m`` above the ground point it represents, along the
+    machine's Z axis: rolled right side down it leans right by H·sin(roll), pitched nose up
+    it leans back by H·sin(pitch), so the ground point is that far the other way. The outlets'
+    offsets, measured along the (tilted) implement, shorten to their horizontal projection.
+    Level ground returns ``offset`` unchanged.
+    """
+    r, p = math.radians(roll_deg), math.radians(pitch_deg)
+    return RowOffset(
+        offset.behind_m * math.cos(p) - antenna_height_m * math.sin(p),
+        offset.right_m * math.cos(r) - antenna_height_m * math.sin(r),
+    )
+
+
+def antenna_ground_shift(
+    roll_deg: float, pitch_deg: float, antenna_height_m: float
+) -> tuple[float, float]:
+    """(forward, right) metres from the antenna to the ground point below it."""
+    r, p = math.radians(roll_deg), math.radians(pitch_deg)
+    return antenna_height_m * math.sin(p), -antenna_height_m * math.sin(r)
+
+
+def baseline_attitude(
+    baseline_pitch_deg: float, heading_offset_deg: float
+) -> tuple[float | None, float | None]:
+    """(roll, pitch) of the machine from the dual-antenna baseline's elevation.
+
+    The UM982's #HEADINGA "pitch" is the elevation of its baseline (primary → secondary
+    antenna); ``gnss.heading_offset_deg`` says where the baseline points: machine heading =
+    baseline heading + offset, so the baseline points ``offset`` degrees left of forward.
+    Its elevation is pitch·cos(offset) + roll·sin(offset) for small angles: side by side
+    (offset ±90) it is ± the roll, fore and aft (0/180) ± the pitch. One baseline measures one
+    tilt: the other is None (not measured), and whichever axis the baseline is closer to is
+    the one reported.
+    """
+    off = math.radians(heading_offset_deg)
+    s, c = math.sin(off), math.cos(off)
+    if abs(s) >= abs(c):
+        return baseline_pitch_deg / s, None
+    return None, baseline_pitch_deg / c
+
+
+# ---------------------------------------------------------------- trailed implement
+
+
+def hitch_point(
+    east: float, north: float, heading_deg: float, behind_m: float
+) -> tuple[float, float]:
+    """The tractor's hitch, ``behind_m`` behind the antenna on its centre line."""
+    h = math.radians(heading_deg)
+    return east - behind_m * math.sin(h), north - behind_m * math.cos(h)
+
+
+def follow_hitch(
+    axle: tuple[float, float], hitch: tuple[float, float], length_m: float
+) -> tuple[float, float]:
+    """Where a trailed implement's axle line (``length_m`` behind its hitch) goes when the
+    hitch moves to ``hitch``: it is pulled straight towards it (a drawbar follows its hitch
+    without side slip, the tractrix), staying ``length_m`` away. Exact in the limit of small
+    steps; callers step a few centimetres at a time (``HITCH_STEP_M``)."""
+    de, dn = hitch[0] - axle[0], hitch[1] - axle[1]
+    d = math.hypot(de, dn)
+    if d == 0.0:
+        return axle
+    return hitch[0] - length_m * de / d, hitch[1] - length_m * dn / d
+
+
+def implement_heading(axle: tuple[float, float], hitch: tuple[float, float]) -> float:
+    """The implement's heading: from its axle line towards its hitch."""
+    return wrap_deg(math.degrees(math.atan2(hitch[0] - axle[0], hitch[1] - axle[1])))
+
+
+def trailed_offset(
+    tractor_heading_deg: float,
+    implement_heading_deg: float,
+    hitch_behind_antenna_m: float,
+    outlets_behind_hitch_m: float,
+    right_m: float,
+) -> tuple[float, float]:
+    """(east, north) from the antenna to an outlet of a trailed implement: back along the
+    tractor to the hitch, then back along the implement, then across the implement."""
+    ht, hi = math.radians(tractor_heading_deg), math.radians(implement_heading_deg)
+    return (
+        -hitch_behind_antenna_m * math.sin(ht) - outlets_behind_hitch_m * math.sin(hi)
+        + right_m * math.cos(hi),
+        -hitch_behind_antenna_m * math.cos(ht) - outlets_behind_hitch_m * math.cos(hi)
+        - right_m * math.sin(hi),
+    )
+
+
+def articulation_on_circle_deg(
+    radius_m: float, hitch_behind_antenna_m: float, outlets_behind_hitch_m: float
+) -> float:
+    """Steady-state tractor heading − implement heading with the antenna on a circle of
+    ``radius_m``: the hitch runs on a circle of R_h = √(R² + b²), turned atan(b/R) from the
+    antenna's tangent, and the implement's axle on one of √(R_h² − L²), a further asin(L/R_h)
+    behind."""
+    r_h = math.hypot(radius_m, hitch_behind_antenna_m)
+    return math.degrees(
+        math.atan2(hitch_behind_antenna_m, radius_m) + math.asin(outlets_behind_hitch_m / r_h)
+    )
 
 
 def wrap_deg(angle: float) -> float:

@@ -16,6 +16,7 @@ import math
 from datetime import datetime
 
 from gateway.core.records import (
+    AttitudeSource,
     FixQuality,
     HeadingSource,
     PositionMethod,
@@ -46,6 +47,12 @@ def _new_drop(
     extrapolated: bool,
     method: PositionMethod,
     spacing_m: float | None,
+    attitude: AttitudeSource = "none",
+    roll_deg: float | None = None,
+    pitch_deg: float | None = None,
+    delay_ms: float | None = None,
+    offset_east_m: float | None = None,
+    offset_north_m: float | None = None,
 ) -> SeedDrop:
     """A ``SeedDrop`` without pydantic validation when the values already satisfy it.
 
@@ -63,13 +70,20 @@ def _new_drop(
         and (heading_deg is None or (type(heading_deg) is float and 0.0 <= heading_deg < 360.0))
         and (spacing_m is None or (type(spacing_m) is float and spacing_m >= 0.0))
         and type(fix) is str and fix in _FIX_NAMES
+        and (roll_deg is None or (type(roll_deg) is float and -90.0 <= roll_deg <= 90.0))
+        and (pitch_deg is None or (type(pitch_deg) is float and -90.0 <= pitch_deg <= 90.0))
+        and (delay_ms is None or type(delay_ms) is float)
+        and (offset_east_m is None or type(offset_east_m) is float)
+        and (offset_north_m is None or type(offset_north_m) is float)
     ):
         drop = _object_new(SeedDrop)
         _setattr(drop, "__dict__", {
             "row": row, "utc": utc, "lat": lat, "lon": lon, "fix": fix,
             "speed_kmh": speed_kmh, "heading_deg": heading_deg,
             "heading_source": heading_source, "extrapolated": extrapolated,
-            "method": method, "spacing_m": spacing_m,
+            "method": method, "spacing_m": spacing_m, "attitude": attitude,
+            "roll_deg": roll_deg, "pitch_deg": pitch_deg, "delay_ms": delay_ms,
+            "offset_east_m": offset_east_m, "offset_north_m": offset_north_m,
         })
         _setattr(drop, "__pydantic_fields_set__", set(_DROP_FIELDS))
         _setattr(drop, "__pydantic_extra__", None)
@@ -78,7 +92,9 @@ def _new_drop(
     return SeedDrop(
         row=row, utc=utc, lat=lat, lon=lon, fix=fix, speed_kmh=speed_kmh,
         heading_deg=heading_deg, heading_source=heading_source, extrapolated=extrapolated,
-        method=method, spacing_m=spacing_m,
+        method=method, spacing_m=spacing_m, attitude=attitude, roll_deg=roll_deg,
+        pitch_deg=pitch_deg, delay_ms=delay_ms, offset_east_m=offset_east_m,
+        offset_north_m=offset_north_m,
     )
 
 
@@ -121,10 +137,11 @@ class Landing:
     def drop(self) -> SeedDrop:
         drop = self._drop
         if drop is None:
-            us, row, lat, lon, fix, speed, heading, source, extrap, method, spacing = self.stored
+            (us, row, lat, lon, fix, speed, heading, source, extrap, method, spacing,
+             attitude, roll, pitch, delay, off_e, off_n) = self.stored
             drop = _new_drop(
                 row, us_to_utc(us), lat, lon, fix, speed, heading,
-                source, extrap, method, spacing,
+                source, extrap, method, spacing, attitude, roll, pitch, delay, off_e, off_n,
             )
             self._drop = drop
         return drop

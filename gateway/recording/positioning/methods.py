@@ -101,6 +101,20 @@ class AntennaSample:
     heading_source: HeadingSource
     course_deg: float | None
     fix: FixQuality
+    # the machine's attitude at this epoch (positioning.attitude_source), None = not measured
+    roll_deg: float | None = None
+    pitch_deg: float | None = None
+    # a trailed implement's heading ([positioning.hitch]), None without one
+    implement_heading_deg: float | None = None
+
+
+def lerp_optional(a: float | None, b: float | None, f: float) -> float | None:
+    """Linear between two optional values; the one present when the other is missing."""
+    if a is None:
+        return b
+    if b is None:
+        return a
+    return a + f * (b - a)
 
 
 def choose_heading(
@@ -129,6 +143,9 @@ class AntennaState:
     heading_source: HeadingSource
     fix: FixQuality
     extrapolated: bool
+    roll_deg: float | None = None
+    pitch_deg: float | None = None
+    implement_heading_deg: float | None = None
 
 
 def worst_fix(a: FixQuality, b: FixQuality) -> FixQuality:
@@ -160,6 +177,14 @@ def interpolate_state(
         heading_source=source,
         fix=worst_fix(s0.fix, s1.fix),
         extrapolated=False,
+        roll_deg=lerp_optional(s0.roll_deg, s1.roll_deg, a),
+        pitch_deg=lerp_optional(s0.pitch_deg, s1.pitch_deg, a),
+        implement_heading_deg=(
+            interpolate_heading(s0.implement_heading_deg, s1.implement_heading_deg, a)
+            if s0.implement_heading_deg is not None and s1.implement_heading_deg is not None
+            else s1.implement_heading_deg if s0.implement_heading_deg is None
+            else s0.implement_heading_deg
+        ),
     )
 
 
@@ -208,5 +233,8 @@ def extrapolate_state(
         heading_source=last.heading_source,
         fix=last.fix,
         extrapolated=True,
+        roll_deg=last.roll_deg,
+        pitch_deg=last.pitch_deg,
+        implement_heading_deg=last.implement_heading_deg,
     )
     return state, capped

@@ -22,20 +22,28 @@ from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
-from typing import Literal, NamedTuple, Protocol
+from typing import Any, Literal, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from gateway.config.recording import PositioningSection
-from gateway.core.records import FixQuality, HeadingSource
+from gateway.core.records import AttitudeSource, FixQuality, HeadingSource
 from gateway.recording.positioning.clock import ClockMap
 from gateway.recording.positioning.geometry import (
     FloatArray,
     LocalFrame,
+    RowOffset,
+    antenna_ground_shift,
+    baseline_attitude,
+    follow_hitch,
     heading_diff,
+    hitch_point,
+    implement_heading,
     rotate_offset,
     row_offset,
+    terrain_offset,
+    trailed_offset,
     wrap_deg,
 )
 from gateway.recording.positioning.landing import (
@@ -52,6 +60,7 @@ from gateway.recording.positioning.methods import (
     extrapolate_state,
     fall_time_s,
     interpolate_state,
+    lerp_optional,
     paper_landing,
     worst_fix,
     worst_heading_source,
@@ -122,8 +131,17 @@ class PositionerStats:
     time_steps: int = 0  # receiver UTC jumped against the host clock
 
 
-# A seed waiting for its bracketing epoch: (row, t_land). A plain tuple: one is made per seed.
-_Pending = tuple[int, float]
+# A seed waiting for its bracketing epoch: (row, t_land, delay_s), delay_s = t_land − the
+# host's edge stamp. A plain tuple: one is made per seed.
+_Pending = tuple[int, float, float]
+# An inclinometer roll older than this (s) at an epoch is not used (the bus polls at ~3 Hz).
+ATTITUDE_STALE_S = 1.0
+# A trailed implement's axle is pulled after its hitch in steps of at most this (m): the
+# discrete tractrix is then within ~0.01 % of the continuous one on any field curve.
+HITCH_STEP_M = 0.02
+# The hitch point jumping further than this between epochs (a fix jump, an outage) restarts
+# the implement straight behind the tractor instead of dragging it across.
+HITCH_RESET_M = 5.0
 
 
 class _Pair(NamedTuple):
@@ -146,6 +164,10 @@ class _Pair(NamedTuple):
     heading: float | None  # when one side has no heading: the other's (or None)
     source: HeadingSource
     fix: FixQuality
+    roll: float | None
+    d_roll: float
+    pitch: float | None
+    d_pitch: float
 
 
 
@@ -168,8 +190,20 @@ class SeedPositioner:
         *,
         method: Method | None = None,
         history: int = EPOCH_HISTORY,
+        baseline_offset_deg: float = 0.0,
     ) -> None:
         self.settings = settings
+        # terrain compensation (geometry.terrain_offset); "none": records say not corrected
+        self.attitude_source: AttitudeSource = settings.attitude_source
+        self.antenna_height_m = settings.antenna_height_m
+        self._attitude_sign = -1.0 if settings.attitude_invert else 1.0
+        # gnss.heading_offset_deg: where the dual-antenna baseline points (baseline_attitude)
+        self.baseline_offset_deg = baseline_offset_deg
+        self._incl_roll: tuple[float, float] | None = None  # (t_mono, roll) from add_attitude
+        # a trailed implement: its axle line's position, and the hitch point it was pulled to
+        self.hitch = settings.hitch
+        self._axle: tuple[float, float] | None = None
+        self._hitch_at: tuple[float, float] | None = None
         self.method: Method = method or settings.method
         rows = len(settings.lateral_offsets())
         self.offsets = [row_offset(settings, r) for r in range(1, rows + 1)]
@@ -186,7 +220,7 @@ class SeedPositioner:
         self._lever = [(-o.behind_m, o.right_m) for o in self.offsets]
         self._lever_nb = np.array([-o.behind_m for o in self.offsets], dtype=np.float64)
         self._lever_r = np.array([o.right_m for o in self.offsets], dtype=np.float64)
-        self._fall_s = 0.0  # fall time at the speed of the epoch _fall_for
+        self._fall_s = 0.0  # fall time (+ delay_correction_ms) at the speed of _fall_for
         self._fall_for: AntennaSample | None = None
         self._defer = False  # hold ready seeds until settle() (see defer_resolution)
 
@@ -229,6 +263,8 @@ class SeedPositioner:
                 course = wrap_deg(math.degrees(math.atan2(de, dn)))
         speed = max(0.0, speed or 0.0)
         heading, source = choose_heading(epoch.heading_valid, epoch.heading_deg, course, speed)
+        roll, pitch = self._attitude_of(epoch)
+        implement = self._follow_hitch(east, north, heading)
         if self._defer and self._would_move_held(epoch.t_mono, utc_s):
             out += self._resolve_ready(force=True)
         self._samples.append(
@@ -245,6 +281,9 @@ class SeedPositioner:
                 heading_source=source,
                 course_deg=course,
                 fix=epoch.fix,
+                roll_deg=roll,
+                pitch_deg=pitch,
+                implement_heading_deg=implement,
             )
         )
         self.clock.observe(epoch.t_mono, utc_s)
@@ -253,6 +292,66 @@ class SeedPositioner:
         while self._before_fix:
             replayed += self.add_edge(*self._before_fix.popleft())
         return out + replayed + self._resolve_ready() + self._expire(epoch.t_mono)
+
+    def add_attitude(self, t_mono: float, roll_deg: float) -> None:
+        """An inclinometer roll reading (degrees, as the sensor reads it) taken at ``t_mono``;
+        used by the epochs that follow while fresh (positioning.attitude_source =
+        "inclinometer")."""
+        if math.isfinite(roll_deg):
+            self._incl_roll = (t_mono, roll_deg)
+
+    def _attitude_of(self, epoch: AntennaEpoch) -> tuple[float | None, float | None]:
+        """(roll, pitch) of the machine at this epoch from the configured source, signs per
+        the convention (right side down, nose up positive), or None where not measured."""
+        source = self.attitude_source
+        sign = self._attitude_sign
+        if source == "dual_antenna":
+            baseline = getattr(epoch, "baseline_pitch_deg", None)
+            if baseline is None or not epoch.heading_valid or not math.isfinite(baseline):
+                return None, None
+            roll, pitch = baseline_attitude(baseline, self.baseline_offset_deg)
+        elif source == "inclinometer":
+            incl = self._incl_roll
+            if incl is None or abs(epoch.t_mono - incl[0]) > ATTITUDE_STALE_S:
+                return None, None
+            roll, pitch = incl[1], None
+        else:
+            return None, None
+        roll = None if roll is None else max(-90.0, min(90.0, sign * roll))
+        pitch = None if pitch is None else max(-90.0, min(90.0, sign * pitch))
+        return roll, pitch
+
+    def _follow_hitch(self, east: float, north: float, heading: float | None) -> float | None:
+        """Pull the trailed implement after the hitch to this epoch; its heading (None
+        without a hitch or a tractor heading)."""
+        hitch = self.hitch
+        if hitch is None or heading is None:
+            return None
+        at = hitch_point(east, north, heading, hitch.behind_antenna_m)
+        length = hitch.outlets_behind_hitch_m
+        last, axle = self._hitch_at, self._axle
+        if last is None or axle is None or math.dist(last, at) > HITCH_RESET_M:
+            axle = hitch_point(at[0], at[1], heading, length)  # straight behind
+        else:
+            steps = max(1, math.ceil(math.dist(last, at) / HITCH_STEP_M))
+            for k in range(1, steps + 1):
+                f = k / steps
+                axle = follow_hitch(
+                    axle, (last[0] + f * (at[0] - last[0]), last[1] + f * (at[1] - last[1])),
+                    length,
+                )
+        self._axle, self._hitch_at = axle, at
+        return implement_heading(axle, at)
+
+    def _fall_for_newest(self, newest: AntennaSample) -> float:
+        if newest is not self._fall_for:
+            # the fall time depends only on the newest epoch's speed: once per epoch, not seed
+            self._fall_s = (
+                fall_time_s(newest.speed_kmh, self.settings.fall_time_table)
+                + self.settings.delay_correction_ms / 1000.0
+            )
+            self._fall_for = newest
+        return self._fall_s
 
     def add_edge(self, row: int, t_mono: float) -> list[Landing]:
         """A seed passed the sensor of ``row`` at host time ``t_mono`` (already stamped)."""
@@ -270,13 +369,9 @@ class SeedPositioner:
         if self.method == "paper":
             return [self._paper(row, t_edge)]
         newest = samples[-1]
-        if newest is not self._fall_for:
-            # the fall time depends only on the newest epoch's speed: once per epoch, not seed
-            self._fall_s = fall_time_s(newest.speed_kmh, self.settings.fall_time_table)
-            self._fall_for = newest
-        t_land = t_edge + self._fall_s
+        t_land = t_edge + self._fall_for_newest(newest)
         pending = self._pending
-        pending.append((row, t_land))
+        pending.append((row, t_land, t_land - t_mono))
         # The bracketing epoch usually comes after the edge: nothing to resolve yet.
         out = (
             self._resolve_ready()
@@ -314,11 +409,8 @@ class SeedPositioner:
                 out += self.add_edge(row, t_mono)
             return out
         newest = samples[-1]
-        if newest is not self._fall_for:
-            self._fall_s = fall_time_s(newest.speed_kmh, self.settings.fall_time_table)
-            self._fall_for = newest
+        fall_s = self._fall_for_newest(newest)
         latency_s = self.settings.seed_edge_latency_ms / 1000.0
-        fall_s = self._fall_s
         ready_at = self.clock.mono_of_utc(newest.utc_s)
         timeout = self.settings.pending_timeout_s
         pending = self._pending
@@ -326,7 +418,8 @@ class SeedPositioner:
         defer = self._defer
         out = []
         for row, t_mono in zip(rows, times, strict=True):
-            append((row, t_mono - latency_s + fall_s))
+            t_land = t_mono - latency_s + fall_s
+            append((row, t_land, t_land - t_mono))
             if pending[0][1] <= ready_at and not defer:
                 out += self._resolve_ready()
             if len(pending) > MAX_PENDING_SEEDS:
@@ -431,6 +524,10 @@ class SeedPositioner:
         Seeds outside the newest pairs' span take the general path. Long runs go to
         ``_interpolate_vector``.
         """
+        if self.hitch is not None:
+            # a trailed implement: the general path (its lever arm turns apart from the
+            # tractor's, which the fast paths do not model)
+            return [self._interpolate(p) for p in ready]
         if len(ready) >= VECTOR_MIN_SEEDS and len(self._samples) >= 2:
             return self._interpolate_vector(ready)
         assert self.frame is not None
@@ -451,8 +548,10 @@ class SeedPositioner:
         sin, cos, radians, hypot = math.sin, math.cos, math.radians, math.hypot
         fromtimestamp = datetime.fromtimestamp
         out: list[Landing] = []
+        terrain = self.attitude_source != "none"
+        lever_of = self._lever_arm
         for p in ready:
-            row, t = p
+            row, t, delay = p
             if t_lo < t <= t_hi:
                 i = n - 1
             else:
@@ -478,10 +577,10 @@ class SeedPositioner:
                     t0, t1 - t0, t1 <= t0, s0.east, s1.east - s0.east, s0.north,
                     s1.north - s0.north, s0.up, s1.up - s0.up, s0.speed_kmh,
                     s1.speed_kmh - s0.speed_kmh, both, 0.0 if h0 is None else h0, dh, h_const,
-                    source, worst_fix(s0.fix, s1.fix),
+                    source, worst_fix(s0.fix, s1.fix), *_attitude_pair(s0, s1),
                 )
             (t0, dt, degenerate, e0, d_e, n0, d_n, u0, d_u, v0, d_v, both, h0, dh, h_const,
-             source, fix) = pair
+             source, fix, roll0, d_roll, pitch0, d_pitch) = pair
             a = 0.0 if degenerate else min(1.0, max(0.0, (t - t0) / dt))
             # interpolate_heading when both epochs have one
             heading = wrap_deg(h0 + a * dh) if both else h_const
@@ -491,14 +590,17 @@ class SeedPositioner:
                 if not lever_fallback:
                     lever_fallback.append(self._last_known_heading())
                 lever_heading = lever_fallback[0]
-            east, north = e0 + a * d_e, n0 + a * d_n
+            ant_e, ant_n = e0 + a * d_e, n0 + a * d_n
+            roll = None if roll0 is None else roll0 + a * d_roll
+            pitch = None if pitch0 is None else pitch0 + a * d_pitch
             if lever_heading is not None:  # rotate_offset
-                nb, r = offsets[row - 1]
+                nb, r = lever_of(row, roll, pitch) if terrain else offsets[row - 1]
                 h = radians(lever_heading)
                 sh, ch = sin(h), cos(h)
-                east, north = east + (nb * sh + r * ch), north + (nb * ch + r * -sh)
+                de, dn = nb * sh + r * ch, nb * ch + r * -sh
             else:
-                east, north = east + 0.0, north + 0.0
+                de, dn = 0.0, 0.0
+            east, north = ant_e + de, ant_n + dn
             lat, lon = to_geodetic(east, north, u0 + a * d_u)
             spacing: float | None = None
             prev = previous.get(row)
@@ -512,9 +614,52 @@ class SeedPositioner:
                 row, fromtimestamp(t - off, tz=UTC), lat, lon, fix,
                 max(0.0, speed), None if heading is None else wrap_deg(heading),
                 source, False, method, spacing,
+                *self._attitude_fields(roll, pitch), delay * 1000.0, de, dn,
             )
             out.append(Landing(drop, east, north, t))
         return out
+
+    def _lever_arm(
+        self, row: int, roll: float | None, pitch: float | None
+    ) -> tuple[float, float]:
+        """(−behind, right) of ``row``'s outlet from the antenna, horizontal, for the
+        machine's attitude (geometry.terrain_offset; an axis not measured counts as level)."""
+        o = self.offsets[row - 1]
+        if roll is None and pitch is None:
+            return -o.behind_m, o.right_m
+        t = terrain_offset(
+            o, 0.0 if roll is None else roll, 0.0 if pitch is None else pitch,
+            self.antenna_height_m,
+        )
+        return -t.behind_m, t.right_m
+
+    def _trailed(
+        self, row: int, heading: float, implement: float, roll: float | None,
+        pitch: float | None,
+    ) -> tuple[float, float]:
+        """Antenna → outlet of a trailed implement, with the terrain correction of the
+        antenna (tractor attitude) and of the outlets' lateral offsets."""
+        hitch = self.hitch
+        assert hitch is not None
+        right = self.offsets[row - 1].right_m
+        shift_e = shift_n = 0.0
+        if roll is not None or pitch is not None:
+            r, p = 0.0 if roll is None else roll, 0.0 if pitch is None else pitch
+            forward, sideways = antenna_ground_shift(r, p, self.antenna_height_m)
+            shift_e, shift_n = rotate_offset(RowOffset(-forward, sideways), heading)
+            right *= math.cos(math.radians(r))
+        de, dn = trailed_offset(
+            heading, implement, hitch.behind_antenna_m, hitch.outlets_behind_hitch_m, right
+        )
+        return de + shift_e, dn + shift_n
+
+    def _attitude_fields(
+        self, roll: float | None, pitch: float | None
+    ) -> tuple[AttitudeSource, float | None, float | None]:
+        """A record's (attitude, roll_deg, pitch_deg): the source only when it measured."""
+        if roll is None and pitch is None:
+            return "none", None, None
+        return self.attitude_source, roll, pitch
 
     def _interpolate_vector(self, ready: Sequence[_Pending]) -> list[Landing]:
         """``_interpolate_many`` with the arithmetic in numpy, for the ~200 seeds an epoch
@@ -534,9 +679,10 @@ class SeedPositioner:
         n = len(samples)
         off = self.clock.offset_s
         k = len(ready)
-        pend = np.array(ready, dtype=np.float64).reshape(k, 2)
+        pend = np.array(ready, dtype=np.float64).reshape(k, 3)
         t = pend[:, 1]
         rows = pend[:, 0].astype(np.intp)
+        delay_ms = pend[:, 2] * 1000.0
         times = np.array([s.utc_s for s in samples], dtype=np.float64) + off
         idx = np.searchsorted(times, t, side="left")
         good = (idx >= 1) & (idx < n)
@@ -583,8 +729,19 @@ class SeedPositioner:
         sh, ch = np.sin(h), np.cos(h)
         lever = np.clip(rows - 1, 0, len(self.offsets) - 1)
         nb, r = self._lever_nb[lever], self._lever_r[lever]
-        east = east + (nb * sh + r * ch)
-        north = north + (nb * ch + r * -sh)
+        roll = pitch = None
+        if self.attitude_source != "none":
+            roll = _lerp_nan(np.array([_nan(s.roll_deg) for s in samples]), i0, i1, a)
+            pitch = _lerp_nan(np.array([_nan(s.pitch_deg) for s in samples]), i0, i1, a)
+            rr = np.radians(np.nan_to_num(roll))
+            pr = np.radians(np.nan_to_num(pitch))
+            height = self.antenna_height_m
+            nb = nb * np.cos(pr) + height * np.sin(pr)  # geometry.terrain_offset
+            r = r * np.cos(rr) - height * np.sin(rr)
+        off_e = nb * sh + r * ch
+        off_n = nb * ch + r * -sh
+        east = east + off_e
+        north = north + off_n
         lat, lon, geo_ok = frame.to_geodetic_many(east, north, up)
         frac, whole = np.modf(t - off)  # utc_us_of, vectorised
         utc_us = whole.astype(np.int64) * 1_000_000 + np.rint(frac * 1e6).astype(np.int64)
@@ -595,9 +752,10 @@ class SeedPositioner:
                 & (speed >= 0.0) & (heading >= 0.0) & (heading < 360.0)
                 & np.isfinite(east) & np.isfinite(north)
             )
+        extra = self._extra_columns(roll, pitch, delay_ms, off_e, off_n)
         if None not in pair_ok.values() and bool(good.all()):
             return self._landings_of_columns(
-                rows, t, i1, pair_ok, east, north, lat, lon, speed, heading, utc_us
+                rows, t, i1, pair_ok, east, north, lat, lon, speed, heading, utc_us, extra
             )
         previous = self._previous
         reset_gap = self.settings.spacing_reset_gap_s
@@ -607,22 +765,24 @@ class SeedPositioner:
         interpolate = self._interpolate
         out: list[Landing] = []
         done = 0
-        for p, ok, i, e, nn, la, lo, v, hd, us in zip(
+        for p, ok, i, e, nn, la, lo, v, hd, us, ex in zip(
             ready, good.tolist(), i1.tolist(), east.tolist(), north.tolist(), lat.tolist(),
-            lon.tolist(), speed.tolist(), heading.tolist(), utc_us.tolist(), strict=True,
+            lon.tolist(), speed.tolist(), heading.tolist(), utc_us.tolist(),
+            zip(*extra, strict=True), strict=True,
         ):
             pair = pair_ok.get(i) if ok else None
             if pair is None:
                 out.append(interpolate(p))
                 continue
-            row, tl = p
+            row, tl, _delay = p
             spacing: float | None = None
             prev = previous.get(row)
             if prev is not None and tl - prev[2] <= reset_gap:
                 spacing = hypot(e - prev[0], nn - prev[1])
             previous[row] = (e, nn, tl)
             out.append(lazy(
-                (us, row, la, lo, pair[0], v, hd, pair[1], False, method, spacing), e, nn, tl,
+                (us, row, la, lo, pair[0], v, hd, pair[1], False, method, spacing, *ex),
+                e, nn, tl,
             ))
             done += 1
         self.stats.seeds += done
@@ -642,6 +802,7 @@ class SeedPositioner:
         speed: FloatArray,
         heading: FloatArray,
         utc_us: IntArray,
+        extra: tuple[Iterable[object], ...],
     ) -> list[Landing]:
         """The end of ``_interpolate_vector`` when every seed of the run is in range and every
         epoch pair has headings (the usual case): the spacings in numpy too, and the record
@@ -662,12 +823,38 @@ class SeedPositioner:
         stored = zip(
             utc_us.tolist(), rows.tolist(), lat.tolist(), lon.tolist(), fixes, speed.tolist(),
             heading.tolist(), sources, itertools.repeat(False), itertools.repeat(method),
-            spacing,
+            spacing, *extra,
         )
         out = list(map(Landing._lazy, stored, east.tolist(), north.tolist(), t.tolist()))
         self.stats.seeds += len(out)
         self.stats.interpolated += len(out)
         return out
+
+    def _extra_columns(
+        self,
+        roll: FloatArray | None,
+        pitch: FloatArray | None,
+        delay_ms: FloatArray,
+        off_e: FloatArray,
+        off_n: FloatArray,
+    ) -> tuple[list[Any], ...]:
+        """The record columns after ``spacing_m`` (attitude, roll_deg, pitch_deg, delay_ms,
+        offset_east_m, offset_north_m) for a run, as lists in seed order."""
+        k = len(delay_ms)
+        if roll is None or pitch is None:
+            none: list[Any] = [None] * k
+            attitude: list[Any] = ["none"] * k
+            rolls: list[Any] = none
+            pitches: list[Any] = none
+        else:
+            rolls = [None if x != x else x for x in roll.tolist()]  # NaN: not measured
+            pitches = [None if x != x else x for x in pitch.tolist()]
+            src = self.attitude_source
+            attitude = [
+                "none" if ro is None and pi is None else src
+                for ro, pi in zip(rolls, pitches, strict=True)
+            ]
+        return attitude, rolls, pitches, delay_ms.tolist(), off_e.tolist(), off_n.tolist()
 
     def _spacings(
         self, rows: IntArray, east: FloatArray, north: FloatArray, t: FloatArray
@@ -697,7 +884,7 @@ class SeedPositioner:
         return [None if x != x else x for x in spacing.tolist()]  # x != x: NaN, no spacing
 
     def _interpolate(self, p: _Pending) -> Landing:
-        row, t_land = p
+        row, t_land, delay = p
         samples = self._samples
         n = len(samples)
         # Usually the seed lands between the two newest epochs; otherwise bisect with a key,
@@ -719,10 +906,10 @@ class SeedPositioner:
                 samples[i], self._sample_time(samples[i]), t_land,
             )
         self.stats.interpolated += 0 if state.extrapolated else 1
-        return self._make(row, t_land, state)
+        return self._make(row, t_land, state, delay)
 
     def _extrapolate(self, p: _Pending) -> Landing:
-        row, t_land = p
+        row, t_land, delay = p
         last = self._samples[-1]
         prev = self._samples[-2] if len(self._samples) > 1 else None
         last_t = self._sample_time(last)
@@ -736,14 +923,22 @@ class SeedPositioner:
             # the receiver has been silent too long: the position is a guess, say so
             self.stats.extrapolation_capped += 1
             state = replace(state, fix="none")
-        return self._make(row, t_land, state)
+        return self._make(row, t_land, state, delay)
 
-    def _make(self, row: int, t_land: float, state: AntennaState) -> Landing:
+    def _make(self, row: int, t_land: float, state: AntennaState, delay: float) -> Landing:
         assert self.frame is not None
-        offset = self.offsets[row - 1]
         heading = state.heading_deg
         lever_heading = heading if heading is not None else self._last_known_heading()
-        de, dn = rotate_offset(offset, lever_heading) if lever_heading is not None else (0.0, 0.0)
+        roll, pitch = state.roll_deg, state.pitch_deg
+        implement = state.implement_heading_deg
+        hitch = self.hitch
+        if lever_heading is not None and hitch is not None and implement is not None:
+            de, dn = self._trailed(row, lever_heading, implement, roll, pitch)
+        elif lever_heading is not None:
+            nb, r = self._lever_arm(row, roll, pitch)
+            de, dn = rotate_offset(RowOffset(-nb, r), lever_heading)
+        else:
+            de, dn = 0.0, 0.0
         east, north = state.east + de, state.north + dn
         lat, lon = self.frame.to_geodetic(east, north, state.up)
         return self._emit(
@@ -758,6 +953,7 @@ class SeedPositioner:
             heading,
             state.heading_source,
             state.extrapolated,
+            (*self._attitude_fields(roll, pitch), delay * 1000.0, de, dn),
         )
 
     def _paper(self, row: int, t_edge: float) -> Landing:
@@ -796,6 +992,8 @@ class SeedPositioner:
         heading: float | None,
         source: HeadingSource,
         extrapolated: bool,
+        extra: tuple[AttitudeSource, float | None, float | None, float | None, float | None,
+                     float | None] = ("none", None, None, None, None, None),
     ) -> Landing:
         spacing: float | None = None
         prev = self._previous.get(row)
@@ -807,9 +1005,41 @@ class SeedPositioner:
         drop = _new_drop(
             row, utc, lat, lon, fix, max(0.0, speed_kmh),
             None if heading is None else wrap_deg(heading), source, extrapolated, self.method,
-            spacing,
+            spacing, *extra,
         )
         return Landing(drop, east, north, t_land)
+
+
+def _nan(x: float | None) -> float:
+    return math.nan if x is None else x
+
+
+def _lerp_nan(values: FloatArray, i0: IntArray, i1: IntArray, a: FloatArray) -> FloatArray:
+    """``lerp_optional`` over arrays: NaN = not measured; one side NaN → the other."""
+    v0, v1 = values[i0], values[i1]
+    v0f = np.where(np.isnan(v0), v1, v0)
+    v1f = np.where(np.isnan(v1), v0, v1)
+    out: FloatArray = v0f + a * (v1f - v0f)
+    return out
+
+
+def _attitude_pair(
+    s0: AntennaSample, s1: AntennaSample
+) -> tuple[float | None, float, float | None, float]:
+    """(roll, d_roll, pitch, d_pitch) between two epochs: linear where both measured, the
+    one measured held where only one did (methods.lerp_optional)."""
+    r0, r1, p0, p1 = s0.roll_deg, s1.roll_deg, s0.pitch_deg, s1.pitch_deg
+    roll: float | None
+    pitch: float | None
+    if r0 is not None and r1 is not None:
+        roll, d_roll = r0, r1 - r0
+    else:
+        roll, d_roll = lerp_optional(r0, r1, 0.0), 0.0
+    if p0 is not None and p1 is not None:
+        pitch, d_pitch = p0, p1 - p0
+    else:
+        pitch, d_pitch = lerp_optional(p0, p1, 0.0), 0.0
+    return roll, d_roll, pitch, d_pitch
 
 
 def _utc_seconds(utc: datetime) -> float:

@@ -100,6 +100,7 @@ def test_run_exits_78_on_a_config_error_found_while_building_the_daemon(
         ["calibrate", "rotation"],
         ["calibrate", "speed"],
         ["calibrate", "tilt"],
+        ["calibrate", "positions"],
         ["calibrate", "undo"],
         ["calibrate", "show"],
         ["calibrate", "seed-lot"],

@@ -535,7 +535,7 @@ def test_drops_built_without_validation_equal_validated_drops() -> None:
     assert len(out) > 500
     for landing in out:
         drop = landing.drop
-        again = SeedDrop.model_validate(drop.model_dump())
+        again = SeedDrop.model_validate(dict(drop))  # store-only fields included
         assert type(drop) is SeedDrop
         assert drop == again
         assert drop.model_fields_set == again.model_fields_set
@@ -566,8 +566,8 @@ def test_a_run_of_seeds_is_positioned_exactly_as_one_at_a_time() -> None:
     # seeds straddling several epoch pairs, one before the history and one past its end
     t_first = pos._sample_time(pos._samples[0])
     t_last = pos._sample_time(pos._samples[-1])
-    ready = [(1 + k % 6, t_last - 1.0 + k * 0.0031) for k in range(320)]
-    ready += [(2, t_first - 0.05), (3, t_last + 0.01)]
+    ready = [(1 + k % 6, t_last - 1.0 + k * 0.0031, 0.1) for k in range(320)]
+    ready += [(2, t_first - 0.05, 0.1), (3, t_last + 0.01, 0.1)]
     assert len(ready) >= VECTOR_MIN_SEEDS  # the numpy path
     one_by_one, batched = copy.deepcopy(pos), copy.deepcopy(pos)
     expected = [one_by_one._interpolate(p) for p in ready]
@@ -598,7 +598,7 @@ def test_a_run_inside_the_history_takes_the_column_path_with_the_same_numbers() 
     _busy_field(pos)
     t_last = pos._sample_time(pos._samples[-1])
     gap = pos.settings.spacing_reset_gap_s
-    ready = [(1 + k % 6, t_last - 1.0 + k * 0.0031) for k in range(300)]
+    ready = [(1 + k % 6, t_last - 1.0 + k * 0.0031, 0.1) for k in range(300)]
     pos._previous.pop(6)  # as if row 6 had no seed before the run
     pos._previous[5] = (0.0, 0.0, t_last - 1.0 - 2 * gap)  # long ago: no spacing for row 5
     one_by_one, batched = copy.deepcopy(pos), copy.deepcopy(pos)

@@ -276,7 +276,7 @@ def test_fast_records_equal_validated_ones(store: RecordStore) -> None:
     recs = store.add_seeds(drops(2))
     store.flush()
     for rec in [*recs, *store.pending_seeds(10)]:
-        validated = SeedRecord.model_validate(rec.model_dump())
+        validated = SeedRecord.model_validate(dict(rec))  # store-only fields included
         assert rec == validated
         assert rec.model_dump_json() == validated.model_dump_json()
 
@@ -632,3 +632,57 @@ def test_pruning_drops_the_spans_of_batches_it_removed(tmp_path: Path) -> None:
         assert s.prune(T0 + timedelta(days=3)) == 4
         assert sql(s, "SELECT first_id, last_id FROM seed_spans") == [(5, 7)]
         assert [r.id for r in s.query_seeds(T0 + timedelta(days=2), None)] == [5, 6, 7]
+
+
+def _pre_terrain_schema() -> str:
+    """The store's schema before records kept their attitude and re-positioning data."""
+    from gateway.recording.store import _ADDED_SEED_COLUMNS, SCHEMA
+
+    schema = SCHEMA.replace("spacing_m REAL,", "spacing_m REAL")
+    for name, declaration, _ in _ADDED_SEED_COLUMNS:
+        schema = schema.replace(f"    {name} {declaration},\n", "").replace(
+            f"    {name} {declaration}\n", "")
+    assert "roll_deg" not in schema and "offset_north_m" not in schema
+    return schema
+
+
+def _pre_terrain_store(path: Path) -> None:
+    db = sqlite3.connect(path)
+    db.executescript(_pre_terrain_schema())
+    for i in range(1, 4):
+        db.execute("INSERT INTO seeds VALUES (?, ?, 1, 52.0, 13.0, 'rtk_fixed', 8.0, 90.0, "
+                   "'dual_antenna', 0, 'interpolated', NULL)", (i, i * 1_000_000))
+    db.commit()
+    db.close()
+
+
+def test_an_older_store_read_only_reads_its_seeds_as_not_terrain_corrected(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "r.sqlite3"
+    _pre_terrain_store(path)
+    with RecordStore.open_readonly(path, "m") as s:
+        records = list(s.query_seeds())
+    assert [r.id for r in records] == [1, 2, 3]
+    assert {(r.attitude, r.roll_deg, r.delay_ms, r.offset_east_m) for r in records} == {
+        ("none", None, None, None)
+    }
+
+
+def test_an_older_store_gets_the_new_columns_and_keeps_its_seeds(tmp_path: Path) -> None:
+    path = tmp_path / "r.sqlite3"
+    _pre_terrain_store(path)
+    new = drops(1)[0].model_copy(update={
+        "attitude": "dual_antenna", "roll_deg": 3.0, "delay_ms": 105.0,
+        "offset_east_m": -1.2, "offset_north_m": 0.4,
+    })
+    with RecordStore(path, "m") as s:
+        assert list(s.append_seeds([new])) == [4]
+        s.flush()
+        records = list(s.query_seeds())
+    assert [r.attitude for r in records] == ["none"] * 3 + ["dual_antenna"]
+    last = records[-1]
+    assert (last.roll_deg, last.delay_ms, last.offset_east_m, last.offset_north_m) == (
+        3.0, 105.0, -1.2, 0.4)
+    # the published payload carries the attitude, not the store-only raw data
+    assert "delay_ms" not in last.model_dump() and last.model_dump()["roll_deg"] == 3.0

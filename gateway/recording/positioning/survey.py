@@ -1,0 +1,316 @@
+"""Re-positioning stored seeds, and fitting the position model to surveyed seeds.
+
+A field check finds seeds that did not land where the records say: a lever arm measured with
+a tape to the wrong mark, a fall time of another seed lot or airflow, a latency nobody
+measured. These errors are systematic, so a few dozen seeds dug up and surveyed with an RTK
+rover are enough to fit them out:
+
+- :func:`reposition` puts one stored record where the current model (fall-time table,
+  ``delay_correction_ms``, lever arm, antenna height) says it landed. It needs what every
+  record keeps for that: the antenna position at the landing instant (``offset_east_m`` /
+  ``offset_north_m`` back from the seed), the edge-to-landing delay used (``delay_ms``), the
+  speed, heading and attitude. Moving the landing instant by Δt moves the antenna by
+  v·Δt along the heading (the machine goes straight over a few tens of milliseconds).
+- :func:`fit_survey` fits three numbers by robust least squares: the along-track delay
+  (fall time + latencies, one correction for all speeds), and the lever arm's distance
+  behind the antenna and lateral shift (one for all rows). The model is linear in them, so
+  the fit is iteratively reweighted least squares with Huber weights (numpy; scipy is not
+  among the project's dependencies), which a few mis-matched or kicked seeds cannot pull.
+  The delay and the behind-distance both move seeds along the track; only their different
+  dependence on speed (v·Δt against a constant) tells them apart, so a survey whose seeds
+  were all sown at one speed is refused (``MIN_SPEED_SPREAD_KMH``).
+
+Plain functions on plain values, like the rest of the model; ``sowgate calibrate positions``
+and ``sowgate export --reposition`` (``gateway.app.position_calibration``) wire them to the
+store, the CSV and the calibration file.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from gateway.config.recording import PositioningSection
+from gateway.core.records import SeedDrop
+from gateway.recording.positioning.geometry import (
+    LocalFrame,
+    rotate_offset,
+    row_offset,
+    terrain_offset,
+)
+from gateway.recording.positioning.methods import KMH_PER_MS, fall_time_s
+
+# Fewer surveyed seeds than this and three parameters are fitted to noise (RTK ~1 cm, bounce).
+MIN_SURVEY_SEEDS = 20
+# Speeds sown (10th to 90th percentile of the surveyed seeds) must span this much, or the
+# delay cannot be told from the behind-distance: both move seeds along the track, only the
+# delay's effect grows with speed. At 3 km/h and 1 cm RTK noise, 50 seeds fit the delay to
+# ~2 ms.
+MIN_SPEED_SPREAD_KMH = 3.0
+HUBER_K = 1.5  # Huber threshold in robust standard deviations (MAD-based)
+HUBER_FLOOR_M = 0.005  # never treat residuals under 5 mm as outliers
+IRLS_ROUNDS = 20
+# A fit that moves the lever arm or delay further than this is shown and refused unless the
+# fitter accepts it: more likely a survey matched to the wrong seeds than a tape 0.5 m off.
+MAX_PLAUSIBLE_SHIFT_M = 0.5
+MAX_PLAUSIBLE_DELAY_MS = 150.0
+
+
+class SurveyError(ValueError):
+    """The survey cannot give a fit (too few seeds, one speed, records without raw data)."""
+
+
+def repositionable(record: SeedDrop) -> bool:
+    """Whether the record keeps what re-positioning needs (records stored before these
+    fields existed, and paper C's method, do not)."""
+    return (
+        record.delay_ms is not None
+        and record.offset_east_m is not None
+        and record.offset_north_m is not None
+        and record.heading_deg is not None
+        and record.method == "interpolated"
+    )
+
+
+def model_delay_s(speed_kmh: float, settings: PositioningSection) -> float:
+    """Host edge stamp to landing, as the positioner computes it for ``settings``."""
+    return (
+        fall_time_s(speed_kmh, settings.fall_time_table)
+        - settings.seed_edge_latency_ms / 1000.0
+        + settings.delay_correction_ms / 1000.0
+    )
+
+
+# WGS84, for the metres <-> degrees of a shift of a few metres (reposition)
+_A = 6378137.0
+_E2 = 6.69437999014e-3
+
+
+def shift_latlon(lat: float, lon: float, east_m: float, north_m: float) -> tuple[float, float]:
+    """``(lat, lon)`` moved ``east_m``, ``north_m`` along the local tangent plane.
+
+    With the ellipsoid's radii of curvature at ``lat``; for the few metres a re-positioning
+    moves a seed the flat step is off by the Earth's curvature, d²/2R: 2 µm at 5 m, 0.2 mm
+    at 50 m. No pymap3d call, so a million records re-position in seconds."""
+    phi = math.radians(lat)
+    w = math.sqrt(1.0 - _E2 * math.sin(phi) ** 2)
+    meridian = _A * (1.0 - _E2) / w**3
+    normal = _A / w
+    return (lat + math.degrees(north_m / meridian),
+            lon + math.degrees(east_m / (normal * math.cos(phi))))
+
+
+@dataclass(frozen=True)
+class _Basis:
+    """One record re-positioned with ``settings``, as an (east, north) shift from where it
+    is stored, and the shift per unit of each fitted parameter."""
+
+    east: float
+    north: float
+    d_delay: tuple[float, float]  # per second of delay
+    d_behind: tuple[float, float]  # per metre further behind
+    d_right: tuple[float, float]  # per metre further right
+
+
+def _basis(record: SeedDrop, settings: PositioningSection) -> _Basis:
+    assert record.delay_ms is not None and record.heading_deg is not None
+    assert record.offset_east_m is not None and record.offset_north_m is not None
+    ant_e, ant_n = -record.offset_east_m, -record.offset_north_m  # the stored seed at 0, 0
+    h = math.radians(record.heading_deg)
+    fwd = (math.sin(h), math.cos(h))
+    right = (math.cos(h), -math.sin(h))
+    v = record.speed_kmh / KMH_PER_MS
+    dt = model_delay_s(record.speed_kmh, settings) - record.delay_ms / 1000.0
+    ant_e, ant_n = ant_e + v * dt * fwd[0], ant_n + v * dt * fwd[1]
+    offset = row_offset(settings, record.row)
+    roll = pitch = 0.0
+    if record.attitude != "none":
+        roll = record.roll_deg or 0.0
+        pitch = record.pitch_deg or 0.0
+    lever = terrain_offset(offset, roll, pitch, settings.antenna_height_m)
+    de, dn = rotate_offset(lever, record.heading_deg)
+    cos_p, cos_r = math.cos(math.radians(pitch)), math.cos(math.radians(roll))
+    return _Basis(
+        ant_e + de, ant_n + dn,
+        (v * fwd[0], v * fwd[1]),
+        (-cos_p * fwd[0], -cos_p * fwd[1]),
+        (cos_r * right[0], cos_r * right[1]),
+    )
+
+
+def reposition(record: SeedDrop, settings: PositioningSection) -> tuple[float, float]:
+    """Where ``record``'s seed landed by the model ``settings`` describes: (lat, lon).
+
+    Raises ``SurveyError`` for a record that does not keep the raw data
+    (:func:`repositionable`).
+    """
+    if not repositionable(record):
+        raise SurveyError("record lacks the raw data re-positioning needs")
+    b = _basis(record, settings)
+    return shift_latlon(record.lat, record.lon, b.east, b.north)
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """Horizontal errors of a set of seeds, as paper C reports them."""
+
+    n: int
+    mean_m: float
+    sd_m: float
+    cv_pct: float
+    max_m: float
+
+    @classmethod
+    def of(cls, errors: Sequence[float]) -> ErrorStats:
+        if not errors:
+            return cls(0, math.nan, math.nan, math.nan, math.nan)
+        mean = statistics.fmean(errors)
+        sd = statistics.stdev(errors) if len(errors) > 1 else 0.0
+        return cls(len(errors), mean, sd, 100.0 * sd / mean if mean > 0 else math.nan,
+                   max(errors))
+
+    def line(self) -> str:
+        return (f"mean {self.mean_m * 1000:.1f} mm, SD {self.sd_m * 1000:.1f} mm, "
+                f"CV {self.cv_pct:.1f} %, max {self.max_m * 1000:.1f} mm (n = {self.n})")
+
+
+@dataclass(frozen=True)
+class SurveyFit:
+    """The fitted corrections, relative to the settings fitted against, and the result."""
+
+    delay_ms: float  # added to delay_correction_ms (0 when held fixed)
+    behind_m: float  # added to outlet_behind_antenna_m
+    right_m: float  # added to every row_lateral_m
+    delay_fitted: bool
+    before: ErrorStats
+    after: ErrorStats
+    residuals_before_m: tuple[float, ...]
+    residuals_after_m: tuple[float, ...]
+    speed_spread_kmh: float
+    outliers: int  # seeds the robust weights took down to under half weight
+
+    def settings(self, base: PositioningSection) -> PositioningSection:
+        """``base`` with the fit applied (what the calibration file makes of the config)."""
+        return apply_fit(base, self.delay_ms, self.behind_m, self.right_m)
+
+    def problems(self) -> list[str]:
+        """Why this fit looks wrong (empty when it does not)."""
+        out = []
+        if abs(self.behind_m) > MAX_PLAUSIBLE_SHIFT_M or abs(self.right_m) > MAX_PLAUSIBLE_SHIFT_M:
+            out.append(
+                f"the lever arm moves {self.behind_m:+.3f} m behind / {self.right_m:+.3f} m "
+                f"right, more than {MAX_PLAUSIBLE_SHIFT_M} m: are the surveyed seeds matched "
+                "to the right records?"
+            )
+        if abs(self.delay_ms) > MAX_PLAUSIBLE_DELAY_MS:
+            out.append(f"the delay moves {self.delay_ms:+.1f} ms, more than "
+                       f"{MAX_PLAUSIBLE_DELAY_MS:g} ms")
+        if not self.after.mean_m < self.before.mean_m:
+            out.append("the fit does not reduce the mean error")
+        return out
+
+
+def apply_fit(
+    base: PositioningSection, delay_ms: float, behind_m: float, right_m: float
+) -> PositioningSection:
+    """``base`` with a fit's corrections; with a trailed implement the outlets move along
+    its drawbar (``hitch.outlets_behind_hitch_m``), the hitch staying where it was measured."""
+    lateral = [r + right_m for r in base.lateral_offsets()]
+    update: dict[str, object] = {
+        "delay_correction_ms": base.delay_correction_ms + delay_ms,
+        "row_lateral_m": lateral,
+    }
+    if base.hitch is None:
+        update["outlet_behind_antenna_m"] = base.outlet_behind_antenna_m + behind_m
+    else:
+        update["hitch"] = base.hitch.model_copy(
+            update={"outlets_behind_hitch_m": base.hitch.outlets_behind_hitch_m + behind_m}
+        )
+    return base.model_copy(update=update)
+
+
+def speed_spread_kmh(speeds: Sequence[float]) -> float:
+    """10th to 90th percentile of the speeds (one fast seed does not make a spread)."""
+    if len(speeds) < 2:
+        return 0.0
+    lo, hi = np.percentile(np.asarray(speeds, dtype=np.float64), [10.0, 90.0])
+    return float(hi - lo)
+
+
+def fit_survey(
+    records: Sequence[SeedDrop],
+    surveyed: Sequence[tuple[float, float]],
+    settings: PositioningSection,
+    *,
+    fit_delay: bool = True,
+) -> SurveyFit:
+    """Fit delay and lever arm so ``records`` re-positioned land on ``surveyed`` (lat, lon).
+
+    ``fit_delay=False`` keeps the delay and fits the lever arm alone (a survey sown at one
+    speed). Raises ``SurveyError`` naming the minimum when the survey cannot tell.
+    """
+    if len(records) != len(surveyed):
+        raise ValueError(f"{len(records)} records for {len(surveyed)} surveyed seeds")
+    unusable = sum(not repositionable(r) for r in records)
+    if unusable:
+        raise SurveyError(
+            f"{unusable} of the matched records lack the raw data re-positioning needs "
+            "(stored before this version, or positioned with method = 'paper')"
+        )
+    n = len(records)
+    if n < MIN_SURVEY_SEEDS:
+        raise SurveyError(
+            f"{n} surveyed seeds matched; the fit needs at least {MIN_SURVEY_SEEDS} "
+            "(50 or more recommended)"
+        )
+    spread = speed_spread_kmh([r.speed_kmh for r in records])
+    if fit_delay and spread < MIN_SPEED_SPREAD_KMH:
+        raise SurveyError(
+            f"the surveyed seeds were sown at {spread:.1f} km/h of speed spread (10th-90th "
+            f"percentile); telling the delay from the lever arm needs at least "
+            f"{MIN_SPEED_SPREAD_KMH:g} km/h: survey seeds from two speeds, or fit the lever "
+            "arm alone (--lever-only)"
+        )
+    frame = LocalFrame(records[0].lat, records[0].lon)
+    bases = [_basis(r, settings) for r in records]
+    target = np.array([frame.to_enu(lat, lon)[:2] for lat, lon in surveyed], dtype=np.float64)
+    stored = np.array([frame.to_enu(r.lat, r.lon)[:2] for r in records], dtype=np.float64)
+    base = stored + np.array([(b.east, b.north) for b in bases], dtype=np.float64)
+    cols = [[b.d_delay for b in bases]] if fit_delay else []
+    cols += [[b.d_behind for b in bases], [b.d_right for b in bases]]
+    design = np.stack([np.asarray(c, dtype=np.float64) for c in cols], axis=-1)  # n x 2 x p
+    y = (target - base).reshape(-1)
+    a = design.reshape(2 * n, -1)
+    weights = np.ones(n)
+    params = np.zeros(a.shape[1])
+    for _ in range(IRLS_ROUNDS):
+        w2 = np.repeat(np.sqrt(weights), 2)
+        params_new, *_ = np.linalg.lstsq(a * w2[:, None], y * w2, rcond=None)
+        res = np.hypot(*(y - a @ params_new).reshape(n, 2).T)
+        sigma = max(1.4826 * float(np.median(res)), HUBER_FLOOR_M)
+        k = HUBER_K * sigma
+        weights = np.where(res <= k, 1.0, k / np.maximum(res, 1e-12))
+        done = bool(np.allclose(params_new, params, rtol=0, atol=1e-7))
+        params = params_new
+        if done:
+            break
+    before = np.hypot(*(y.reshape(n, 2).T))
+    after = np.hypot(*(y - a @ params).reshape(n, 2).T)
+    delay_s = float(params[0]) if fit_delay else 0.0
+    behind, right = float(params[-2]), float(params[-1])
+    return SurveyFit(
+        delay_ms=delay_s * 1000.0,
+        behind_m=behind,
+        right_m=right,
+        delay_fitted=fit_delay,
+        before=ErrorStats.of(before.tolist()),
+        after=ErrorStats.of(after.tolist()),
+        residuals_before_m=tuple(before.tolist()),
+        residuals_after_m=tuple(after.tolist()),
+        speed_spread_kmh=spread,
+        outliers=int(np.sum(weights < 0.5)),
+    )
