@@ -13,23 +13,34 @@ real decoder and epoch assembler) and seed edges, both stamped on the host clock
 
 Rows, all on the same drive, the same seeds and the same noise:
 
-* ``paper C`` — paper C's method (constant 197.2 ms lag, latest fix) with the fitter's lever arm;
-* ``sowgate as configured`` — the interpolated method as a fitter sets it up: lever arm 2 cm
-  long and 2 cm to the right, receiver latency configured 8 ms short, paper C's fall-time
-  table (another seed lot), no antenna height (no terrain compensation exists yet);
-* ``sowgate, exact config`` — the same with the true lever arm and latency: what is left is the
-  model's (fall time, terrain, slide, articulation);
-* ``sowgate, exact config + antenna height (§2, emulated)`` — the same again, with the epochs
-  moved to the ground below the antenna by the decoded #HEADINGA pitch (= roll) in the bench
-  (``height_compensated``): an estimate of what issue 16 §2 can reach, not the gateway's code;
+* ``paper C`` — paper C's method (constant 197.2 ms lag, latest fix) with the fitter's lever
+  arm, rigid, on level ground;
+* ``sowgate as configured`` — the interpolated method as a fitter sets it up, with the
+  gateway's own terrain compensation and trailed-implement model: ``antenna_height_m``,
+  ``attitude_source = "dual_antenna"`` (the roll the daemon decodes from #HEADINGA's pitch,
+  ``gnss.heading_offset_deg = -90``) and ``[positioning.hitch]``, each measured with the
+  fitter's errors (``FITTER``: drawbar 2 cm long, centre line 2 cm right, hitch 1 cm short and
+  2 cm high, antenna 5 cm high, receiver latency 8 ms short) and paper C's fall-time table
+  (another seed lot); ``..., terrain compensation off`` is the same without the first two;
+* ``sowgate, exact config`` — the same with every measurement true: what is left is the
+  model's (fall time, slide, pitch the side-by-side antennas cannot see, articulation);
+* ``sowgate after survey calibration`` — ``sowgate calibrate positions --survey`` then
+  ``export --reposition`` on "as configured": the gateway's ``fit_survey`` on the stored
+  records of 50 surveyed seeds (``survey_pairs``) and their surveyed lat/lon, the other
+  records re-positioned with ``reposition``;
 * ``oracle`` — ``benchmarks.positioning_oracle``: every parameter known, only the seed's own
   scatter and the receiver's noise remain.
 
+No inclinometer row: the truth has no WitMotion readings, and the gateway reads only the
+inclinometer's roll axis (its pitch axis tells raised from lowered), which the dual-antenna
+baseline already gives with the antennas side by side.
+
 Seeds sown while the receiver is float or silent (± 0.5 s) are reported apart, as are the 50
 seeds set aside for the survey calibration (``survey_pairs``); every row is evaluated on the
-same remaining seeds. Then a sensitivity table: from a clean field (flat, exact config, a
-perfectly measured fall-time table, no noise) one error source at a time, the mean error and
-its change per unit of the source.
+same remaining seeds. The calibration is refitted on other surveys (20/50/100 seeds, pole
+σ 10/20 mm, one speed, two slow speeds). Then a sensitivity table: from a clean field (flat,
+exact config, a perfectly measured fall-time table, no noise) one error source at a time,
+the mean error and its change per unit of the source.
 
 Everything runs in simulated time, so the figures do not depend on how loaded the box is.
 """
@@ -43,13 +54,19 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-import pymap3d
 
 from benchmarks.positioning_oracle import EpochError, oracle_landing
 from drivers.gnss_reader import EpochAssembler, GnssEpoch
-from gateway.config.recording import PositioningSection
+from gateway.config.recording import HitchSection, PositioningSection
 from gateway.core.records import SeedDrop
 from gateway.recording.positioning import Landing, SeedPositioner
+from gateway.recording.positioning.survey import (
+    SurveyError,
+    SurveyFit,
+    fit_survey,
+    reposition,
+    repositionable,
+)
 from protocol.gnss import GnssLineDecoder, Rejected
 from protocol.unicore import Heading
 from simulator.field_truth import (
@@ -72,12 +89,21 @@ from simulator.field_truth import (
 
 SPEEDS_KMH = (4.0, 8.0, 12.0, 16.0)
 SURVEY_SEEDS = 50
-FITTER = FitterErrors(behind_m=0.02, lateral_m=0.02, gnss_latency_s=-0.008)
-# targets of issue 16 for sowgate after the survey calibration (§3, not built yet)
+# the fitter's tape and datasheet: drawbar (hitch → outlets) 2 cm long, centre line 2 cm to
+# the right, hitch 1 cm short and 2 cm high, antenna height 5 cm high, receiver latency 8 ms
+# short
+FITTER = FitterErrors(behind_m=0.02, lateral_m=0.02, gnss_latency_s=-0.008,
+                      antenna_height_m=0.05, hitch_behind_m=-0.01, hitch_height_m=0.02)
+# targets of issue 16 for sowgate after the survey calibration (§3)
 TARGET_VS_PAPER = 0.5
 TARGET_ABS_MM = 25.0
-COMPENSATED = "sowgate, exact config + antenna height (§2, emulated)"
-METHODS = ("paper C", "sowgate as configured", "sowgate, exact config", COMPENSATED, "oracle")
+PAPER = "paper C"
+CONFIGURED = "sowgate as configured"
+NO_TERRAIN = "sowgate as configured, terrain compensation off"
+EXACT = "sowgate, exact config"
+CALIBRATED = "sowgate after survey calibration"
+ORACLE = "oracle"
+METHODS = (PAPER, NO_TERRAIN, CONFIGURED, EXACT, CALIBRATED, ORACLE)
 
 
 # ------------------------------------------------------------------ the gateway's view
@@ -114,31 +140,28 @@ def gateway_inputs(run: FieldRun) -> GatewayInputs:
     return GatewayInputs(epochs, edges, pitch)
 
 
-def height_compensated(run: FieldRun, inputs: GatewayInputs) -> GatewayInputs:
-    """The epochs moved to the ground point below the antenna, using the antenna height and the
-    decoded baseline pitch as roll (side-by-side antennas: pitch = −roll). An emulation in the
-    bench of what issue 16 §2's terrain compensation can reach, not the gateway's code."""
-    h = run.config.machine.antenna_height_m
-    lat0, lon0, h0 = run.config.origin
-    out = []
-    for t, ep in inputs.epochs:
-        roll = -inputs.baseline_pitch[ep.utc.timestamp()]
-        assert ep.heading_deg is not None
-        psi = math.radians(ep.heading_deg)
-        shift = -h * math.sin(math.radians(roll))  # back from the antenna to the ground point
-        e, n, u = pymap3d.geodetic2enu(ep.lat, ep.lon, h0, lat0, lon0, h0)
-        lat, lon, _ = pymap3d.enu2geodetic(
-            e + shift * math.cos(psi), n - shift * math.sin(psi), u, lat0, lon0, h0
-        )
-        out.append((t, replace(ep, lat=float(lat), lon=float(lon))))
-    return GatewayInputs(out, inputs.edges, inputs.baseline_pitch)
+def baseline_offset_deg(run: FieldRun) -> float:
+    """``gnss.heading_offset_deg`` as the fitter sets it for the truth's antennas."""
+    return -90.0 if run.config.machine.baseline == "side_by_side" else 0.0
 
 
-def section(conf: Configured, fall_table: Sequence[tuple[float, float]] | None = None
-            ) -> PositioningSection:
+def section(conf: Configured, fall_table: Sequence[tuple[float, float]] | None = None,
+            *, terrain: bool = True, hitch: bool = True) -> PositioningSection:
+    """The ``[positioning]`` a fitter enters for ``conf``: lever arm, latencies, and (with
+    ``terrain``) the gateway's own terrain compensation (``antenna_height_m``,
+    ``attitude_source = "dual_antenna"``) and (with ``hitch``) a trailed implement's
+    ``[positioning.hitch]``; paper C's method has neither: a rigid lever arm on level ground."""
     kw: dict[str, Any] = {}
     if fall_table is not None:
         kw["fall_time_table"] = [tuple(x) for x in fall_table]
+    if terrain:
+        kw["antenna_height_m"] = conf.antenna_height_m
+        kw["attitude_source"] = "dual_antenna"
+    if (hitch and conf.hitch_behind_antenna_m is not None
+            and conf.outlets_behind_hitch_m is not None):
+        kw["hitch"] = HitchSection(behind_antenna_m=conf.hitch_behind_antenna_m,
+                                   outlets_behind_hitch_m=conf.outlets_behind_hitch_m,
+                                   height_m=conf.hitch_height_m or 0.0)
     return PositioningSection(
         outlet_behind_antenna_m=conf.outlet_behind_antenna_m,
         row_lateral_m=list(conf.row_lateral_m),
@@ -148,9 +171,12 @@ def section(conf: Configured, fall_table: Sequence[tuple[float, float]] | None =
     )
 
 
-def replay(settings: PositioningSection, method: str, inputs: GatewayInputs) -> list[Landing]:
-    """Feed epochs and edges in host-arrival order, as the daemon would."""
-    positioner = SeedPositioner(settings, method="paper" if method == "paper" else "interpolated")
+def replay(settings: PositioningSection, method: str, inputs: GatewayInputs,
+           offset_deg: float = -90.0) -> list[Landing]:
+    """Feed epochs and edges in host-arrival order, as the daemon would (the recorder builds
+    its positioner with ``baseline_offset_deg = gnss.heading_offset_deg``)."""
+    positioner = SeedPositioner(settings, method="paper" if method == "paper" else "interpolated",
+                                baseline_offset_deg=offset_deg)
     events: list[tuple[float, int, Any]] = [(t, 0, e) for t, e in inputs.epochs]
     events += [(t, 1, row) for t, row in inputs.edges]
     events.sort(key=lambda x: (x[0], x[1]))
@@ -245,24 +271,27 @@ class SurveyPair:
 
 
 def survey_pairs(
-    run: FieldRun, landings: list[Landing], n: int = SURVEY_SEEDS, seed: int = 16
+    run: FieldRun, landings: list[Landing], n: int = SURVEY_SEEDS, seed: int = 16,
+    *, sigma_m: float = 0.005, passes: Sequence[int] | None = None,
 ) -> tuple[list[SurveyPair], np.ndarray]:
-    """``n`` seeds surveyed after the drive (RTK rover, σ 5 mm a pole placement), spread
-    evenly over the speeds, RTK-fixed only; and the mask of the seeds not surveyed.
+    """``n`` seeds surveyed after the drive (RTK rover, ``sigma_m`` a pole placement), spread
+    evenly over the passes (``passes``: only those, e.g. one speed), RTK-fixed only; and the
+    mask of the seeds not surveyed.
 
-    The hook for the row "sowgate after survey calibration": fit on these pairs, re-position
-    the landings, evaluate on the returned mask like every other row.
+    Fit on these pairs (``calibrate``), re-position the landings, evaluate on the returned
+    mask like every other row.
     """
     rng = np.random.default_rng(seed)
     clean = ~run.config.receiver.degraded(np.array([s.t_land for s in run.seeds]))
-    passes = np.array([s.pass_index for s in run.seeds])
+    pass_of = np.array([s.pass_index for s in run.seeds])
     chosen: list[int] = []
-    groups = [np.flatnonzero(clean & (passes == p)) for p in range(len(SPEEDS_KMH))]
+    which = list(range(len(SPEEDS_KMH))) if passes is None else list(passes)
+    groups = [np.flatnonzero(clean & (pass_of == p)) for p in which]
     for i, idx in enumerate(groups):
         k = n // len(groups) + (1 if i < n % len(groups) else 0)
         chosen += rng.choice(idx, size=k, replace=False).tolist()
     chosen.sort()
-    where = survey(run, [run.seeds[i] for i in chosen])
+    where = survey(run, [run.seeds[i] for i in chosen], sigma_m=sigma_m)
     pairs = [
         SurveyPair(landings[i].drop, run.seeds[i].t_host, lat, lon)
         for i, (lat, lon) in zip(chosen, where, strict=True)
@@ -270,6 +299,37 @@ def survey_pairs(
     held_out = np.ones(len(run.seeds), bool)
     held_out[chosen] = False
     return pairs, held_out
+
+
+@dataclass(frozen=True)
+class Calibrated:
+    """The survey calibration's result: the gateway's fit and the re-positioned seeds."""
+
+    fit: SurveyFit
+    errors: Errors
+    not_repositionable: int  # records kept where they were stored (no raw data)
+
+
+def calibrate(run: FieldRun, landings: list[Landing], settings: PositioningSection,
+              pairs: Sequence[SurveyPair], *, fit_delay: bool = True) -> Calibrated:
+    """What ``sowgate calibrate positions --survey`` then ``export --reposition`` do: the
+    gateway's ``fit_survey`` on the stored records of the surveyed seeds and their surveyed
+    lat/lon, the fit laid over ``settings`` (``SurveyFit.settings``, as the calibration file
+    does), every record re-positioned with it (``reposition``)."""
+    fit = fit_survey([p.record for p in pairs],
+                     [(p.surveyed_lat, p.surveyed_lon) for p in pairs], settings,
+                     fit_delay=fit_delay)
+    new = fit.settings(settings)
+    lat, lon, kept = [], [], 0
+    for la in landings:
+        if repositionable(la.drop):
+            a, b = reposition(la.drop, new)
+        else:
+            a, b, kept = la.drop.lat, la.drop.lon, kept + 1
+        lat.append(a)
+        lon.append(b)
+    pe, pn = run.to_enu(np.array(lat), np.array(lon))
+    return Calibrated(fit, _decompose(run, pe, pn), kept)
 
 
 # ------------------------------------------------------------------ runs
@@ -288,19 +348,27 @@ def field_config(seed: int = 1) -> FieldConfig:
 
 def _methods(run: FieldRun, inputs: GatewayInputs, fitter: FitterErrors,
              fall_table: Sequence[tuple[float, float]] | None = None,
-             which: Sequence[str] = METHODS) -> dict[str, Errors]:
+             which: Sequence[str] = (PAPER, NO_TERRAIN, CONFIGURED, EXACT, ORACLE),
+             *, terrain: bool = True) -> tuple[dict[str, Errors], dict[str, list[Landing]]]:
     cfg = run.config
     conf = fitter.configured(cfg.machine, cfg.timing)
     exact = FitterErrors().configured(cfg.machine, cfg.timing)
+    offset = baseline_offset_deg(run)
     out: dict[str, Errors] = {}
+    landings: dict[str, list[Landing]] = {}
     for m in which:
-        if m == "oracle":
+        if m == ORACLE:
             out[m] = oracle_errors(run)
             continue
-        c = exact if m == "sowgate, exact config" else conf
-        method = "paper" if m == "paper C" else "interpolated"
-        out[m] = landing_errors(run, replay(section(c, fall_table), method, inputs))
-    return out
+        c = exact if m == EXACT else conf
+        if m == PAPER:
+            settings = section(c, fall_table, terrain=False, hitch=False)
+        else:
+            settings = section(c, fall_table, terrain=terrain and m != NO_TERRAIN)
+        method = "paper" if m == PAPER else "interpolated"
+        landings[m] = replay(settings, method, inputs, offset)
+        out[m] = landing_errors(run, landings[m])
+    return out, landings
 
 
 def measured_fall_table(cfg: FieldConfig) -> list[tuple[float, float]]:
@@ -338,7 +406,7 @@ class Source:
     cfg: FieldConfig
     fitter: FitterErrors = field(default_factory=FitterErrors)
     table_shift_ms: float = 0.0
-    height_known: bool = False
+    terrain: bool = True  # the gateway's terrain compensation (antenna height, dual antenna)
 
 
 def sources(seed: int = 1) -> list[Source]:
@@ -363,15 +431,18 @@ def sources(seed: int = 1) -> list[Source]:
                fitter=FitterErrors(behind_m=0.03)),
         Source("lever arm configured 3 cm to the right", "cm", 3.0, c,
                fitter=FitterErrors(lateral_m=0.03)),
-        Source("cross slope 3°, antenna 2.5 m up, height unknown", "° roll", 3.0,
+        Source("cross slope 3°, antenna 2.5 m up, no terrain compensation", "° roll", 3.0,
                replace(c, terrain=Terrain(cross_slope_deg=3.0, along_slope_deg=0.0,
-                                          undulation_m=0.0))),
-        Source("same, antenna height known (§2, emulated; what is left: the hitch, 0.5 m up, "
-               "swings 26 mm downhill)", "° roll", 3.0,
+                                          undulation_m=0.0)), terrain=False),
+        Source("same, terrain compensation on (antenna_height_m, dual antenna, #HEADINGA "
+               "pitch σ 0.15°; what is left: the hitch, 0.5 m up, swings 26 mm downhill)",
+               "° roll", 3.0,
                replace(c, terrain=Terrain(cross_slope_deg=3.0, along_slope_deg=0.0,
                                           undulation_m=0.0),
-                       receiver=replace(c.receiver, pitch_sigma_deg=0.15)),
-               height_known=True),
+                       receiver=replace(c.receiver, pitch_sigma_deg=0.15))),
+        Source("along slope 3° (pitch: side-by-side antennas cannot see it)", "° pitch", 3.0,
+               replace(c, terrain=Terrain(cross_slope_deg=0.0, along_slope_deg=3.0,
+                                          undulation_m=0.0))),
         Source("rolling ground (3 waves of 5 cm, 40 m), antenna 2.5 m up: pitch and roll",
                "° rms", math.nan,
                replace(c, terrain=Terrain(cross_slope_deg=0.0, along_slope_deg=0.0))),
@@ -396,14 +467,12 @@ def sources(seed: int = 1) -> list[Source]:
 def _one(src: Source) -> tuple[dict[str, Stats], FieldRun]:
     run = simulate(src.cfg)
     inputs = gateway_inputs(run)
-    if src.height_known:
-        inputs = height_compensated(run, inputs)
     table = [(v, t + src.table_shift_ms) for v, t in measured_fall_table(src.cfg)]
-    errs = _methods(run, inputs, src.fitter, table, ("paper C", "sowgate as configured"))
+    errs, _ = _methods(run, inputs, src.fitter, table, (PAPER, CONFIGURED), terrain=src.terrain)
     mask = np.ones(len(run.seeds), bool)
     return {
-        "paper C": Stats.of(errs["paper C"], mask),
-        "sowgate": Stats.of(errs["sowgate as configured"], mask),
+        "paper C": Stats.of(errs[PAPER], mask),
+        "sowgate": Stats.of(errs[CONFIGURED], mask),
     }, run
 
 
@@ -433,23 +502,9 @@ def sensitivity(seed: int = 1) -> list[dict[str, Any]]:
     return rows
 
 
-def run(seed: int = 1) -> dict[str, Any]:
-    cfg = field_config(seed)
-    truth = simulate(cfg)
-    inputs = gateway_inputs(truth)
-    errs = _methods(truth, inputs, FITTER, which=[m for m in METHODS if m != COMPENSATED])
-    exact = FitterErrors().configured(cfg.machine, cfg.timing)
-    errs[COMPENSATED] = landing_errors(
-        truth, replay(section(exact), "interpolated", height_compensated(truth, inputs))
-    )
-    configured_landings = replay(section(FITTER.configured(cfg.machine, cfg.timing)),
-                                 "interpolated", inputs)
-    pairs, held_out = survey_pairs(truth, configured_landings)
-    # Issue 16 §3 adds the row here: fit on ``pairs``, re-position ``configured_landings``
-    # with the fit, evaluate with ``landing_errors`` on the same masks.
-    t_land = np.array([s.t_land for s in truth.seeds])
-    degraded = cfg.receiver.degraded(t_land)
-    passes = np.array([s.pass_index for s in truth.seeds])
+def _masks(run: FieldRun, held_out: np.ndarray) -> dict[str, np.ndarray]:
+    degraded = run.config.receiver.degraded(np.array([s.t_land for s in run.seeds]))
+    passes = np.array([s.pass_index for s in run.seeds])
     good = held_out & ~degraded
     masks: dict[str, np.ndarray] = {
         f"{v:g} km/h": good & (passes == i) for i, v in enumerate(SPEEDS_KMH)
@@ -457,16 +512,76 @@ def run(seed: int = 1) -> dict[str, Any]:
     masks["4–12 km/h"] = good & (passes >= 0) & (passes <= 2)
     masks["4–16 km/h"] = good & (passes >= 0)
     masks["float/dropout ±0.5 s"] = held_out & degraded
-    table = {m: {k: Stats.of(e, mk) for k, mk in masks.items()} for m, e in errs.items()}
+    return masks
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One way of surveying for the calibration's sensitivity table."""
+
+    name: str
+    n: int = SURVEY_SEEDS
+    sigma_m: float = 0.005
+    passes: tuple[int, ...] | None = None
+    fit_delay: bool = True
+
+
+VARIANTS = (
+    Variant("20 surveyed seeds (the minimum)", n=20),
+    Variant("50 surveyed seeds (the headline)"),
+    Variant("100 surveyed seeds", n=100),
+    Variant("50 seeds, surveyor's pole σ 10 mm", sigma_m=0.010),
+    Variant("50 seeds, surveyor's pole σ 20 mm", sigma_m=0.020),
+    Variant("50 seeds from the 8 km/h pass only", passes=(1,)),
+    Variant("50 seeds from the 8 km/h pass only, --lever-only", passes=(1,), fit_delay=False),
+    Variant("50 seeds from 4 and 8 km/h only", passes=(0, 1)),
+)
+
+
+def calibration_sensitivity(truth: FieldRun, landings: list[Landing],
+                            settings: PositioningSection) -> list[dict[str, Any]]:
+    """The survey calibration refitted on other surveys of the same drive (fresh pole
+    errors per survey); each evaluated on the seeds it did not survey."""
+    rows: list[dict[str, Any]] = []
+    for v in VARIANTS:
+        pairs, held_out = survey_pairs(truth, landings, v.n, sigma_m=v.sigma_m,
+                                       passes=v.passes)
+        row: dict[str, Any] = {"survey": v.name}
+        try:
+            cal = calibrate(truth, landings, settings, pairs, fit_delay=v.fit_delay)
+        except SurveyError as exc:
+            row["refused"] = str(exc)
+            rows.append(row)
+            continue
+        masks = _masks(truth, held_out)
+        row["fit"] = {"delay_ms": cal.fit.delay_ms, "behind_mm": cal.fit.behind_m * 1000.0,
+                      "right_mm": cal.fit.right_m * 1000.0}
+        row["stats"] = {k: dataclasses.asdict(Stats.of(cal.errors, masks[k]))
+                        for k in ("4–12 km/h", "16 km/h", "4–16 km/h")}
+        rows.append(row)
+    return rows
+
+
+def run(seed: int = 1) -> dict[str, Any]:
+    cfg = field_config(seed)
+    truth = simulate(cfg)
+    inputs = gateway_inputs(truth)
+    errs, landings = _methods(truth, inputs, FITTER)
+    configured = section(FITTER.configured(cfg.machine, cfg.timing))
+    pairs, held_out = survey_pairs(truth, landings[CONFIGURED])
+    cal = calibrate(truth, landings[CONFIGURED], configured, pairs)
+    errs[CALIBRATED] = cal.errors
+    masks = _masks(truth, held_out)
+    table = {m: {k: Stats.of(errs[m], mk) for k, mk in masks.items()} for m in METHODS}
+    degraded = cfg.receiver.degraded(np.array([s.t_land for s in truth.seeds]))
     flagged = sum(
-        1 for la, d in zip(configured_landings, degraded.tolist(), strict=True)
+        1 for la, d in zip(landings[CONFIGURED], degraded.tolist(), strict=True)
         if d and (la.drop.extrapolated or la.drop.fix != "rtk_fixed")
     )
-    paper_412 = table["paper C"]["4–12 km/h"].mean_mm
-    sow_412 = table["sowgate as configured"]["4–12 km/h"].mean_mm
+    paper_412 = table[PAPER]["4–12 km/h"].mean_mm
+    cal_412 = table[CALIBRATED]["4–12 km/h"].mean_mm
     target_mm = min(TARGET_ABS_MM, TARGET_VS_PAPER * paper_412)
     fall = {v: float(mean_fall_time_s(cfg, np.array([v]))[0]) * 1000.0 for v in SPEEDS_KMH}
-    sens = sensitivity(seed)
     result: dict[str, Any] = {
         "seeds": len(truth.seeds),
         "epochs": len(inputs.epochs),
@@ -475,9 +590,18 @@ def run(seed: int = 1) -> dict[str, Any]:
         "degraded_flagged_by_sowgate": flagged,
         "stats": {m: {k: dataclasses.asdict(s) for k, s in d.items()} for m, d in table.items()},
         "true_fall_ms": fall,
+        "fit": {"delay_ms": cal.fit.delay_ms, "behind_mm": cal.fit.behind_m * 1000.0,
+                "right_mm": cal.fit.right_m * 1000.0, "outliers": cal.fit.outliers,
+                "before_mm": cal.fit.before.mean_m * 1000.0,
+                "after_mm": cal.fit.after.mean_m * 1000.0,
+                "not_repositionable": cal.not_repositionable},
         "calibration_target_mm": target_mm,
-        "configured_distance_to_target_mm": sow_412 - target_mm,
-        "sensitivity": sens,
+        "calibrated_vs_paper": cal_412 / paper_412,
+        "calibrated_distance_to_target_mm": cal_412 - target_mm,
+        "targets_met": cal_412 <= target_mm,
+        "calibration_sensitivity": calibration_sensitivity(truth, landings[CONFIGURED],
+                                                           configured),
+        "sensitivity": sensitivity(seed),
     }
     result["markdown"] = _markdown(result, truth)
     return result
@@ -503,10 +627,15 @@ def _markdown(result: dict[str, Any], truth: FieldRun) -> str:
         f"{fall} (paper C's table: 114→104 ms), slide + bounce in the furrow, RTK error "
         f"Gauss–Markov σ {cfg.receiver.rtk_sigma_m * 1000:g} mm τ {cfg.receiver.rtk_tau_s:g} s, "
         f"{result['epochs']} epochs decoded from UM982 sentences. Fitter's errors in "
-        f"\"as configured\": lever arm +{FITTER.behind_m * 100:g} cm long and "
-        f"+{FITTER.lateral_m * 100:g} cm right, latency {FITTER.gnss_latency_s * 1000:g} ms. "
+        f"\"as configured\": drawbar (hitch → outlets) +{FITTER.behind_m * 100:g} cm, centre "
+        f"line +{FITTER.lateral_m * 100:g} cm right, hitch {FITTER.hitch_behind_m * 100:+g} cm, "
+        f"antenna height {FITTER.antenna_height_m * 100:+g} cm, receiver latency "
+        f"{FITTER.gnss_latency_s * 1000:g} ms, paper C's fall-time table. Sowgate runs as "
+        f"the daemon would: `antenna_height_m`, `attitude_source = \"dual_antenna\"` (roll "
+        f"from the decoded #HEADINGA pitch, `gnss.heading_offset_deg = -90`), "
+        f"`[positioning.hitch]`; paper C's method: a rigid lever arm on level ground. "
         f"Error = predicted − true rest point; along + = ahead, across + = right. "
-        f"Excluded from the speed columns: {SURVEY_SEEDS} surveyed seeds, and seeds within "
+        f"Excluded from the speed columns: the {SURVEY_SEEDS} surveyed seeds, and seeds within "
         f"0.5 s of float/dropout (in the last column).",
         "",
         "Mean error, mm (p95):",
@@ -519,11 +648,16 @@ def _markdown(result: dict[str, Any], truth: FieldRun) -> str:
         deg = st[m]["float/dropout ±0.5 s"]
         cells.append(f"{_fmt(deg['mean_mm'])} (n={deg['n']})")
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
-    lines.append(
-        "| sowgate after survey calibration | not built yet (issue 16 §3): "
-        f"{result['survey_pairs']} survey pairs are produced by `survey_pairs()` | | | | | | |"
-    )
+    fit = result["fit"]
     lines += [
+        "",
+        f"Survey calibration: `fit_survey` on the stored records of {result['survey_pairs']} "
+        f"surveyed seeds (RTK-fixed, spread over the four passes, pole σ 5 mm) with "
+        f"\"as configured\"'s settings: delay {fit['delay_ms']:+.1f} ms, outlets "
+        f"{fit['behind_mm']:+.1f} mm behind, {fit['right_mm']:+.1f} mm right "
+        f"({fit['outliers']} down-weighted); surveyed seeds {fit['before_mm']:.1f} → "
+        f"{fit['after_mm']:.1f} mm. The other seeds re-positioned with `reposition` "
+        f"({fit['not_repositionable']} without raw data kept as stored).",
         "",
         "Along / across components at 4–16 km/h, mm (mean ± SD):",
         "",
@@ -534,19 +668,38 @@ def _markdown(result: dict[str, Any], truth: FieldRun) -> str:
         s = st[m]["4–16 km/h"]
         lines.append(f"| {m} | {s['along_mean_mm']:+.1f} ± {s['along_sd_mm']:.1f} | "
                      f"{s['across_mean_mm']:+.1f} ± {s['across_sd_mm']:.1f} |")
-    paper = st["paper C"]["4–12 km/h"]["mean_mm"]
-    sow = st["sowgate as configured"]["4–12 km/h"]["mean_mm"]
+    paper = st[PAPER]["4–12 km/h"]["mean_mm"]
+    cal = st[CALIBRATED]["4–12 km/h"]["mean_mm"]
+    verdict = ("met" if result["targets_met"] else
+               f"not met: {result['calibrated_distance_to_target_mm']:.1f} mm above it")
     lines += [
         "",
         f"Targets (after survey calibration, 4–12 km/h): mean ≤ {TARGET_VS_PAPER} × paper C "
         f"= {TARGET_VS_PAPER * paper:.1f} mm and ≤ {TARGET_ABS_MM:g} mm, i.e. ≤ "
-        f"{result['calibration_target_mm']:.1f} mm. Sowgate as configured: {sow:.1f} mm, "
-        f"{result['configured_distance_to_target_mm']:.1f} mm above it "
-        f"({sow / paper:.2f} × paper C). Float/dropout seeds: "
-        f"{result['degraded_seeds']}, of which sowgate flagged "
+        f"{result['calibration_target_mm']:.1f} mm. Sowgate after survey calibration: "
+        f"{cal:.1f} mm ({result['calibrated_vs_paper']:.2f} × paper C): {verdict}. "
+        f"Float/dropout seeds: {result['degraded_seeds']}, of which sowgate flagged "
         f"{result['degraded_flagged_by_sowgate']} (fix not RTK-fixed, or extrapolated).",
         "",
-        "Sensitivity: from a clean field (flat, straight, mounted implement, exact lever arm "
+        "Survey calibration sensitivity (same drive, other surveys; each evaluated on the "
+        "seeds it did not survey), mean mm (p95):",
+        "",
+        "| survey | fit: delay / behind / right | 4–12 km/h | 16 km/h | 4–16 km/h |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for row in result["calibration_sensitivity"]:
+        if "refused" in row:
+            lines.append(f"| {row['survey']} | refused: {row['refused']} | | | |")
+            continue
+        f = row["fit"]
+        cells = [f"{_fmt(row['stats'][k]['mean_mm'])} ({_fmt(row['stats'][k]['p95_mm'])})"
+                 for k in ("4–12 km/h", "16 km/h", "4–16 km/h")]
+        lines.append(f"| {row['survey']} | {f['delay_ms']:+.1f} ms / {f['behind_mm']:+.0f} mm"
+                     f" / {f['right_mm']:+.0f} mm | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Sensitivity of sowgate as configured (terrain compensation on unless a row says "
+        "otherwise): from a clean field (flat, straight, mounted implement, exact lever arm "
         "and latency, a "
         "perfectly measured fall-time table, no receiver noise, no jitter) one source at a "
         "time, all 4–16 km/h seeds. Δ = mean error minus the clean run's; per unit = Δ / "

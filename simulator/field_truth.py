@@ -458,16 +458,32 @@ class Metering:
 class FitterErrors:
     """What the fitter configures, relative to the truth (positive = configured larger)."""
 
-    behind_m: float = 0.0
+    behind_m: float = 0.0  # outlets further behind (on a trailed implement: behind the hitch)
     lateral_m: float = 0.0  # every row shifted the same way (the centre line mis-marked)
     gnss_latency_s: float = 0.0
+    antenna_height_m: float = 0.0  # the tape from the ground to the antenna on the cab roof
+    hitch_behind_m: float = 0.0  # antenna ground point → hitch pin, measured on the tractor
+    hitch_height_m: float = 0.0  # hitch pin above the ground
 
     def configured(self, machine: Machine, timing: Timing) -> Configured:
+        """The settings as entered. A trailed implement is entered as hitch geometry
+        (distances and the hitch's height); ``outlet_behind_antenna_m`` is then the
+        straight-line sum."""
+        hitch = outlets = height = None
+        if machine.trailed:
+            hitch = machine.hitch_behind_m + self.hitch_behind_m
+            outlets = machine.outlets_behind_hitch_m + self.behind_m
+            height = machine.hitch_height_m + self.hitch_height_m
         return Configured(
-            outlet_behind_antenna_m=machine.outlet_behind_antenna_m + self.behind_m,
+            outlet_behind_antenna_m=machine.outlet_behind_antenna_m + self.behind_m
+            + self.hitch_behind_m * machine.trailed,
             row_lateral_m=tuple(r + self.lateral_m for r in machine.row_lateral_m),
             gnss_output_latency_ms=(timing.gnss_latency_s + self.gnss_latency_s) * 1000.0,
             seed_edge_latency_ms=timing.line_s * 1000.0,  # the fitter knows the line time only
+            antenna_height_m=machine.antenna_height_m + self.antenna_height_m,
+            hitch_behind_antenna_m=hitch,
+            outlets_behind_hitch_m=outlets,
+            hitch_height_m=height,
         )
 
 
@@ -479,6 +495,10 @@ class Configured:
     row_lateral_m: tuple[float, ...]
     gnss_output_latency_ms: float
     seed_edge_latency_ms: float
+    antenna_height_m: float = 0.0
+    hitch_behind_antenna_m: float | None = None  # None: a mounted implement
+    outlets_behind_hitch_m: float | None = None
+    hitch_height_m: float | None = None
 
 
 @dataclass(frozen=True)

@@ -11,9 +11,10 @@ import pytest
 
 from benchmarks.bench_positioning import (
     FitterErrors,
+    baseline_offset_deg,
+    calibrate,
     clean_config,
     gateway_inputs,
-    height_compensated,
     landing_errors,
     measured_fall_table,
     replay,
@@ -27,15 +28,14 @@ def short(cfg: FieldConfig, speeds: tuple[float, ...] = (6.0, 12.0)) -> FieldCon
     return replace(cfg, drive=replace(cfg.drive, speeds_kmh=speeds, pass_length_m=20.0))
 
 
-def sowgate(run: FieldRun, fitter: FitterErrors | None = None, compensate: bool = False
+def sowgate(run: FieldRun, fitter: FitterErrors | None = None, terrain: bool = False
             ) -> tuple[np.ndarray, np.ndarray]:
     fitter = fitter or FitterErrors()
     cfg = run.config
     inputs = gateway_inputs(run)
-    if compensate:
-        inputs = height_compensated(run, inputs)
-    settings = section(fitter.configured(cfg.machine, cfg.timing), measured_fall_table(cfg))
-    err = landing_errors(run, replay(settings, "interpolated", inputs))
+    settings = section(fitter.configured(cfg.machine, cfg.timing), measured_fall_table(cfg),
+                       terrain=terrain)
+    err = landing_errors(run, replay(settings, "interpolated", inputs, baseline_offset_deg(run)))
     return err.along, err.across
 
 
@@ -53,15 +53,33 @@ def test_a_lever_arm_configured_3_cm_right_puts_every_seed_3_cm_right() -> None:
     assert float(np.mean(across)) == pytest.approx(0.03, abs=0.002)
 
 
-def test_knowing_the_antenna_height_removes_most_of_a_cross_slope() -> None:
+def test_the_gateways_terrain_compensation_removes_most_of_a_cross_slope() -> None:
+    """antenna_height_m + attitude_source = "dual_antenna", roll from the decoded #HEADINGA
+    pitch: the 131 mm of a 2.5 m antenna's lean on 3° go. What is left is the truth's
+    implement hanging from a point 0.5 m up (26 mm downhill), which a configuration without
+    ``[positioning.hitch]`` cannot express."""
     cfg = short(replace(clean_config(), terrain=Terrain(cross_slope_deg=3.0, along_slope_deg=0.0,
                                                         undulation_m=0.0)))
     run = simulate(cfg)
     _a, raw = sowgate(run)
-    _a, comp = sowgate(run, compensate=True)
-    # 2.5 m antenna: 131 mm; the hitch 0.5 m up still swings 26 mm downhill
+    _a, comp = sowgate(run, terrain=True)
     assert float(np.mean(np.abs(raw))) > 0.09
-    assert float(np.mean(np.abs(comp))) < 0.035
+    assert float(np.mean(np.abs(comp))) == pytest.approx(0.5 * np.sin(np.radians(3.0)),
+                                                         abs=0.003)
+
+
+def test_a_trailed_implements_raised_hitch_is_compensated_when_configured() -> None:
+    """The truth's hitch is 0.5 m up: configured (``[positioning.hitch] height_m``) the
+    implement's 26 mm swing downhill on 3° goes too."""
+    base = clean_config()
+    cfg = short(replace(base, terrain=Terrain(cross_slope_deg=3.0, along_slope_deg=0.0,
+                                              undulation_m=0.0),
+                        machine=replace(base.machine, trailed=True)))
+    run = simulate(cfg)
+    _a, at_ground = sowgate(run, FitterErrors(hitch_height_m=-0.5), terrain=True)
+    _a, comp = sowgate(run, terrain=True)
+    assert float(np.mean(np.abs(at_ground))) > 0.02
+    assert float(np.mean(np.abs(comp))) < 0.006
 
 
 def test_survey_pairs_are_50_seeds_over_every_speed_surveyed_where_they_lie() -> None:
@@ -82,3 +100,22 @@ def test_survey_pairs_are_50_seeds_over_every_speed_surveyed_where_they_lie() ->
 
 def test_the_benchmark_drive_covers_4_to_16_kmh() -> None:
     assert DriveSpec().speeds_kmh == (4.0, 8.0, 12.0, 16.0)
+
+
+def test_the_survey_calibration_fits_out_the_fitters_lever_arm_and_latency() -> None:
+    """The gateway's own fit_survey on 50 surveyed seeds' records, then reposition: a lever
+    arm 3 cm long and 2 cm right and a latency 10 ms short are fitted out of the other seeds."""
+    cfg = short(clean_config(), speeds=(4.0, 8.0, 12.0, 16.0))
+    run = simulate(cfg)
+    inputs = gateway_inputs(run)
+    settings = section(FitterErrors(behind_m=0.03, lateral_m=0.02, gnss_latency_s=-0.010)
+                       .configured(cfg.machine, cfg.timing), measured_fall_table(cfg))
+    landings = replay(settings, "interpolated", inputs, baseline_offset_deg(run))
+    before = landing_errors(run, landings)
+    pairs, held_out = survey_pairs(run, landings)
+    cal = calibrate(run, landings, settings, pairs)
+    assert cal.not_repositionable == 0
+    assert cal.fit.behind_m == pytest.approx(-0.03, abs=0.006)
+    assert cal.fit.right_m == pytest.approx(-0.02, abs=0.004)
+    assert float(np.mean(before.total[held_out])) > 0.03
+    assert float(np.mean(cal.errors.total[held_out])) < 0.008

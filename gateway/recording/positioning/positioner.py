@@ -645,7 +645,11 @@ class SeedPositioner:
         shift_e = shift_n = 0.0
         if roll is not None or pitch is not None:
             r, p = 0.0 if roll is None else roll, 0.0 if pitch is None else pitch
-            forward, sideways = antenna_ground_shift(r, p, self.antenna_height_m)
+            # the ground point below the antenna, then up to the hitch: the hitch leans with
+            # the tractor by its own height, so the two leans differ by (H - h_hitch)
+            forward, sideways = antenna_ground_shift(
+                r, p, self.antenna_height_m - hitch.height_m
+            )
             shift_e, shift_n = rotate_offset(RowOffset(-forward, sideways), heading)
             right *= math.cos(math.radians(r))
         de, dn = trailed_offset(

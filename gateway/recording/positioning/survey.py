@@ -85,6 +85,14 @@ def model_delay_s(speed_kmh: float, settings: PositioningSection) -> float:
     )
 
 
+def lean_height_m(settings: PositioningSection) -> float:
+    """The height whose lean on a slope separates the antenna from the outlets: the antenna's
+    own, less a trailed implement's hitch height (the hitch leans with the tractor, the
+    implement rests on the ground behind it), as the positioner's trailed model has it."""
+    hitch = settings.hitch
+    return settings.antenna_height_m - (hitch.height_m if hitch is not None else 0.0)
+
+
 # WGS84, for the metres <-> degrees of a shift of a few metres (reposition)
 _A = 6378137.0
 _E2 = 6.69437999014e-3
@@ -131,7 +139,7 @@ def _basis(record: SeedDrop, settings: PositioningSection) -> _Basis:
     if record.attitude != "none":
         roll = record.roll_deg or 0.0
         pitch = record.pitch_deg or 0.0
-    lever = terrain_offset(offset, roll, pitch, settings.antenna_height_m)
+    lever = terrain_offset(offset, roll, pitch, lean_height_m(settings))
     de, dn = rotate_offset(lever, record.heading_deg)
     cos_p, cos_r = math.cos(math.radians(pitch)), math.cos(math.radians(roll))
     return _Basis(

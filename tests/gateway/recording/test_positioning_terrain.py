@@ -282,3 +282,44 @@ def test_a_hitch_table_needs_both_lengths_in_range() -> None:
     with pytest.raises(ValueError, match="behind_antenna_m"):
         settings(hitch={"outlets_behind_hitch_m": 3.0})
 
+
+
+def test_a_raised_hitch_swings_the_implement_downhill_by_its_height_on_a_rolled_slope() -> None:
+    """The hitch leans with the tractor (0.5 m up: 26 mm at 3°) while the implement rests on
+    the ground behind it: the outlets move downhill (to the right for positive roll) by
+    height·sin(roll) against a hitch at ground level, and not at all on level ground."""
+    drive = straight(37.0)
+    edges = [(1 + k % 6, 1.0 + k * 0.05) for k in range(40)]
+    low = settings(antenna_height_m=H, attitude_source="dual_antenna", hitch=HITCH)
+    raised = low.model_copy(update={"hitch": HITCH.model_copy(update={"height_m": 0.5})})
+    right = (math.cos(math.radians(37.0)), -math.sin(math.radians(37.0)))
+    for roll, expected in ((3.0, 0.5 * math.sin(math.radians(3.0))), (0.0, 0.0)):
+        a = rolled_run(SeedPositioner(low, baseline_offset_deg=90.0), drive, edges, roll)
+        b = rolled_run(SeedPositioner(raised, baseline_offset_deg=90.0), drive, edges, roll)
+        assert len(a) == len(b) == len(edges)
+        for la, lb in zip(a, b, strict=True):
+            de, dn = lb.east - la.east, lb.north - la.north
+            assert de * right[0] + dn * right[1] == pytest.approx(expected, abs=1e-4)
+            assert de * right[1] - dn * right[0] == pytest.approx(0.0, abs=1e-4)
+
+
+def test_a_hitch_height_out_of_range_names_the_key() -> None:
+    with pytest.raises(ValueError, match="height_m"):
+        settings(hitch={"behind_antenna_m": 1.0, "outlets_behind_hitch_m": 3.0, "height_m": -0.1})
+
+
+def test_a_record_of_a_raised_hitch_on_a_slope_repositions_where_it_was_recorded() -> None:
+    """``reposition`` (survey calibration, export --reposition) leans the hitch as the
+    positioner does: the model a record was made with puts it back where it is."""
+    from gateway.recording.positioning.survey import reposition
+
+    drive = straight(37.0)
+    edges = [(1 + k % 6, 1.0 + k * 0.05) for k in range(40)]
+    s = settings(antenna_height_m=H, attitude_source="dual_antenna",
+                 hitch=HITCH.model_copy(update={"height_m": 0.5}))
+    out = rolled_run(SeedPositioner(s, baseline_offset_deg=90.0), drive, edges, 3.0)
+    assert len(out) == len(edges)
+    for la in out:
+        e, n, _ = FRAME.to_enu(*reposition(la.drop, s))
+        e0, n0, _ = FRAME.to_enu(la.drop.lat, la.drop.lon)
+        assert math.hypot(e - e0, n - n0) < 0.002
