@@ -100,10 +100,13 @@ TARGET_ABS_MM = 25.0
 PAPER = "paper C"
 CONFIGURED = "sowgate as configured"
 NO_TERRAIN = "sowgate as configured, terrain compensation off"
+ROLL_ONLY = "sowgate as configured, roll only (pitch_from_track_m = 0)"
 EXACT = "sowgate, exact config"
 CALIBRATED = "sowgate after survey calibration"
 ORACLE = "oracle"
-METHODS = (PAPER, NO_TERRAIN, CONFIGURED, EXACT, CALIBRATED, ORACLE)
+METHODS = (PAPER, NO_TERRAIN, ROLL_ONLY, CONFIGURED, EXACT, CALIBRATED, ORACLE)
+# positioning.pitch_from_track_m as "as configured" sets it
+PITCH_TRACK_M = 4.0
 
 
 # ------------------------------------------------------------------ the gateway's view
@@ -146,7 +149,8 @@ def baseline_offset_deg(run: FieldRun) -> float:
 
 
 def section(conf: Configured, fall_table: Sequence[tuple[float, float]] | None = None,
-            *, terrain: bool = True, hitch: bool = True) -> PositioningSection:
+            *, terrain: bool = True, hitch: bool = True, pitch_track_m: float = 0.0
+            ) -> PositioningSection:
     """The ``[positioning]`` a fitter enters for ``conf``: lever arm, latencies, and (with
     ``terrain``) the gateway's own terrain compensation (``antenna_height_m``,
     ``attitude_source = "dual_antenna"``) and (with ``hitch``) a trailed implement's
@@ -157,6 +161,7 @@ def section(conf: Configured, fall_table: Sequence[tuple[float, float]] | None =
     if terrain:
         kw["antenna_height_m"] = conf.antenna_height_m
         kw["attitude_source"] = "dual_antenna"
+        kw["pitch_from_track_m"] = pitch_track_m
     if (hitch and conf.hitch_behind_antenna_m is not None
             and conf.outlets_behind_hitch_m is not None):
         kw["hitch"] = HitchSection(behind_antenna_m=conf.hitch_behind_antenna_m,
@@ -348,8 +353,9 @@ def field_config(seed: int = 1) -> FieldConfig:
 
 def _methods(run: FieldRun, inputs: GatewayInputs, fitter: FitterErrors,
              fall_table: Sequence[tuple[float, float]] | None = None,
-             which: Sequence[str] = (PAPER, NO_TERRAIN, CONFIGURED, EXACT, ORACLE),
-             *, terrain: bool = True) -> tuple[dict[str, Errors], dict[str, list[Landing]]]:
+             which: Sequence[str] = (PAPER, NO_TERRAIN, ROLL_ONLY, CONFIGURED, EXACT, ORACLE),
+             *, terrain: bool = True, pitch_track_m: float = PITCH_TRACK_M,
+             ) -> tuple[dict[str, Errors], dict[str, list[Landing]]]:
     cfg = run.config
     conf = fitter.configured(cfg.machine, cfg.timing)
     exact = FitterErrors().configured(cfg.machine, cfg.timing)
@@ -364,7 +370,8 @@ def _methods(run: FieldRun, inputs: GatewayInputs, fitter: FitterErrors,
         if m == PAPER:
             settings = section(c, fall_table, terrain=False, hitch=False)
         else:
-            settings = section(c, fall_table, terrain=terrain and m != NO_TERRAIN)
+            settings = section(c, fall_table, terrain=terrain and m != NO_TERRAIN,
+                               pitch_track_m=0.0 if m == ROLL_ONLY else pitch_track_m)
         method = "paper" if m == PAPER else "interpolated"
         landings[m] = replay(settings, method, inputs, offset)
         out[m] = landing_errors(run, landings[m])
@@ -391,8 +398,8 @@ def clean_config(seed: int = 1) -> FieldConfig:
         lot=replace(base.lot, diameter_cv=0.0, wall_friction_sd=0.0),
         tube=replace(base.tube, outlet_height_m=0.0),
         furrow=Furrow(retained=(0.0, 0.0), bounce_along_sd_m=0.0, bounce_across_sd_m=0.0),
-        receiver=Receiver(rtk_sigma_m=0.0, white_sigma_m=0.0, heading_sigma_deg=0.0,
-                          pitch_sigma_deg=0.0, speed_sigma_kmh=0.0),
+        receiver=Receiver(rtk_sigma_m=0.0, white_sigma_m=0.0, vertical_white_sigma_m=0.0,
+                          heading_sigma_deg=0.0, pitch_sigma_deg=0.0, speed_sigma_kmh=0.0),
         timing=Timing(host_drift_ppm=0.0, gnss_latency_spread_s=0.0, usb_jitter_mean_s=0.0,
                       burst_prob=0.0, sensor_latency_s=0.0, edge_jitter_s=0.0),
     )
@@ -407,6 +414,7 @@ class Source:
     fitter: FitterErrors = field(default_factory=FitterErrors)
     table_shift_ms: float = 0.0
     terrain: bool = True  # the gateway's terrain compensation (antenna height, dual antenna)
+    pitch_track_m: float = PITCH_TRACK_M
 
 
 def sources(seed: int = 1) -> list[Source]:
@@ -440,14 +448,27 @@ def sources(seed: int = 1) -> list[Source]:
                replace(c, terrain=Terrain(cross_slope_deg=3.0, along_slope_deg=0.0,
                                           undulation_m=0.0),
                        receiver=replace(c.receiver, pitch_sigma_deg=0.15))),
-        Source("along slope 3° (pitch: side-by-side antennas cannot see it)", "° pitch", 3.0,
+        Source("along slope 3°, pitch from the track (pitch_from_track_m = 4; what is left: "
+               "the hitch, 0.5 m up, swings 26 mm downhill as on the cross slope)", "° pitch",
+               3.0,
                replace(c, terrain=Terrain(cross_slope_deg=0.0, along_slope_deg=3.0,
                                           undulation_m=0.0))),
+        Source("same, pitch_from_track_m = 0 (side-by-side antennas see roll only)",
+               "° pitch", 3.0,
+               replace(c, terrain=Terrain(cross_slope_deg=0.0, along_slope_deg=3.0,
+                                          undulation_m=0.0)), pitch_track_m=0.0),
+        Source("RTK height noise: white σ 15 mm (pitch from the track reads it)", "mm σ", 15.0,
+               replace(c, receiver=replace(c.receiver, vertical_white_sigma_m=0.015))),
         Source("rolling ground (3 waves of 5 cm, 40 m), antenna 2.5 m up: pitch and roll",
                "° rms", math.nan,
                replace(c, terrain=Terrain(cross_slope_deg=0.0, along_slope_deg=0.0))),
-        Source("RTK error Gauss–Markov σ 12 mm, τ 60 s (+3 mm white)", "mm σ", 12.0,
-               replace(c, receiver=replace(c.receiver, rtk_sigma_m=0.012, white_sigma_m=0.003))),
+        Source("same, pitch_from_track_m = 0", "° rms", math.nan,
+               replace(c, terrain=Terrain(cross_slope_deg=0.0, along_slope_deg=0.0)),
+               pitch_track_m=0.0),
+        Source("RTK error Gauss–Markov σ 12 mm (height 24 mm), τ 60 s (+3 mm white, height "
+               "6 mm)", "mm σ", 12.0,
+               replace(c, receiver=replace(c.receiver, rtk_sigma_m=0.012, white_sigma_m=0.003,
+                                           vertical_white_sigma_m=0.006))),
         Source("heading noise σ 0.08°", "° σ", 0.08,
                replace(c, receiver=replace(c.receiver, heading_sigma_deg=0.08))),
         Source("trailed implement, straight passes (still swung out after the headland)",
@@ -468,7 +489,8 @@ def _one(src: Source) -> tuple[dict[str, Stats], FieldRun]:
     run = simulate(src.cfg)
     inputs = gateway_inputs(run)
     table = [(v, t + src.table_shift_ms) for v, t in measured_fall_table(src.cfg)]
-    errs, _ = _methods(run, inputs, src.fitter, table, (PAPER, CONFIGURED), terrain=src.terrain)
+    errs, _ = _methods(run, inputs, src.fitter, table, (PAPER, CONFIGURED), terrain=src.terrain,
+                       pitch_track_m=src.pitch_track_m)
     mask = np.ones(len(run.seeds), bool)
     return {
         "paper C": Stats.of(errs[PAPER], mask),
@@ -567,11 +589,16 @@ def run(seed: int = 1) -> dict[str, Any]:
     truth = simulate(cfg)
     inputs = gateway_inputs(truth)
     errs, landings = _methods(truth, inputs, FITTER)
-    configured = section(FITTER.configured(cfg.machine, cfg.timing))
+    configured = section(FITTER.configured(cfg.machine, cfg.timing), pitch_track_m=PITCH_TRACK_M)
     pairs, held_out = survey_pairs(truth, landings[CONFIGURED])
     cal = calibrate(truth, landings[CONFIGURED], configured, pairs)
     errs[CALIBRATED] = cal.errors
     masks = _masks(truth, held_out)
+    # the same survey (the same seeds) on the roll-only records: what pitch from the track buys
+    roll_pairs, _ = survey_pairs(truth, landings[ROLL_ONLY])
+    roll_cal = calibrate(truth, landings[ROLL_ONLY],
+                         section(FITTER.configured(cfg.machine, cfg.timing)), roll_pairs)
+    roll_only_cal = Stats.of(roll_cal.errors, masks["4–12 km/h"]).mean_mm
     table = {m: {k: Stats.of(errs[m], mk) for k, mk in masks.items()} for m in METHODS}
     degraded = cfg.receiver.degraded(np.array([s.t_land for s in truth.seeds]))
     flagged = sum(
@@ -595,6 +622,7 @@ def run(seed: int = 1) -> dict[str, Any]:
                 "before_mm": cal.fit.before.mean_m * 1000.0,
                 "after_mm": cal.fit.after.mean_m * 1000.0,
                 "not_repositionable": cal.not_repositionable},
+        "calibrated_roll_only_mm": roll_only_cal,
         "calibration_target_mm": target_mm,
         "calibrated_vs_paper": cal_412 / paper_412,
         "calibrated_distance_to_target_mm": cal_412 - target_mm,
@@ -625,15 +653,19 @@ def _markdown(result: dict[str, Any], truth: FieldRun) -> str:
         f"{cfg.terrain.cross_slope_deg:g}° cross slope + waves (roll ±2–4°), antenna "
         f"{cfg.machine.antenna_height_m:g} m up, trailed implement, this lot's fall time "
         f"{fall} (paper C's table: 114→104 ms), slide + bounce in the furrow, RTK error "
-        f"Gauss–Markov σ {cfg.receiver.rtk_sigma_m * 1000:g} mm τ {cfg.receiver.rtk_tau_s:g} s, "
+        f"Gauss–Markov σ {cfg.receiver.rtk_sigma_m * 1000:g} mm τ {cfg.receiver.rtk_tau_s:g} s "
+        f"(height: twice that, + {cfg.receiver.vertical_white_sigma_m * 1000:g} mm white), "
         f"{result['epochs']} epochs decoded from UM982 sentences. Fitter's errors in "
         f"\"as configured\": drawbar (hitch → outlets) +{FITTER.behind_m * 100:g} cm, centre "
-        f"line +{FITTER.lateral_m * 100:g} cm right, hitch {FITTER.hitch_behind_m * 100:+g} cm, "
+        f"line +{FITTER.lateral_m * 100:g} cm right, hitch {FITTER.hitch_behind_m * 100:+g} cm "
+        f"along and {FITTER.hitch_height_m * 100:+g} cm in height, "
         f"antenna height {FITTER.antenna_height_m * 100:+g} cm, receiver latency "
         f"{FITTER.gnss_latency_s * 1000:g} ms, paper C's fall-time table. Sowgate runs as "
         f"the daemon would: `antenna_height_m`, `attitude_source = \"dual_antenna\"` (roll "
         f"from the decoded #HEADINGA pitch, `gnss.heading_offset_deg = -90`), "
-        f"`[positioning.hitch]`; paper C's method: a rigid lever arm on level ground. "
+        f"`pitch_from_track_m = {PITCH_TRACK_M:g}` (pitch from the antenna's climb), "
+        f"`[positioning.hitch]` with its height; paper C's method: a rigid lever arm on "
+        f"level ground. "
         f"Error = predicted − true rest point; along + = ahead, across + = right. "
         f"Excluded from the speed columns: the {SURVEY_SEEDS} surveyed seeds, and seeds within "
         f"0.5 s of float/dropout (in the last column).",
@@ -677,7 +709,9 @@ def _markdown(result: dict[str, Any], truth: FieldRun) -> str:
         f"Targets (after survey calibration, 4–12 km/h): mean ≤ {TARGET_VS_PAPER} × paper C "
         f"= {TARGET_VS_PAPER * paper:.1f} mm and ≤ {TARGET_ABS_MM:g} mm, i.e. ≤ "
         f"{result['calibration_target_mm']:.1f} mm. Sowgate after survey calibration: "
-        f"{cal:.1f} mm ({result['calibrated_vs_paper']:.2f} × paper C): {verdict}. "
+        f"{cal:.1f} mm ({result['calibrated_vs_paper']:.2f} × paper C): {verdict}; "
+        f"the same survey and fit on the roll-only records (`pitch_from_track_m = 0`): "
+        f"{result['calibrated_roll_only_mm']:.1f} mm. "
         f"Float/dropout seeds: {result['degraded_seeds']}, of which sowgate flagged "
         f"{result['degraded_flagged_by_sowgate']} (fix not RTK-fixed, or extrapolated).",
         "",

@@ -411,6 +411,7 @@ class Receiver:
     rtk_sigma_m: float = 0.012  # Gauss–Markov σ per horizontal axis (fixed RTK)
     rtk_tau_s: float = 60.0
     white_sigma_m: float = 0.003
+    vertical_white_sigma_m: float = 0.006  # RTK height: about twice the horizontal noise
     heading_sigma_deg: float = 0.08  # 1 m baseline
     pitch_sigma_deg: float = 0.15
     speed_sigma_kmh: float = 0.03
@@ -662,6 +663,10 @@ def _receiver_epochs(cfg: FieldConfig, drive: FieldDrive) -> list[ReceiverEpoch]
             err_e[inside] += ramp * _gauss_markov(rng, m, rx.float_sigma_m, rx.float_tau_s, period)
             err_n[inside] += ramp * _gauss_markov(rng, m, rx.float_sigma_m, rx.float_tau_s, period)
             fix[inside] = "rtk_float"
+            err_u[inside] += ramp * _gauss_markov(rng, m, 2 * rx.float_sigma_m, rx.float_tau_s,
+                                                  period)
+    # drawn last, so the other errors' draws do not depend on it
+    err_u = err_u + rng.normal(0.0, rx.vertical_white_sigma_m, count)
     hrng = _rng(cfg.seed, "heading")
     err_h = hrng.normal(0.0, rx.heading_sigma_deg, count)
     err_p = hrng.normal(0.0, rx.pitch_sigma_deg, count)

@@ -152,6 +152,11 @@ class PositioningSection(Section):
     attitude_source: Literal["none", "dual_antenna", "inclinometer"] = "none"
     # a sensor mounted the other way round (inclinometer facing backwards): flip the signs
     attitude_invert: bool = False
+    # Pitch from the track (m, 0 = off): where the attitude source does not measure pitch
+    # (antennas side by side, the inclinometer's roll), take it from the antenna's climb over
+    # this much of its track (RTK-fixed epochs; 3-5 m). 0.5 deg along the pass leans a 2.5 m
+    # antenna 22 mm. Needs an attitude_source; records carry the pitch used (pitch_deg).
+    pitch_from_track_m: float = Field(0.0, ge=0, le=50)
     # added to every seed's fall time (ms): what `sowgate calibrate positions` fits from
     # surveyed seeds (fall time and latencies the table and the config do not know)
     delay_correction_ms: float = Field(0.0, ge=-300, le=300)

@@ -142,6 +142,10 @@ HITCH_STEP_M = 0.02
 # The hitch point jumping further than this between epochs (a fix jump, an outage) restarts
 # the implement straight behind the tractor instead of dragging it across.
 HITCH_RESET_M = 5.0
+# Pitch from the track (positioning.pitch_from_track_m): a jump between epochs longer than
+# this restarts the climb's window (a dropout, a time step), as does a fix that is not RTK
+# fixed (a float solution's height wanders by decimetres).
+TRACK_RESET_M = 5.0
 
 
 class _Pair(NamedTuple):
@@ -200,6 +204,11 @@ class SeedPositioner:
         # gnss.heading_offset_deg: where the dual-antenna baseline points (baseline_attitude)
         self.baseline_offset_deg = baseline_offset_deg
         self._incl_roll: tuple[float, float] | None = None  # (t_mono, roll) from add_attitude
+        # pitch from the antenna's climb: (distance along the track, up) of recent epochs
+        self.pitch_track_m = settings.pitch_from_track_m
+        self._track: deque[tuple[float, float]] = deque()
+        self._track_at: tuple[float, float] | None = None  # (east, north) of the newest
+        self._track_dist = 0.0
         # a trailed implement: its axle line's position, and the hitch point it was pulled to
         self.hitch = settings.hitch
         self._axle: tuple[float, float] | None = None
@@ -264,6 +273,9 @@ class SeedPositioner:
         speed = max(0.0, speed or 0.0)
         heading, source = choose_heading(epoch.heading_valid, epoch.heading_deg, course, speed)
         roll, pitch = self._attitude_of(epoch)
+        climb = self._track_pitch(east, north, up, epoch)
+        if pitch is None and climb is not None and self.attitude_source != "none":
+            pitch = climb
         implement = self._follow_hitch(east, north, heading)
         if self._defer and self._would_move_held(epoch.t_mono, utc_s):
             out += self._resolve_ready(force=True)
@@ -320,6 +332,39 @@ class SeedPositioner:
         roll = None if roll is None else max(-90.0, min(90.0, sign * roll))
         pitch = None if pitch is None else max(-90.0, min(90.0, sign * pitch))
         return roll, pitch
+
+    def _track_pitch(self, east: float, north: float, up: float, epoch: AntennaEpoch
+                     ) -> float | None:
+        """The machine's pitch from the antenna's climb over the last ``pitch_from_track_m``
+        of its track (degrees, nose up positive), or None (off, too little track yet, or
+        not RTK fixed).
+
+        Side-by-side antennas measure only roll, and the inclinometer's pitch axis tells
+        raised from lowered; yet 0.5° of slope along the pass leans a 2.5 m antenna 22 mm
+        back (climbing) or forward. The ground's slope under the track is the climb of the
+        antenna per metre driven: the height difference across the window, so the RTK
+        height's slow wander cancels and only its change over a few seconds remains. It is
+        the slope of the last few metres, lagging the antenna by half the window."""
+        if self.pitch_track_m <= 0.0 or epoch.alt_m is None or epoch.fix != "rtk_fixed":
+            self._track.clear()
+            self._track_at = None
+            return None
+        last = self._track_at
+        step = 0.0 if last is None else math.hypot(east - last[0], north - last[1])
+        if last is None or step > TRACK_RESET_M:
+            self._track.clear()
+            self._track_dist = 0.0
+        else:
+            self._track_dist += step
+        self._track_at = (east, north)
+        track, dist = self._track, self._track_dist
+        track.append((dist, up))
+        while len(track) >= 2 and dist - track[1][0] >= self.pitch_track_m:
+            track.popleft()
+        run = dist - track[0][0]
+        if run < self.pitch_track_m:
+            return None
+        return math.degrees(math.atan2(up - track[0][1], run))
 
     def _follow_hitch(self, east: float, north: float, heading: float | None) -> float | None:
         """Pull the trailed implement after the hitch to this epoch; its heading (None

@@ -323,3 +323,69 @@ def test_a_record_of_a_raised_hitch_on_a_slope_repositions_where_it_was_recorded
         e, n, _ = FRAME.to_enu(*reposition(la.drop, s))
         e0, n0, _ = FRAME.to_enu(la.drop.lat, la.drop.lon)
         assert math.hypot(e - e0, n - n0) < 0.002
+
+
+# ---------------------------------------------------------------- pitch from the track
+
+
+def climbing_run(pos: SeedPositioner, drive: Drive, edges: list[tuple[int, float]],
+                 slope_deg: float, *, fix: str = "rtk_fixed") -> list[Any]:
+    """A straight drive up a slope: the ground point rises tan(slope) per metre, the antenna
+    stands H up the machine's Z axis (leaning back H·sin(slope)), the antennas side by side
+    report no roll (baseline pitch 0)."""
+    out: list[Any] = []
+    th = math.radians(slope_deg)
+    start = drive.pose_at(0.0)
+    for t, kind, what in arrivals(drive, FRAME, edges, until=4.0):
+        if kind == "edge":
+            out += pos.add_edge(what, t)  # type: ignore[arg-type]
+            continue
+        e: Epoch = what  # type: ignore[assignment]
+        pose = drive.pose_at((e.utc - UTC0).total_seconds())
+        s = math.hypot(pose.east - start.east, pose.north - start.north)
+        de, dn = rotate_offset(RowOffset(H * math.sin(th), 0.0), pose.heading_deg)
+        lat, lon = FRAME.to_geodetic(pose.east + de, pose.north + dn)
+        base = epoch_from_pose(pose, FRAME)
+        out += pos.add_epoch(TiltedEpoch(
+            **{**base.__dict__, "t_mono": e.t_mono, "lat": lat, "lon": lon, "fix": fix,
+               "alt_m": FRAME.alt0 + s * math.tan(th) + H * math.cos(th)},
+            baseline_pitch_deg=0.0))
+    return out + pos.flush()
+
+
+CLIMB_EDGES = [(1 + k % 6, 2.0 + k * 0.013) for k in range(120)]
+
+
+def climb_errors(out: list[Any], drive: Drive, s: PositioningSection) -> list[float]:
+    out_enu = [FRAME.to_enu(la.drop.lat, la.drop.lon) for la in out]
+    return [math.hypot(e - te, n - tn)
+            for (e, n, _), (row, t) in zip(out_enu, CLIMB_EDGES, strict=True)
+            for te, tn in [truth_landing(drive, s, row, t)]]
+
+
+def test_side_by_side_antennas_climbing_a_slope_get_the_pitch_from_the_track() -> None:
+    """2° up the pass: the antenna 2.5 m up leans 87 mm back, which side-by-side antennas
+    cannot see; the climb over the last 3 m of track gives the pitch and the seeds land on
+    the ground line (the outlets' offsets shortened by cos 2°: under 1 mm)."""
+    drive = straight(37.0)
+    s = settings(antenna_height_m=H, attitude_source="dual_antenna", pitch_from_track_m=3.0)
+    out = climbing_run(SeedPositioner(s, baseline_offset_deg=90.0), drive, CLIMB_EDGES, 2.0)
+    assert len(out) == len(CLIMB_EDGES)
+    assert max(climb_errors(out, drive, s)) < 0.002
+    assert {round(la.drop.pitch_deg, 3) for la in out} == {2.0}
+    assert {la.drop.attitude for la in out} == {"dual_antenna"}
+    off = s.model_copy(update={"pitch_from_track_m": 0.0})
+    blind = climbing_run(SeedPositioner(off, baseline_offset_deg=90.0), drive, CLIMB_EDGES, 2.0)
+    assert min(climb_errors(blind, drive, off)) > 0.08
+    assert {la.drop.pitch_deg for la in blind} == {None}
+
+
+def test_pitch_from_the_track_waits_for_its_window_and_ignores_float_heights() -> None:
+    drive = straight(37.0)
+    s = settings(antenna_height_m=H, attitude_source="dual_antenna", pitch_from_track_m=30.0)
+    out = climbing_run(SeedPositioner(s, baseline_offset_deg=90.0), drive, CLIMB_EDGES, 2.0)
+    assert {la.drop.pitch_deg for la in out} == {None}  # 30 m of track not driven yet
+    s = s.model_copy(update={"pitch_from_track_m": 3.0})
+    out = climbing_run(SeedPositioner(s, baseline_offset_deg=90.0), drive, CLIMB_EDGES, 2.0,
+                       fix="rtk_float")
+    assert {la.drop.pitch_deg for la in out} == {None}
