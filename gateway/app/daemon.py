@@ -130,6 +130,7 @@ class Daemon:
             base, settings, state_dir, self.alarms, self.controller,
             vet=working_speed_problem, clock=clock, start_notes=self.calibrations,
         )
+        self.positioning_listeners = self.live_calibration.positioning_listeners
         self.rotation_test = RotationTestSession(settings, self.controller, self.live_calibration)
         self.rs485 = settings.rs485.enabled  # False: no radar, inclinometer or PWM module
         self.bus = ModbusBus.from_config(settings.rs485)

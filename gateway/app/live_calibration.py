@@ -11,7 +11,10 @@ the config as it was read at start (``base``), with the same start-up vet
 - paper A's crop models (``control.crops``: the controller reads them at every tick);
 - each channel's ``grams_per_rev`` (the metering component holds the same channel objects);
 - the speed corrections and the inclinometer's zero and critical angle (the controller is
-  told: ``Controller.recalibrated``).
+  told: ``Controller.recalibrated``);
+- the seed position calibration (``sowgate calibrate positions``): the ``[positioning]``
+  section is replaced and each of ``positioning_listeners`` (the seed recorder's
+  ``recalibrate``) is handed it, so new seeds are positioned with it.
 
 A file that cannot be read (half-copied by hand, not JSON, not a calibration file) changes
 nothing: the values in use are kept and ``calibration.file_invalid`` is raised until a good
@@ -38,6 +41,7 @@ from gateway.calibration.presence import (
     write_presence,
 )
 from gateway.config import Settings
+from gateway.config.recording import PositioningSection
 from gateway.control.controller import Controller
 from gateway.core.alarms import AlarmBoard
 from gateway.core.errors import CommandError
@@ -90,6 +94,8 @@ class LiveCalibration:
             self.alarms.raise_(FILE_INVALID_ALARM, self._invalid_message(start_notes[0]),
                                "warning")
         self._next_look = clock() + watch_s
+        # told of a changed [positioning] (gateway.app.wiring adds the seed recorder's)
+        self.positioning_listeners: list[Callable[[PositioningSection], None]] = []
         self.lots: dict[str, str] = {}  # crop -> active seed lot (absent: default)
         self.current: dict[str, Any] = {}  # the file's entries, every lot
         with contextlib.suppress(CalibrationError):
@@ -148,6 +154,7 @@ class LiveCalibration:
         current = lots.effective_entries(candidate, self.current, self.lots)
         notes, refused = apply_entries(candidate, current, vet=self.vet)
         _take(self.live, candidate)
+        self._take_positioning(candidate.positioning)
         self.controller.recalibrated()
         if self.controller.hopper is not None:
             self.controller.hopper.set_lots(self.lots, self.controller.crop)
@@ -158,6 +165,18 @@ class LiveCalibration:
         log.info("calibration.json reloaded: %s", "; ".join(notes) or "no calibrations")
         self.announce()
         return notes
+
+    def _take_positioning(self, positioning: PositioningSection) -> None:
+        """Hand a changed [positioning] (a position calibration saved, or undone) to the
+        parts that position seeds; one that cannot take it keeps what it had, logged."""
+        if positioning == self.live.positioning:
+            return
+        self.live.positioning = positioning
+        for listener in self.positioning_listeners:
+            try:
+                listener(positioning)
+            except ValueError as exc:
+                log.error("seed position calibration not applied (restart to apply): %s", exc)
 
     # ---- seed lots ---------------------------------------------------------------------------
     def lot_of(self, crop: str) -> str:

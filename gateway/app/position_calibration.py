@@ -5,8 +5,9 @@ comparison becomes a calibration: the surveyed seeds are matched to their stored
 along-track delay and the lever arm are fitted to them (``gateway.recording.positioning.
 survey``), the residuals before and after are printed with paper C's statistics, and the fit
 is saved in ``calibration.json`` like the other calibrations (``calibrate undo`` restores the
-values it replaced). The daemon positions new seeds with it from its next start; stored seeds
-are re-positioned on export with ``--reposition``.
+values it replaced). A running daemon positions new seeds with it once it sees the file change
+(``gateway.app.live_calibration``, no restart); stored seeds are re-positioned on export with
+``--reposition``.
 
 It lives in the app layer because it joins the record store (recording) and the calibration
 file (calibration), which must not import each other.
@@ -246,8 +247,9 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
         return EXIT_FAILED
     con.print(
         f"saved {CALIBRATION_KEY}: outlets {new.outlet_behind_antenna_m:.3f} m behind the "
-        f"antenna, delay correction {new.delay_correction_ms:+.1f} ms. The daemon positions "
-        "new seeds with it from its next start (`systemctl restart sowgate`); "
+        f"antenna, delay correction {new.delay_correction_ms:+.1f} ms. A running daemon "
+        "positions new seeds with it within a few seconds (it watches the calibration file; "
+        "no restart), a stopped one from its next start; "
         "`sowgate export --reposition` re-positions the stored ones; "
         f"`sowgate calibrate undo --key {CALIBRATION_KEY}` restores the values it replaced."
     )

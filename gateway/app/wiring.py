@@ -58,6 +58,8 @@ class Daemon(Protocol):
     closers: list[Callable[[], None]]
     epoch_listeners: list[Callable[[Any], None]]
     roll_listeners: list[Callable[[float, float], None]]
+    # told of a [positioning] changed by a calibration saved while running (LiveCalibration)
+    positioning_listeners: list[Callable[[Any], None]]
 
     def clock(self) -> float: ...
 
@@ -254,6 +256,8 @@ def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
 
     recorder = SeedRecorder(daemon.settings, store)
     daemon.parts.seeds = recorder
+    # a position calibration saved while running positions the next seeds (no restart)
+    daemon.positioning_listeners.append(recorder.recalibrate)
     sensors = _seed_sensor_source(daemon, recorder.on_edge)
     if hasattr(sensors, "read_pending"):
         # GPIO: the edges the kernel queued go to the recorder ahead of each epoch, in the

@@ -6,8 +6,8 @@ calibrations over the config so a refitted machine sows with its own curves, and
 ``undo`` of a bad calibration is a restart away.
 
 A calibration saved while the daemon runs is applied by it too (``gateway.app.live_calibration``
-re-applies the file onto the config when it changes), except the seed position calibration,
-which the positioner is built with at the daemon's next start. The daemon passes a
+re-applies the file onto the config when it changes), the seed position calibration
+included (the seed recorder's positioner takes the new ``[positioning]``). The daemon passes a
 ``vet`` (``gateway.app.calibration_check.working_speed_problem``): a calibration that would
 make a channel sow nothing or run flat out over the machine's working speeds is refused, the
 config value kept, and ``calibration.refused`` raised naming the key and why.

@@ -39,6 +39,7 @@ from drivers.log_limit import RateLimitedLog
 from drivers.seed_sensors import SeedEdgeEvent
 from drivers.ticks import sleep_to_next_tick
 from gateway.config import Settings
+from gateway.config.recording import PositioningSection
 from gateway.core.records import SeedDrop, SeedRecord, SeedRow
 from gateway.recording.positioning import AntennaEpoch, Landing, Method, SeedPositioner
 from gateway.recording.seed_plausibility import SeedRatePlausibility
@@ -148,6 +149,14 @@ class SeedRecorder:
 
     def on_edge(self, event: SeedEdgeEvent) -> None:
         self._queue(event)
+
+    def recalibrate(self, positioning: PositioningSection) -> None:
+        """A seed position calibration saved while running (gateway.app.live_calibration):
+        new seeds are positioned with it (SeedPositioner.recalibrate)."""
+        self.positioner.recalibrate(positioning)
+        log.info("seed positions recalibrated: outlets %.3f m behind the antenna, delay "
+                 "correction %+.1f ms", positioning.outlet_behind_antenna_m,
+                 positioning.delay_correction_ms)
 
     def on_roll(self, t_mono: float, roll_deg: float) -> None:
         """An inclinometer roll reading (positioning.attitude_source = "inclinometer"): the

@@ -16,6 +16,7 @@ import contextlib
 import csv
 import math
 import statistics
+from collections.abc import Callable
 from pathlib import Path
 
 import pymap3d
@@ -24,6 +25,8 @@ import tomli_w
 
 from gateway.app.cli import main
 from gateway.app.daemon import Daemon
+from gateway.app.position_calibration import CALIBRATION_KEY as POSITIONS_KEY
+from gateway.calibration.fits import CalibrationStore, to_entry
 from gateway.config import parse_config
 from gateway.core.records import SeedRecord
 from gateway.recording.store import RecordStore
@@ -176,3 +179,61 @@ async def test_the_inclinometer_roll_axis_corrects_seeds_on_a_side_slope(tmp_pat
                                                                                    abs=0.2)
     errors = [error_m(r.lat, r.lon, true[r.id]) for r in corrected]
     assert statistics.median(errors) < 0.03  # uncorrected, the antenna's lean alone is 13 cm
+
+
+async def until(done: Callable[[], bool], timeout_s: float) -> None:
+    for _ in range(int(timeout_s / 0.02)):
+        if done():
+            return
+        await asyncio.sleep(0.02)
+    pytest.fail(f"not within {timeout_s} s")
+
+
+async def test_a_position_calibration_saved_while_sowing_positions_the_next_seeds(
+    tmp_path: Path,
+) -> None:
+    """No restart: the calibration file is watched (live calibration) and the seed recorder's
+    positioner takes the saved lever arm; seeds stored before the save keep the fitter's
+    5 cm error, seeds sown after it land where they are."""
+    machine = SimulatedMachine(
+        drive=DRIVE, with_gnss=True, with_seed_tubes=True,
+        roll_deg=ROLL_DEG, antenna_height_m=ANTENNA_HEIGHT_M, heading_offset_deg=90.0,
+    )
+    state = tmp_path / "state"
+    async with machine:
+        data = fitter_config(machine)
+        daemon = Daemon(parse_config(data), state)
+        recorder_rows = daemon.settings.positioning.lateral_offsets()
+        task = asyncio.create_task(daemon.run(), name="daemon")
+        try:
+            await until(lambda: daemon.parts.seeds is not None
+                        and daemon.parts.seeds.records_stored >= 120, 30.0)
+            # what `sowgate calibrate positions` saves: the lever arm as it really is
+            CalibrationStore(state).save(POSITIONS_KEY, to_entry(
+                {"delay_correction_ms": 0.0, "outlet_behind_antenna_m": TRUE_BEHIND_M,
+                 "row_lateral_m": recorder_rows, "outlets_behind_hitch_m": None},
+                survey="test", seeds=50))
+            reloads = daemon.live_calibration.reloads
+            await until(lambda: daemon.live_calibration.reloads > reloads, 10.0)
+            assert daemon.parts.seeds is not None
+            switched_at = daemon.parts.seeds.records_stored
+            assert daemon.settings.positioning.outlet_behind_antenna_m == TRUE_BEHIND_M
+            await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
+            await asyncio.sleep(1.0)
+        finally:
+            daemon.request_stop()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(task, 5.0)
+        truth = list(machine.seed_tubes.truth)
+        assert machine.seed_tubes.late_writes <= len(truth) // 20, "the simulator was starved"
+    with RecordStore.open_readonly(state / "records.sqlite3", MACHINE_ID) as store:
+        records = list(store.query_seeds())
+    true = truth_by_id(records, truth)
+    # seeds stored before the switch, and those sown well after it (past the pending queue)
+    before = [error_m(r.lat, r.lon, true[r.id]) for r in records if r.id <= switched_at]
+    after = [error_m(r.lat, r.lon, true[r.id]) for r in records if r.id > switched_at + 60]
+    assert len(before) >= 100 and len(after) >= 100
+    print(f"before the save {statistics.fmean(before) * 1000:.1f} mm, "
+          f"after {statistics.fmean(after) * 1000:.1f} mm")
+    assert statistics.fmean(before) > 0.035
+    assert statistics.fmean(after) < min(0.025, 0.5 * statistics.fmean(before))

@@ -233,6 +233,27 @@ class SeedPositioner:
         self._fall_for: AntennaSample | None = None
         self._defer = False  # hold ready seeds until settle() (see defer_resolution)
 
+    def recalibrate(self, settings: PositioningSection) -> None:
+        """Position seeds from now on with a new calibration (``sowgate calibrate positions``
+        saved while the daemon runs): the fall-time table and ``delay_correction_ms``, the
+        lever arm and the hitch. Seeds whose edges came before keep the delay they were given
+        at their edge (the lever arm is applied at resolution: the new one); the epoch
+        history, clock and pending seeds are kept, and a changed hitch restarts the
+        implement straight behind it. The row count, method, attitude and latencies are the
+        configuration's and need a restart (``settings`` must have as many rows)."""
+        rows = len(settings.lateral_offsets())
+        if rows != self.rows:
+            raise ValueError(f"the new calibration has {rows} rows, the positioner {self.rows}")
+        if settings.hitch != self.hitch:
+            self._axle = self._hitch_at = None
+        self.settings = settings
+        self.hitch = settings.hitch
+        self.offsets = [row_offset(settings, r) for r in range(1, rows + 1)]
+        self._lever = [(-o.behind_m, o.right_m) for o in self.offsets]
+        self._lever_nb = np.array([-o.behind_m for o in self.offsets], dtype=np.float64)
+        self._lever_r = np.array([o.right_m for o in self.offsets], dtype=np.float64)
+        self._fall_for = None  # the fall time is looked up again with the new correction
+
     @property
     def rows(self) -> int:
         return len(self.offsets)

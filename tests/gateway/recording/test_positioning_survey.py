@@ -9,7 +9,7 @@ import pytest
 
 from gateway.config.recording import PositioningSection
 from gateway.core.records import SeedDrop
-from gateway.recording.positioning import LocalFrame, SeedPositioner
+from gateway.recording.positioning import Landing, LocalFrame, SeedPositioner
 from gateway.recording.positioning.survey import (
     MIN_SPEED_SPREAD_KMH,
     MIN_SURVEY_SEEDS,
@@ -20,7 +20,7 @@ from gateway.recording.positioning.survey import (
     shift_latlon,
 )
 from simulator.plant import Drive, Leg
-from tests.gateway.recording.test_positioning import FRAME, run, settings
+from tests.gateway.recording.test_positioning import FRAME, MONO0, arrivals, run, settings
 
 
 def drops_of(s: PositioningSection, drive: Drive, edges: list[tuple[int, float]],
@@ -121,3 +121,41 @@ def test_records_without_raw_data_are_refused() -> None:
     old = [d.model_copy(update={"delay_ms": None}) for d in drops]
     with pytest.raises(SurveyError, match="lack the raw data"):
         fit_survey(old, survey(drops), CONFIGURED)
+
+
+def test_a_positioner_recalibrated_while_running_positions_the_next_seeds_with_it() -> None:
+    """sowgate calibrate positions saved while the daemon runs (live calibration): the seeds
+    whose edges come after the switch are where a positioner built with the calibration puts
+    them; those resolved before stay as the old model put them."""
+    events = arrivals(TWO_SPEEDS, FRAME, EDGES, until=10.0)
+    switch = MONO0 + 5.0
+    pos = SeedPositioner(CONFIGURED)
+    out: list[Landing] = []
+    switched = False
+    for t, kind, what in events:
+        if not switched and t >= switch:
+            before = len(out)
+            pos.recalibrate(TRUE)
+            switched = True
+        out += pos.add_epoch(what) if kind == "epoch" else pos.add_edge(what, t)  # type: ignore[arg-type]
+    out += pos.flush()
+    old = drops_of(CONFIGURED, TWO_SPEEDS, EDGES, until=10.0)
+    new = drops_of(TRUE, TWO_SPEEDS, EDGES, until=10.0)
+    assert len(out) == len(EDGES) and 0 < before < len(EDGES)
+    late = [i for i, (_, t) in enumerate(EDGES) if MONO0 + t > switch + 0.01]
+    assert late
+    for i in range(len(EDGES)):
+        want = old[i] if i < before else new[i] if i in late else None
+        if want is None:  # edge before the switch, resolved after: old delay, new lever arm
+            continue
+        got = out[i].drop
+        e, n, _ = FRAME.to_enu(got.lat, got.lon)
+        we, wn, _ = FRAME.to_enu(want.lat, want.lon)
+        assert math.hypot(e - we, n - wn) < 1e-6
+        assert got.delay_ms == pytest.approx(want.delay_ms)
+
+
+def test_a_recalibration_for_another_row_count_is_refused() -> None:
+    pos = SeedPositioner(CONFIGURED)
+    with pytest.raises(ValueError, match="rows"):
+        pos.recalibrate(CONFIGURED.model_copy(update={"row_lateral_m": [0.0, 0.75]}))
