@@ -18,12 +18,15 @@ Rows, all on the same drive, the same seeds and the same noise:
 * ``sowgate as configured`` — the interpolated method as a fitter sets it up, with the
   gateway's own terrain compensation and trailed-implement model: ``antenna_height_m``,
   ``attitude_source = "dual_antenna"`` (the roll the daemon decodes from #HEADINGA's pitch,
-  ``gnss.heading_offset_deg = -90``) and ``[positioning.hitch]``, each measured with the
-  fitter's errors (``FITTER``: drawbar 2 cm long, centre line 2 cm right, hitch 1 cm short and
-  2 cm high, antenna 5 cm high, receiver latency 8 ms short) and paper C's fall-time table
-  (another seed lot); ``..., terrain compensation off`` is the same without the first two;
+  ``gnss.heading_offset_deg = -90``), ``pitch_from_track_m = 4`` (the pitch side-by-side
+  antennas cannot see, from the antenna's climb) and ``[positioning.hitch]`` with its
+  height, each measured with the fitter's errors (``FITTER``: drawbar 2 cm long, centre
+  line 2 cm right, hitch 1 cm short and 2 cm high, antenna 5 cm high, receiver latency 8 ms
+  short) and paper C's fall-time table (another seed lot); ``..., terrain compensation
+  off`` is the same without antenna height and attitude, ``..., roll only`` without the
+  pitch from the track;
 * ``sowgate, exact config`` — the same with every measurement true: what is left is the
-  model's (fall time, slide, pitch the side-by-side antennas cannot see, articulation);
+  model's (this lot's fall time, slide, the pitch's lag and noise, articulation);
 * ``sowgate after survey calibration`` — ``sowgate calibrate positions --survey`` then
   ``export --reposition`` on "as configured": the gateway's ``fit_survey`` on the stored
   records of 50 surveyed seeds (``survey_pairs``) and their surveyed lat/lon, the other
@@ -32,8 +35,9 @@ Rows, all on the same drive, the same seeds and the same noise:
   scatter and the receiver's noise remain.
 
 No inclinometer row: the truth has no WitMotion readings, and the gateway reads only the
-inclinometer's roll axis (its pitch axis tells raised from lowered), which the dual-antenna
-baseline already gives with the antennas side by side.
+inclinometer's roll axis (its pitch axis tells raised from lowered, issue 16 §2), which the
+dual-antenna baseline already gives with the antennas side by side; the ground pitch the two
+cannot see comes from the track instead (``pitch_from_track_m``).
 
 Seeds sown while the receiver is float or silent (± 0.5 s) are reported apart, as are the 50
 seeds set aside for the survey calibration (``survey_pairs``); every row is evaluated on the
