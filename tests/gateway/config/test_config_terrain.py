@@ -22,6 +22,12 @@ from gateway.config import ConfigError, parse_config
          "less than or equal to 300"),
         ({"hitch": {"behind_antenna_m": 1.0, "outlets_behind_hitch_m": 0}},
          "positioning.hitch.outlets_behind_hitch_m", "greater than 0"),
+        ({"pitch_from_track_m": -1.0}, "positioning.pitch_from_track_m",
+         "greater than or equal to 0"),
+        ({"pitch_from_track_m": 60.0}, "positioning.pitch_from_track_m",
+         "less than or equal to 50"),
+        ({"hitch": {"behind_antenna_m": 1.0, "outlets_behind_hitch_m": 3.0, "height_m": 4}},
+         "positioning.hitch.height_m", "less than or equal to 3"),
         ({"hitch": {"behind_antenna_m": 1.0, "outlets_behind_hitch_m": 3.0, "drawbar": 1}},
          "positioning.hitch.drawbar", "Extra inputs"),
     ],
@@ -54,7 +60,10 @@ def test_check_config_exits_78_on_a_bad_antenna_height(
 def test_terrain_and_hitch_keys_load() -> None:
     s = parse_config({"positioning": {
         "antenna_height_m": 2.5, "attitude_source": "dual_antenna", "attitude_invert": True,
-        "hitch": {"behind_antenna_m": 1.5, "outlets_behind_hitch_m": 4.0},
+        "pitch_from_track_m": 4.0,
+        "hitch": {"behind_antenna_m": 1.5, "outlets_behind_hitch_m": 4.0, "height_m": 0.5},
     }})
     assert s.positioning.antenna_height_m == 2.5
+    assert s.positioning.pitch_from_track_m == 4.0
     assert s.positioning.hitch is not None and s.positioning.hitch.outlets_behind_hitch_m == 4.0
+    assert s.positioning.hitch.height_m == 0.5
