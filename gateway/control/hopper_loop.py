@@ -158,7 +158,8 @@ class HopperLoop:
             "hopper correction x%.4f%s (estimate %s, SE %s, scale sigma %s, %d windows)",
             st.factor, "" if st.applied else " (not applied yet: too little evidence)",
             "-" if st.estimate is None else f"{st.estimate:.4f}",
-            "-" if st.standard_error is None else f"{st.standard_error * 100:.2f} %",
+            "-" if st.standard_error is None else
+            f"{st.standard_error * 100:.2f} % (x{st.dispersion ** 0.5:.2f} for correlated noise)",
             "-" if st.sigma_kg is None else f"{st.sigma_kg:.2f} kg", st.windows,
         )
         bound = self.section.max_correction_pct
