@@ -39,7 +39,7 @@ from typing import Any
 
 from drivers.errors import DeviceRejected, DriverError
 from drivers.modbus_bus import ModbusBus
-from drivers.rs485_devices import Channel, HopperScale, Inclinometer, PwmModule, Radar
+from drivers.rs485_devices import BadReading, Channel, HopperScale, Inclinometer, PwmModule, Radar
 from drivers.tasks import cancel_all
 from gateway.app import wiring
 from gateway.app.calibration_check import working_speed_problem
@@ -405,10 +405,7 @@ class Daemon:
                 if self.roll_sensor is not None:
                     await self._read_roll()
                 if self.hopper_scale is not None:  # lost: the controller keeps its factor
-                    kg: float | None = None
-                    with contextlib.suppress(DriverError):
-                        kg = await self.hopper_scale.read()
-                    self.controller.on_hopper_weight(kg, self.clock())
+                    self.controller.on_hopper_weight(await self._read_hopper(), self.clock())
             out = self.rotation_test.apply(self.controller.tick(self.clock()), self.clock())
             note = self.rotation_test.take_note()
             if note is not None and self.hmi is not None:
@@ -424,6 +421,27 @@ class Daemon:
                 next_at = self.clock()
                 delay = 0.0
             await asyncio.sleep(max(0.0, delay))
+
+    async def _read_hopper(self) -> float | None:
+        """One hopper scale reading; None when it does not answer or answers a value no
+        working scale reports (counted and alarmed, never fed to the correction)."""
+        scale = self.hopper_scale
+        assert scale is not None
+        try:
+            kg = await scale.read()
+        except BadReading as exc:
+            if not self.alarms.is_active("hopper_scale.bad_reading"):
+                log.warning("%s; %d such readings rejected so far", exc, scale.bad_readings)
+            self.alarms.set(
+                "hopper_scale.bad_reading", True,
+                f"{exc}: {scale.bad_readings} readings rejected so far, none used; sowing on "
+                "the model with the last correction", "warning",
+            )
+            return None
+        except DriverError:
+            return None
+        self.alarms.clear("hopper_scale.bad_reading")
+        return kg
 
     def on_tick(self, out: ControlOutputs) -> None:
         """Hook for per-tick observers (watchdog kick, telemetry); set by optional parts."""

@@ -24,7 +24,9 @@ The estimate
       does not pull the line. Its inliers then join the evidence.
     * A refill (the weight jumping up, or any jump: the median of the last readings against
       the median of the ones before, beyond ``max(REFILL_MIN_KG, 5 σ)``) ends the line: the
-      window in progress is dropped and a new line (own intercept ``a``) starts. So does
+      window in progress is dropped and a new line (own intercept ``a``) starts. A jump down
+      is counted apart (``jumps``): no meter empties kilograms in seconds, so it is a load
+      cell shifting or failing, never evidence. So does
       motor running that the model does not describe (emptying).
     * Evidence is pooled across windows and lines as one weighted least-squares slope with a
       separate intercept per line (the sums of each line, centred, added), with exponential
@@ -294,9 +296,10 @@ class CorrectionState:
     at_bound: bool  # the estimate is beyond 1 ± max_correction and the factor held there
     applied: bool  # the evidence was enough to apply
     windows: int  # windows that added evidence since the start (or the reset)
-    refills: int  # jumps (refills) seen
+    refills: int  # upward jumps (refills) seen
     last_window: WindowFit | None  # the newest window, fitted alone (for disagreement)
     dispersion: float = 1.0  # the SE's inflation² for correlated noise (1: independent)
+    jumps: int = 0  # downward jumps: a load cell, not seed (the line restarts, nothing fitted)
 
 
 class HopperCorrection:
@@ -325,6 +328,8 @@ class HopperCorrection:
         self._sigma = DEFAULT_SIGMA_KG
         self.windows = 0
         self.refills = 0
+        self.jumps = 0  # downward jumps: implausible (a load cell, not seed)
+        self.last_jump_kg = 0.0
         self.last_window: WindowFit | None = None
         self._update_factor()
 
@@ -343,8 +348,13 @@ class HopperCorrection:
         if weight_kg is None or not math.isfinite(weight_kg):
             self._last_steady = False
             return False
-        if self._jumped(weight_kg):
-            self.refills += 1
+        jump = self._jump(weight_kg)
+        if jump is not None:
+            if jump > 0:
+                self.refills += 1
+            else:  # seed does not leave this fast: a load cell, not the meter
+                self.jumps += 1
+                self.last_jump_kg = jump
             self._end_line()
             self._recent.append(weight_kg)
             return False
@@ -360,14 +370,16 @@ class HopperCorrection:
             return self._close_window()
         return False
 
-    def _jumped(self, weight_kg: float) -> bool:
+    def _jump(self, weight_kg: float) -> float | None:
+        """The step (kg, + up) when the weight just jumped, else None."""
         recent = list(self._recent)
         if len(recent) < 2 * JUMP_MEDIAN_N - 1:
-            return False
+            return None
         before = statistics.median(recent[: JUMP_MEDIAN_N])
         after = statistics.median([*recent[JUMP_MEDIAN_N:], weight_kg])
         sigma_diff = 1.25 * self._sigma * math.sqrt(2.0 / JUMP_MEDIAN_N)
-        return abs(after - before) > max(REFILL_MIN_KG, JUMP_SIGMAS * sigma_diff)
+        step = after - before
+        return step if abs(step) > max(REFILL_MIN_KG, JUMP_SIGMAS * sigma_diff) else None
 
     def _end_line(self) -> None:
         """A refill or unmodelled discharge: the window in progress is dropped (it may hold
@@ -426,7 +438,7 @@ class HopperCorrection:
         return CorrectionState(
             factor=self.factor, estimate=k, standard_error=se, sigma_kg=ev.sigma(),
             at_bound=at_bound, applied=applied, windows=self.windows, refills=self.refills,
-            last_window=self.last_window, dispersion=ev.dispersion(),
+            last_window=self.last_window, dispersion=ev.dispersion(), jumps=self.jumps,
         )
 
     def disagreement(self, disagree_pct: float) -> float | None:

@@ -421,3 +421,30 @@ def test_t_over_normal_is_the_student_quantile() -> None:
     assert t_over_normal(2.0) * 1.96 == pytest.approx(4.30, rel=0.12)
     assert t_over_normal(5.0) * 1.96 == pytest.approx(2.571, rel=0.02)
     assert t_over_normal(1000.0) == pytest.approx(1.0, abs=0.01)
+
+
+def test_a_jump_down_is_a_load_cell_not_seed_and_is_counted_apart_from_refills() -> None:
+    est = fresh()
+    rng = random.Random(3)
+    t, x = simulate(est, k=1.08, sigma_kg=0.5, minutes=6.0, rng=rng)
+    factor = est.factor
+    # a load cell slips by 250 kg for 5 s while seeding, then comes back
+    t, x = simulate(est, k=1.08, sigma_kg=0.5, minutes=5.0 / 60.0, rng=rng, t0=t, x0=x,
+                    extra_kg=lambda _t: -250.0)
+    t, x = simulate(est, k=1.08, sigma_kg=0.5, minutes=1.0, rng=rng, t0=t, x0=x)
+    st_ = est.state()
+    assert st_.jumps == 1 and st_.refills == 1  # down (a fault), then back up
+    assert est.factor == pytest.approx(factor, abs=0.003)
+
+
+def test_the_loop_alarms_a_jump_down(tmp_path: Path) -> None:
+    alarms = AlarmBoard()
+    loop = HopperLoop(HopperScaleSection(enabled=True), alarms, "wheat")
+    t = 0.0
+    for i in range(120):
+        kg = 500.0 - (300.0 if i >= 100 else 0.0)
+        loop.on_weight(kg, t)
+        loop.tick(t, q_model_g_min=3000.0, seeding=True, speed_kmh=5.0, modelled=True)
+        t += POLL_S
+    assert alarms.is_active("hopper_scale.jump")
+    assert "300 kg" in next(a for a in alarms.active if a.code == "hopper_scale.jump").message
