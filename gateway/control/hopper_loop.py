@@ -145,8 +145,9 @@ class HopperLoop:
                                     modelled=modelled)
         if self.estimator.jumps > self._jumps_seen:
             self._jumps_seen = self.estimator.jumps
-            log.warning("hopper scale jumped by %+.1f kg: not seed; the fit restarts there",
-                        self.estimator.last_jump_kg)
+            if not self.alarms.is_active("hopper_scale.jump"):  # once until a window fits
+                log.warning("hopper scale jumped by %+.1f kg: not seed; the fit restarts there",
+                            self.estimator.last_jump_kg)
             self.alarms.set(
                 "hopper_scale.jump", True,
                 f"hopper weight fell {-self.estimator.last_jump_kg:.0f} kg at once "
