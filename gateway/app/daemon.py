@@ -68,6 +68,9 @@ DUTY_EPSILON_PCT = 0.05  # below this a change is not worth a bus write
 # A device alarms once it has not answered for this long (as speed.lost does): one CRC error
 # from motor noise must not flash "radar not answering" on the screen and over MQTT.
 DEVICE_LOST_AFTER_S = 2.0
+# good hopper readings in a row that clear hopper_scale.bad_reading (a transmitter sending
+# NaN every other reading must not raise and clear the alarm on every poll)
+BAD_READING_CLEAR_AFTER = 10
 # A PWM module that refused its communication-loss timeout is asked again this often (it may
 # have been swapped); one that did not answer, as soon as this after the last try.
 WATCHDOG_RETRY_REFUSED_S = 10.0
@@ -144,6 +147,7 @@ class Daemon:
             )
         self.roll_listeners: list[Callable[[float, float], None]] = []
         self.pwm = PwmModule(self.bus, settings.actuators)
+        self._hopper_good = 0  # good hopper readings since the last bad one
         self.hopper_scale = (
             HopperScale(self.bus, settings.hopper_scale)
             if self.rs485 and settings.hopper_scale.enabled else None
@@ -430,6 +434,7 @@ class Daemon:
         try:
             kg = await scale.read()
         except BadReading as exc:
+            self._hopper_good = 0
             if not self.alarms.is_active("hopper_scale.bad_reading"):
                 log.warning("%s; %d such readings rejected so far", exc, scale.bad_readings)
             self.alarms.set(
@@ -440,7 +445,9 @@ class Daemon:
             return None
         except DriverError:
             return None
-        self.alarms.clear("hopper_scale.bad_reading")
+        self._hopper_good += 1
+        if self._hopper_good >= BAD_READING_CLEAR_AFTER:  # no alarm event per flicker
+            self.alarms.clear("hopper_scale.bad_reading")
         return kg
 
     def on_tick(self, out: ControlOutputs) -> None:

@@ -110,11 +110,11 @@ ROWS: tuple[Row, ...] = (
              "`hopper_scale.unavailable` on MQTT, cleared when it answers again"),
             ("nan", "a float32 NaN in every reply (a broken load cell)",
              "`hopper_scale.bad_reading` on MQTT counting the rejected readings (≥ 2), none "
-             "fed to the fit; cleared at the next good reading"),
+             "fed to the fit; cleared after 10 good readings in a row"),
             ("out_of_range", "1e7 kg in every reply (an overload code, beyond 120 % of "
              "capacity)",
              "`hopper_scale.bad_reading` on MQTT counting the rejected readings, none fed to "
-             "the fit; cleared at the next good reading"),
+             "the fit; cleared after 10 good readings in a row"),
             ("jump", f"the weight {HOPPER_JUMP_KG:g} kg lower (a load cell slipping), then back",
              "`hopper_scale.jump` on MQTT (no meter empties that in seconds: not seed); the "
              "fit restarts its line"),
