@@ -110,6 +110,8 @@ class HopperScale:
         except ProtocolError as exc:
             raise FieldError(f"{self.name}: {exc}") from exc
 
+        self.bad_readings = 0  # replies that arrived intact but held no plausible weight
+
     @property
     def available(self) -> bool:
         return self.bus.available(self.name)
@@ -121,6 +123,7 @@ class HopperScale:
         try:
             return self.format.decode_kg(registers)
         except ProtocolError as exc:
+            self.bad_readings += 1
             raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
 
 

@@ -20,7 +20,15 @@ from drivers.tasks import StartClose, cancel_and_wait
 from gateway.config import Settings, parse_config
 from simulator.hmi_peer import HmiPeer
 from simulator.modbus_devices import Rs485Simulator
-from simulator.plant import Drive, HopperTruth, MeteringPlant, Pose, SensorNoise, demo_drive
+from simulator.plant import (
+    KMH_PER_MS,
+    Drive,
+    HopperTruth,
+    MeteringPlant,
+    Pose,
+    SensorNoise,
+    demo_drive,
+)
 
 PLANT_STEP_S = 0.01
 GNSS_OUTPUT_LATENCY_S = 0.02  # the emulated UM982's delay from epoch to sentence
@@ -157,9 +165,14 @@ class SimulatedMachine(StartClose):
         )
 
     def hopper_reading_kg(self) -> float:
-        """What the weight transmitter reads now: the true hopper mass plus vibration."""
+        """What the weight transmitter reads now: the true hopper mass plus vibration (and
+        the field's disturbances, given the tractor's acceleration and the fan duty)."""
         assert self.hopper is not None
-        return self.hopper.reading_kg(self.now(), self.plant.mass_g / 1000.0)
+        now = self.now()
+        accel = (self.pose_at(now).speed_kmh
+                 - self.pose_at(max(0.0, now - 0.5)).speed_kmh) / KMH_PER_MS / 0.5
+        return self.hopper.reading_kg(now, self.plant.mass_g / 1000.0, accel_ms2=accel,
+                                      fan_pct=self.fan_pct)
 
     def roll_reading(self) -> float:
         """The inclinometer's roll axis: the side slope, with the tilt axis's noise."""

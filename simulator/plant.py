@@ -215,6 +215,89 @@ class MeteringPlant:
         return grams
 
 
+@dataclass(frozen=True)
+class HopperDisturbances:
+    """What a moving seeder does to its load cells beyond independent vibration; all off by
+    default (each figure 0), so a plain ``HopperTruth`` keeps its meaning.
+
+    * ``vibration_kg`` / ``vibration_tau_s``: correlated vibration, a first-order
+      Gauss–Markov process (σ, correlation time): the frame rocking, not the engine buzz.
+    * ``slope_transfer_pct`` / ``slope_tau_s``: load transfer on slopes: the hopper tilts on
+      its cells and the reading is ``mass × (1 + ε)``, ε Gauss–Markov of σ this % of the
+      mass and correlation time tens of seconds (the terrain at working speed).
+    * ``accel_transfer_pct_per_ms2``: the same tilt when accelerating or braking: ε adds this
+      % of the mass per m/s² of longitudinal acceleration (given with each reading).
+    * ``bumps_per_min`` / ``bump_kg``: bumps: a spike on one reading, exponential in size
+      (mean ``bump_kg``), either sign.
+    * ``drift_kg_per_h``: the load cell's temperature drift: an offset growing with time.
+    * ``pressure_kg``: a pressurised hopper: air pressure on the lid and walls adds this
+      offset at full fan duty, in proportion to the fan duty given with each reading.
+    """
+
+    vibration_kg: float = 0.0
+    vibration_tau_s: float = 10.0
+    slope_transfer_pct: float = 0.0
+    slope_tau_s: float = 30.0
+    accel_transfer_pct_per_ms2: float = 0.0
+    bumps_per_min: float = 0.0
+    bump_kg: float = 20.0
+    drift_kg_per_h: float = 0.0
+    pressure_kg: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            if not math.isfinite(value) or (value < 0 and name != "drift_kg_per_h"
+                                            and name != "pressure_kg"):
+                raise ValueError(f"HopperDisturbances.{name} must be finite and >= 0 ({value})")
+        if self.vibration_tau_s <= 0 or self.slope_tau_s <= 0:
+            raise ValueError("HopperDisturbances correlation times must be positive")
+
+
+@dataclass
+class DisturbanceState:
+    """The disturbances' own state and random stream, apart from the white noise's, so that
+    switching them on leaves the white noise draws unchanged."""
+
+    spec: HopperDisturbances
+    rng: random.Random = field(default_factory=lambda: random.Random(23))
+    vibration_kg: float = 0.0
+    tilt: float = 0.0  # ε of the slope load transfer
+    last_t: float | None = None
+    started: bool = False
+
+    def kg(self, t: float, mass_kg: float, *, accel_ms2: float = 0.0,
+           fan_pct: float = 0.0) -> float:
+        """The disturbance on a reading at ``t`` (seconds, increasing) of ``mass_kg``."""
+        d = self.spec
+        dt = 0.0 if self.last_t is None else max(0.0, t - self.last_t)
+        self.last_t = t
+        if not self.started:  # stationary from the first reading
+            self.started = True
+            self.vibration_kg = self.rng.gauss(0.0, d.vibration_kg)
+            self.tilt = self.rng.gauss(0.0, d.slope_transfer_pct / 100.0)
+        else:
+            self.vibration_kg = _gauss_markov(self.rng, self.vibration_kg, d.vibration_kg,
+                                              d.vibration_tau_s, dt)
+            self.tilt = _gauss_markov(self.rng, self.tilt, d.slope_transfer_pct / 100.0,
+                                      d.slope_tau_s, dt)
+        eps = self.tilt + d.accel_transfer_pct_per_ms2 / 100.0 * accel_ms2
+        out = self.vibration_kg + mass_kg * eps
+        out += d.drift_kg_per_h * t / 3600.0
+        out += d.pressure_kg * max(0.0, min(100.0, fan_pct)) / 100.0
+        if d.bumps_per_min > 0.0 and dt > 0.0 and \
+                self.rng.random() < 1.0 - math.exp(-d.bumps_per_min * dt / 60.0):
+            out += self.rng.choice((-1.0, 1.0)) * self.rng.expovariate(1.0 / d.bump_kg)
+        return out
+
+
+def _gauss_markov(rng: random.Random, x: float, sigma: float, tau_s: float, dt: float) -> float:
+    """One exact step of a first-order Gauss–Markov process of stationary σ ``sigma``."""
+    if sigma <= 0.0:
+        return 0.0
+    a = math.exp(-dt / tau_s)
+    return a * x + sigma * math.sqrt(max(0.0, 1.0 - a * a)) * rng.gauss(0.0, 1.0)
+
+
 @dataclass
 class HopperTruth:
     """The seed hopper on its load cells: what a weight transmitter under it reads.
@@ -222,18 +305,38 @@ class HopperTruth:
     The mass is the initial fill, plus each refill from its time on, minus what the meter
     really discharged (the plant's truth, not the controller's model). Each reading carries
     vibration noise: independent per reading (a transmitter read at a few Hz samples a
-    machine shaking at tens of Hz), σ ``noise_kg``, kilograms on a moving seeder.
+    machine shaking at tens of Hz), σ ``noise_kg``, kilograms on a moving seeder; and the
+    correlated ``disturbances`` of a field (off by default; ``HopperDisturbances``).
+
+    ``fault_kg``: fault injection: while set, the transmitter reports this value instead
+    (NaN, an overload code, a jump), whatever the load cells carry.
     """
 
     initial_kg: float = 800.0
     noise_kg: float = 2.0
     refills: tuple[tuple[float, float], ...] = ()  # (time s, kg added)
     rng: random.Random = field(default_factory=lambda: random.Random(11))
+    disturbances: HopperDisturbances = field(default_factory=HopperDisturbances)
+    fault_kg: float | None = None
+    _state: DisturbanceState | None = field(default=None, init=False, repr=False)
 
     def mass_kg(self, t: float, discharged_kg: float) -> float:
         added = sum(kg for at, kg in self.refills if t >= at)
         return self.initial_kg + added - discharged_kg
 
-    def reading_kg(self, t: float, discharged_kg: float) -> float:
-        return self.mass_kg(t, discharged_kg) + self.rng.gauss(0.0, self.noise_kg)
+    def disturbance_kg(self, t: float, mass_kg: float, *, accel_ms2: float = 0.0,
+                       fan_pct: float = 0.0) -> float:
+        """The correlated part of a reading at ``t`` (0 with the disturbances off)."""
+        if self.disturbances == HopperDisturbances():
+            return 0.0
+        if self._state is None:
+            self._state = DisturbanceState(self.disturbances)
+        return self._state.kg(t, mass_kg, accel_ms2=accel_ms2, fan_pct=fan_pct)
 
+    def reading_kg(self, t: float, discharged_kg: float, *, accel_ms2: float = 0.0,
+                   fan_pct: float = 0.0) -> float:
+        if self.fault_kg is not None:
+            return self.fault_kg
+        mass = self.mass_kg(t, discharged_kg)
+        return (mass + self.rng.gauss(0.0, self.noise_kg)
+                + self.disturbance_kg(t, mass, accel_ms2=accel_ms2, fan_pct=fan_pct))

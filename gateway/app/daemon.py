@@ -39,7 +39,7 @@ from typing import Any
 
 from drivers.errors import DeviceRejected, DriverError
 from drivers.modbus_bus import ModbusBus
-from drivers.rs485_devices import Channel, HopperScale, Inclinometer, PwmModule, Radar
+from drivers.rs485_devices import BadReading, Channel, HopperScale, Inclinometer, PwmModule, Radar
 from drivers.tasks import cancel_all
 from gateway.app import wiring
 from gateway.app.calibration_check import working_speed_problem
@@ -68,6 +68,9 @@ DUTY_EPSILON_PCT = 0.05  # below this a change is not worth a bus write
 # A device alarms once it has not answered for this long (as speed.lost does): one CRC error
 # from motor noise must not flash "radar not answering" on the screen and over MQTT.
 DEVICE_LOST_AFTER_S = 2.0
+# good hopper readings in a row that clear hopper_scale.bad_reading (a transmitter sending
+# NaN every other reading must not raise and clear the alarm on every poll)
+BAD_READING_CLEAR_AFTER = 10
 # A PWM module that refused its communication-loss timeout is asked again this often (it may
 # have been swapped); one that did not answer, as soon as this after the last try.
 WATCHDOG_RETRY_REFUSED_S = 10.0
@@ -145,6 +148,7 @@ class Daemon:
             )
         self.roll_listeners: list[Callable[[float, float], None]] = []
         self.pwm = PwmModule(self.bus, settings.actuators)
+        self._hopper_good = 0  # good hopper readings since the last bad one
         self.hopper_scale = (
             HopperScale(self.bus, settings.hopper_scale)
             if self.rs485 and settings.hopper_scale.enabled else None
@@ -406,10 +410,7 @@ class Daemon:
                 if self.roll_sensor is not None:
                     await self._read_roll()
                 if self.hopper_scale is not None:  # lost: the controller keeps its factor
-                    kg: float | None = None
-                    with contextlib.suppress(DriverError):
-                        kg = await self.hopper_scale.read()
-                    self.controller.on_hopper_weight(kg, self.clock())
+                    self.controller.on_hopper_weight(await self._read_hopper(), self.clock())
             out = self.rotation_test.apply(self.controller.tick(self.clock()), self.clock())
             note = self.rotation_test.take_note()
             if note is not None and self.hmi is not None:
@@ -425,6 +426,30 @@ class Daemon:
                 next_at = self.clock()
                 delay = 0.0
             await asyncio.sleep(max(0.0, delay))
+
+    async def _read_hopper(self) -> float | None:
+        """One hopper scale reading; None when it does not answer or answers a value no
+        working scale reports (counted and alarmed, never fed to the correction)."""
+        scale = self.hopper_scale
+        assert scale is not None
+        try:
+            kg = await scale.read()
+        except BadReading as exc:
+            self._hopper_good = 0
+            if not self.alarms.is_active("hopper_scale.bad_reading"):
+                log.warning("%s; %d such readings rejected so far", exc, scale.bad_readings)
+            self.alarms.set(
+                "hopper_scale.bad_reading", True,
+                f"{exc}: {scale.bad_readings} readings rejected so far, none used; sowing on "
+                "the model with the last correction", "warning",
+            )
+            return None
+        except DriverError:
+            return None
+        self._hopper_good += 1
+        if self._hopper_good >= BAD_READING_CLEAR_AFTER:  # no alarm event per flicker
+            self.alarms.clear("hopper_scale.bad_reading")
+        return kg
 
     def on_tick(self, out: ControlOutputs) -> None:
         """Hook for per-tick observers (watchdog kick, telemetry); set by optional parts."""

@@ -24,7 +24,9 @@ The estimate
       does not pull the line. Its inliers then join the evidence.
     * A refill (the weight jumping up, or any jump: the median of the last readings against
       the median of the ones before, beyond ``max(REFILL_MIN_KG, 5 σ)``) ends the line: the
-      window in progress is dropped and a new line (own intercept ``a``) starts. So does
+      window in progress is dropped and a new line (own intercept ``a``) starts. A jump down
+      is counted apart (``jumps``): no meter empties kilograms in seconds, so it is a load
+      cell shifting or failing, never evidence. So does
       motor running that the model does not describe (emptying).
     * Evidence is pooled across windows and lines as one weighted least-squares slope with a
       separate intercept per line (the sums of each line, centred, added), with exponential
@@ -35,9 +37,24 @@ The estimate
       error falls as T^-1.5 (the spread of ``x`` grows with T), a mean of window slopes
       only as T^-0.5.
 
+Honest confidence under correlated disturbances
+    ``σ / sqrt(Sxx)`` (σ the scale's noise estimated from the residuals, Sxx the spread of
+    ``x`` pooled) is the slope's standard error only if each reading's error is independent.
+    On a moving seeder it is not: the frame rocks over seconds, slopes tilt the hopper on its
+    cells for tens of seconds, load cells drift with temperature. Then the residuals of a
+    line look like σ but the slope errs far more. Each closed window's own slope is compared
+    with the pooled slope before it: ``z = (k_w - k) / sqrt(SE_w² + SE²)`` averages z² = 1
+    under independent noise; the mean z² (the dispersion, forgotten like the evidence, with
+    ``DISPERSION_PRIOR_N`` windows of 1 assumed) inflates the standard error by its square
+    root (batch means). Correlations as long as a window are seen only in part: at 1.5 kg
+    correlated over 10 s (plus 2 kg independent) ±1.96 SE covers the true error in about
+    95 % of runs after 20 minutes, over 60 s in about 80 % (tests/gateway/control/
+    test_hopper_correction.py; ``benchmarks/bench_rate.py``'s sensitivity rows).
+
 How much evidence before it is applied
-    The standard error of ``k`` is ``σ / sqrt(Sxx)`` (σ the scale's noise estimated from the
-    residuals, Sxx the spread of ``x`` pooled). One 120 s window alone at σ 2 kg on wheat
+    The standard error of ``k`` is ``σ / sqrt(Sxx)`` times the square root of the dispersion
+    (and the t over normal quantile of the windows compared: ±1.96 SE is a 95 % interval).
+    Under independent noise: one 120 s window alone at σ 2 kg on wheat
     (about 3 kg/min, 3 readings/s) has an SE of about 6 %: useless on its own. Nothing is
     applied until the SE is below ``APPLY_MAX_SE`` (3 %: about 3 minutes of continuous
     wheat seeding at σ 2 kg and 3 Hz, 20 s at σ 0.2 kg); from then on the applied factor is
@@ -64,6 +81,9 @@ PRIOR_SIGMA = 0.05  # spread of true/model over drills and seed lots (the shrink
 FORGET_S = 900.0  # evidence older than this weighs e^-1 (follows a drifting seed lot)
 OUTLIER_SIGMAS = 3.5  # a reading this many robust σ off its window's line is dropped
 ROBUST_ITERATIONS = 3
+# windows agreeing with independent noise assumed before any is seen (the dispersion's prior)
+DISPERSION_PRIOR_N = 1.0
+DISPERSION_Z2_MAX = 100.0  # one wild window (a fault) does not inflate the SE for ever
 MIN_WINDOW_SAMPLES = 10  # a window with fewer inliers adds nothing
 JUMP_MEDIAN_N = 10  # readings in each median of the jump (refill) detector: a knock of a
 # few readings does not move a median of 10, a refill (a step that stays) does
@@ -125,14 +145,20 @@ class Evidence:
     cyy: float = 0.0
     w: float = 0.0
     lines: float = 0.0
+    # each window's slope against the pooled one before it, in units of their claimed
+    # standard errors: the sum of the squares and how many (the dispersion, see below)
+    zz: float = 0.0
+    zn: float = 0.0
 
     def __add__(self, other: Evidence) -> Evidence:
         return Evidence(self.cxx + other.cxx, self.cxy + other.cxy, self.cyy + other.cyy,
-                        self.w + other.w, self.lines + other.lines)
+                        self.w + other.w, self.lines + other.lines, self.zz + other.zz,
+                        self.zn + other.zn)
 
     def scaled(self, factor: float) -> Evidence:
         return Evidence(self.cxx * factor, self.cxy * factor, self.cyy * factor,
-                        self.w * factor, self.lines * factor)
+                        self.w * factor, self.lines * factor, self.zz * factor,
+                        self.zn * factor)
 
     def slope(self) -> float | None:
         """``k`` (true / model), None without spread in ``x``."""
@@ -146,20 +172,51 @@ class Evidence:
         rss = max(0.0, self.cyy - self.cxy * self.cxy / self.cxx)
         return math.sqrt(rss / dof)
 
-    def standard_error(self) -> float | None:
+    def white_standard_error(self) -> float | None:
+        """The slope's standard error if the readings' errors were independent."""
         s = self.sigma()
         return None if s is None else s / math.sqrt(self.cxx)
 
+    def dispersion(self) -> float:
+        """How much more the window slopes scatter than their independent-noise standard
+        errors claim (batch means): 1 for independent noise, more when the disturbances are
+        correlated over seconds to minutes (the frame rocking, slopes, drift) or the true
+        factor moves. ``DISPERSION_PRIOR_N`` windows agreeing are assumed before any is seen;
+        never below 1 (too few windows cannot show the noise is better than independent)."""
+        return max(1.0, (DISPERSION_PRIOR_N + self.zz) / (DISPERSION_PRIOR_N + self.zn))
+
+    def standard_error(self) -> float | None:
+        """The honest standard error: the independent-noise one inflated by the dispersion,
+        and by the Student t quantile of the windows compared over the normal one (the
+        dispersion is itself estimated from few windows), so that ±1.96 of it is a 95 %
+        interval."""
+        se = self.white_standard_error()
+        if se is None:
+            return None
+        return se * math.sqrt(self.dispersion()) * t_over_normal(DISPERSION_PRIOR_N + self.zn)
+
     def to_dict(self) -> dict[str, float]:
         return {"cxx": self.cxx, "cxy": self.cxy, "cyy": self.cyy, "w": self.w,
-                "lines": self.lines}
+                "lines": self.lines, "zz": self.zz, "zn": self.zn}
 
     @classmethod
     def from_dict(cls, data: dict[str, float]) -> Evidence:
-        ev = cls(*(float(data[k]) for k in ("cxx", "cxy", "cyy", "w", "lines")))
-        if not all(math.isfinite(v) for v in ev.to_dict().values()) or ev.cxx < 0 or ev.w < 0:
+        ev = cls(*(float(data[k]) for k in ("cxx", "cxy", "cyy", "w", "lines")),
+                 *(float(data.get(k, 0.0)) for k in ("zz", "zn")))  # older files: none
+        if (not all(math.isfinite(v) for v in ev.to_dict().values()) or ev.cxx < 0 or ev.w < 0
+                or ev.zz < 0 or ev.zn < 0):
             raise ValueError("hopper evidence holds non-finite or negative sums")
         return ev
+
+
+def t_over_normal(dof: float) -> float:
+    """Student t's two-sided 95 % quantile over the normal's (1.96) at ``dof`` degrees of
+    freedom (Cornish–Fisher to 1/dof², within 3 % from 2 dof; capped at 1 dof's 6.5)."""
+    if dof <= 1.0:
+        return 12.71 / 1.96
+    z = 1.959964
+    t = z + (z**3 + z) / (4 * dof) + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * dof**2)
+    return min(12.71, t) / z
 
 
 @dataclass(frozen=True)
@@ -195,7 +252,7 @@ def robust_line(points: list[tuple[float, float]]) -> WindowFit | None:
             break
         dropped += len(kept) - len(keep)
         kept = keep
-    se = ev.standard_error()
+    se = ev.white_standard_error()  # one window: its own residuals, no dispersion yet
     sigma = ev.sigma()
     if k is None or se is None or sigma is None:
         return None
@@ -239,8 +296,10 @@ class CorrectionState:
     at_bound: bool  # the estimate is beyond 1 ± max_correction and the factor held there
     applied: bool  # the evidence was enough to apply
     windows: int  # windows that added evidence since the start (or the reset)
-    refills: int  # jumps (refills) seen
+    refills: int  # upward jumps (refills) seen
     last_window: WindowFit | None  # the newest window, fitted alone (for disagreement)
+    dispersion: float = 1.0  # the SE's inflation² for correlated noise (1: independent)
+    jumps: int = 0  # downward jumps: a load cell, not seed (the line restarts, nothing fitted)
 
 
 class HopperCorrection:
@@ -269,6 +328,8 @@ class HopperCorrection:
         self._sigma = DEFAULT_SIGMA_KG
         self.windows = 0
         self.refills = 0
+        self.jumps = 0  # downward jumps: implausible (a load cell, not seed)
+        self.last_jump_kg = 0.0
         self.last_window: WindowFit | None = None
         self._update_factor()
 
@@ -287,8 +348,13 @@ class HopperCorrection:
         if weight_kg is None or not math.isfinite(weight_kg):
             self._last_steady = False
             return False
-        if self._jumped(weight_kg):
-            self.refills += 1
+        jump = self._jump(weight_kg)
+        if jump is not None:
+            if jump > 0:
+                self.refills += 1
+            else:  # seed does not leave this fast: a load cell, not the meter
+                self.jumps += 1
+                self.last_jump_kg = jump
             self._end_line()
             self._recent.append(weight_kg)
             return False
@@ -304,14 +370,16 @@ class HopperCorrection:
             return self._close_window()
         return False
 
-    def _jumped(self, weight_kg: float) -> bool:
+    def _jump(self, weight_kg: float) -> float | None:
+        """The step (kg, + up) when the weight just jumped, else None."""
         recent = list(self._recent)
         if len(recent) < 2 * JUMP_MEDIAN_N - 1:
-            return False
+            return None
         before = statistics.median(recent[: JUMP_MEDIAN_N])
         after = statistics.median([*recent[JUMP_MEDIAN_N:], weight_kg])
         sigma_diff = 1.25 * self._sigma * math.sqrt(2.0 / JUMP_MEDIAN_N)
-        return abs(after - before) > max(REFILL_MIN_KG, JUMP_SIGMAS * sigma_diff)
+        step = after - before
+        return step if abs(step) > max(REFILL_MIN_KG, JUMP_SIGMAS * sigma_diff) else None
 
     def _end_line(self) -> None:
         """A refill or unmodelled discharge: the window in progress is dropped (it may hold
@@ -331,8 +399,15 @@ class HopperCorrection:
             return False
         self.last_window = fit
         self._sigma = fit.sigma_kg
+        before = self.evidence()
+        k_before, se_before = before.slope(), before.white_standard_error()
         forget = math.exp(-duration / self.forget_s)
         self.closed = self.closed.scaled(forget)
+        if k_before is not None and se_before is not None:
+            # this window alone against the pooled evidence before it: independent under
+            # independent noise, so z² averages 1 there, more under correlated noise
+            z2 = (fit.factor - k_before) ** 2 / (fit.standard_error**2 + se_before**2)
+            self.closed = self.closed + Evidence(zz=min(z2, DISPERSION_Z2_MAX), zn=1.0)
         self.line.scale(forget)
         for x, y in fit.inliers:
             self.line.add(x, y)
@@ -363,7 +438,7 @@ class HopperCorrection:
         return CorrectionState(
             factor=self.factor, estimate=k, standard_error=se, sigma_kg=ev.sigma(),
             at_bound=at_bound, applied=applied, windows=self.windows, refills=self.refills,
-            last_window=self.last_window,
+            last_window=self.last_window, dispersion=ev.dispersion(), jumps=self.jumps,
         )
 
     def disagreement(self, disagree_pct: float) -> float | None:

@@ -70,6 +70,7 @@ class HopperLoop:
         self._pending: float | None = None  # weight read since the last tick
         self._readings: deque[tuple[float, float]] = deque(maxlen=MASS_MEDIAN_N)
         self._flow_g_min = 0.0
+        self._jumps_seen = 0
         self.identity = self._identity(crop)
         self.estimator = self._fresh(self.identity)
 
@@ -116,6 +117,7 @@ class HopperLoop:
                         self.identity.to_dict(), identity.to_dict())
         self.identity = identity
         self.estimator = self._fresh(identity)
+        self._jumps_seen = 0
         self.gate = SteadyGate()
 
     @property
@@ -141,6 +143,16 @@ class HopperLoop:
         weight, self._pending = self._pending, None
         pooled = self.estimator.add(now, weight, self.model_kg, steady=steady,
                                     modelled=modelled)
+        if self.estimator.jumps > self._jumps_seen:
+            self._jumps_seen = self.estimator.jumps
+            if not self.alarms.is_active("hopper_scale.jump"):  # once until a window fits
+                log.warning("hopper scale jumped by %+.1f kg: not seed; the fit restarts there",
+                            self.estimator.last_jump_kg)
+            self.alarms.set(
+                "hopper_scale.jump", True,
+                f"hopper weight fell {-self.estimator.last_jump_kg:.0f} kg at once "
+                f"({self.estimator.jumps} such jumps): not seed; check the load cells", "warning",
+            )
         self._q_model = max(0.0, q_model_g_min)
         self._flow_g_min = self._q_model * self.estimator.factor
         if pooled:
@@ -158,9 +170,11 @@ class HopperLoop:
             "hopper correction x%.4f%s (estimate %s, SE %s, scale sigma %s, %d windows)",
             st.factor, "" if st.applied else " (not applied yet: too little evidence)",
             "-" if st.estimate is None else f"{st.estimate:.4f}",
-            "-" if st.standard_error is None else f"{st.standard_error * 100:.2f} %",
+            "-" if st.standard_error is None else
+            f"{st.standard_error * 100:.2f} % (x{st.dispersion ** 0.5:.2f} for correlated noise)",
             "-" if st.sigma_kg is None else f"{st.sigma_kg:.2f} kg", st.windows,
         )
+        self.alarms.clear("hopper_scale.jump")  # a window fitted since: the line is sane again
         bound = self.section.max_correction_pct
         self.alarms.set(
             "hopper_scale.at_bound", st.at_bound,

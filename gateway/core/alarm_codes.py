@@ -92,6 +92,21 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "check the outlets, the seed flow in the hopper and the scale",
     ),
     AlarmCode(
+        "hopper_scale.bad_reading", ("warning",),
+        "the hopper scale answers values no working scale reports (NaN, beyond -5 %..120 % of "
+        "`hopper_scale.capacity_kg`): each is counted (in the message) and none is used; the "
+        "rate runs on the model with the last correction",
+        "check the weight transmitter's settings (`data_type`, `word_order`, `scale`) and its "
+        "load cells",
+    ),
+    AlarmCode(
+        "hopper_scale.jump", ("warning",),
+        "the hopper weight fell by more than the meter can discharge in seconds (a load cell "
+        "shifting or failing, the hopper knocked): not seed; the fit starts a new line there "
+        "and the correction is kept",
+        "check the load cells and the hopper's mounting",
+    ),
+    AlarmCode(
         "hopper_scale.low", ("warning",),
         "hopper mass below `hopper_scale.warn_below_kg`; the message gives the time to empty "
         "at the current rate",

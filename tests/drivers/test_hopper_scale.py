@@ -67,8 +67,12 @@ async def test_a_reading_no_load_cell_gives_is_a_bad_reading(value: float) -> No
                        hopper_kg=lambda: value, hopper=section) as sim,
         make_bus(sim.device_path) as bus,
     ):
+        scale = HopperScale(bus, section)
         with pytest.raises(BadReading, match=r"hopper_scale \(id 4\)"):
-            await HopperScale(bus, section).read()
+            await scale.read()
+        with pytest.raises(BadReading):
+            await scale.read()
+        assert scale.bad_readings == 2  # counted (the daemon's alarm message shows it)
 
 
 async def test_a_silent_scale_is_unavailable_and_the_bus_goes_on() -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from tests.reliability.device_faults import group_modbus, group_serial
 from tests.reliability.harness import RowResult
+from tests.reliability.hopper_faults import group_hopper
 from tests.reliability.input_faults import group_commands, group_config
 from tests.reliability.recording_faults import group_broker, group_disk, group_kills
 from tests.reliability.rows import ROWS, ROWS_BY_NAME
@@ -24,6 +25,7 @@ GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
     "disk": group_disk,
     "modbus": group_modbus,
     "serial": group_serial,
+    "hopper": group_hopper,
     "commands": group_commands,
     "config": group_config,
 }

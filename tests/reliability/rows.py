@@ -40,6 +40,13 @@ FUZZ_S = 5.0
 LOG_LINES_PER_FUZZ_MAX = 10
 RSS_GROWTH_MAX_MB = 30.0
 BINARY_LOG_BYTES = 1100  # binary receiver output between two sentences (over a line's limit)
+# the hopper scale rows: a wheat drill 8 % off its model, the correction learnt first
+HOPPER_BIAS = 0.08
+HOPPER_LEARN_MAX_S = 120.0
+HOPPER_FAULT_S = 6.0  # longer than the 2 s after which a silent device is alarmed
+HOPPER_JUMP_KG = 250.0
+# the correction may move only by what a window fitted on both sides of the fault adds
+HOPPER_FACTOR_TOLERANCE = 0.002
 
 
 @dataclass(frozen=True)
@@ -91,6 +98,28 @@ ROWS: tuple[Row, ...] = (
         f"the PWM module's motor output is 0 within {MOTOR_STOPPED_WITHIN_S:g} s (module "
         f"comm-loss timeout {COMM_TIMEOUT_S:g} s); `pwm.unavailable` on MQTT; after replug back "
         f"at steady ≤ {RECOVERY_MAX_S:g} s without overshoot"),
+    *(
+        Row(f"hopper_scale_{fault}", "hopper",
+            f"hopper scale (id 4): {how} for {HOPPER_FAULT_S:g} s while seeding wheat at 5 km/h "
+            f"with a drill {HOPPER_BIAS:.0%} off its model, the correction learnt",
+            f"{then}; the daemon sows on (duty within steady ± {DUTY_TOLERANCE_PCT:g} points); "
+            f"the published `discharge_correction` moves ≤ {HOPPER_FACTOR_TOLERANCE:g}; daemon "
+            "up, no traceback")
+        for fault, how, then in (
+            ("silent", "no reply at all",
+             "`hopper_scale.unavailable` on MQTT, cleared when it answers again"),
+            ("nan", "a float32 NaN in every reply (a broken load cell)",
+             "`hopper_scale.bad_reading` on MQTT counting the rejected readings (≥ 2), none "
+             "fed to the fit; cleared after 10 good readings in a row"),
+            ("out_of_range", "1e7 kg in every reply (an overload code, beyond 120 % of "
+             "capacity)",
+             "`hopper_scale.bad_reading` on MQTT counting the rejected readings, none fed to "
+             "the fit; cleared after 10 good readings in a row"),
+            ("jump", f"the weight {HOPPER_JUMP_KG:g} kg lower (a load cell slipping), then back",
+             "`hopper_scale.jump` on MQTT (no meter empties that in seconds: not seed); the "
+             "fit restarts its line"),
+        )
+    ),
     Row("serial_fuzz_hmi", "serial",
         f"{FUZZ_S:g} s of random bytes (64 B every 50 ms) on the touchscreen line",
         f"daemon up, no traceback; duty unchanged (≤ steady max + {DUTY_TOLERANCE_PCT:g}); "

@@ -6,6 +6,7 @@ carries vibration noise; the estimator sees only (weight, cumulative model disch
 
 from __future__ import annotations
 
+import math
 import random
 from collections.abc import Callable
 from pathlib import Path
@@ -19,9 +20,11 @@ from gateway.config import HopperScaleSection, parse_config
 from gateway.control.controller import Controller
 from gateway.control.hopper_correction import (
     APPLY_MAX_SE,
+    Evidence,
     HopperCorrection,
     SteadyGate,
     robust_line,
+    t_over_normal,
     time_to_empty_min,
 )
 from gateway.control.hopper_loop import HopperLoop
@@ -335,3 +338,113 @@ def test_the_controller_divides_its_flow_target_by_the_correction() -> None:
     # what the corrected model says the drill lays is still the target
     assert corrected.commanded_rate_kg_ha == pytest.approx(200.0, rel=1e-3)
     assert c.discharge_correction == 1.08
+
+
+# ---- honest confidence under correlated disturbances ----------------------------------------
+
+
+class GaussMarkov:
+    """Correlated vibration (the frame rocking): first-order Gauss–Markov, σ and τ."""
+
+    def __init__(self, sigma_kg: float, tau_s: float, rng: random.Random) -> None:
+        self.sigma, self.tau, self.rng = sigma_kg, tau_s, rng
+        self.x = rng.gauss(0.0, sigma_kg)
+        self.t: float | None = None
+
+    def __call__(self, t: float) -> float:
+        if self.t is not None:
+            a = math.exp(-(t - self.t) / self.tau)
+            self.x = a * self.x + self.sigma * math.sqrt(1 - a * a) * self.rng.gauss(0.0, 1.0)
+        self.t = t
+        return self.x
+
+
+def coverage(tau_s: float | None, minutes: float, runs: int = 40) -> tuple[float, float, float]:
+    """Share of runs whose true error is within ±1.96 reported SE, the same with the SE of
+    independent noise, and the mean dispersion; σ 2 kg white plus 1.5 kg correlated."""
+    honest = white = 0
+    dispersion = 0.0
+    for seed in range(runs):
+        est = fresh()
+        extra = (lambda t: 0.0) if tau_s is None else GaussMarkov(1.5, tau_s,
+                                                                  random.Random(1000 + seed))
+        simulate(est, k=1.08, sigma_kg=2.0, minutes=minutes, rng=random.Random(seed),
+                 extra_kg=extra)
+        ev = est.evidence()
+        k, se, se_white = ev.slope(), ev.standard_error(), ev.white_standard_error()
+        assert k is not None and se is not None and se_white is not None
+        honest += abs(k - 1.08) <= 1.96 * se
+        white += abs(k - 1.08) <= 1.96 * se_white
+        dispersion += ev.dispersion() / runs
+    return honest / runs, white / runs, dispersion
+
+
+def test_under_correlated_vibration_the_standard_error_covers_the_true_error() -> None:
+    honest, white, dispersion = coverage(tau_s=10.0, minutes=20.5)
+    # the residuals look like σ ≈ 2.5 kg, but the slope errs as if it were many times that
+    assert white < 0.6, "the independent-noise SE should be shown to be dishonest here"
+    assert dispersion > 5.0
+    assert honest >= 0.9, f"±1.96 SE covers the true error in {honest:.0%} of runs (95 % stated)"
+
+
+def test_under_independent_noise_the_standard_error_is_not_inflated_much() -> None:
+    honest, white, dispersion = coverage(tau_s=None, minutes=10.5)
+    assert white >= 0.9 and honest >= 0.9
+    assert dispersion < 1.5
+
+
+def test_a_correlated_disturbance_delays_the_correction_instead_of_applying_noise() -> None:
+    """At τ 60 s and 10 minutes the window slopes scatter far beyond their own SEs: the pooled
+    estimate is not trusted yet (SE above APPLY_MAX_SE in most runs), where the
+    independent-noise SE would have applied it."""
+    held = 0
+    for seed in range(10):
+        est = fresh()
+        simulate(est, k=1.08, sigma_kg=2.0, minutes=10.5, rng=random.Random(seed),
+                 extra_kg=GaussMarkov(1.5, 60.0, random.Random(1000 + seed)))
+        ev = est.evidence()
+        white = ev.white_standard_error()
+        assert white is not None and white < APPLY_MAX_SE
+        held += not est.state().applied
+    assert held >= 6
+
+
+def test_evidence_from_an_older_file_without_the_dispersion_still_loads() -> None:
+    ev = Evidence.from_dict({"cxx": 4.0, "cxy": -4.4, "cyy": 5.0, "w": 100.0, "lines": 1.0})
+    assert ev.zz == 0.0 and ev.dispersion() == 1.0
+    assert Evidence.from_dict(ev.to_dict()) == ev
+    with pytest.raises(ValueError):
+        Evidence.from_dict({**ev.to_dict(), "zz": -1.0})
+
+
+def test_t_over_normal_is_the_student_quantile() -> None:
+    assert t_over_normal(2.0) * 1.96 == pytest.approx(4.30, rel=0.12)
+    assert t_over_normal(5.0) * 1.96 == pytest.approx(2.571, rel=0.02)
+    assert t_over_normal(1000.0) == pytest.approx(1.0, abs=0.01)
+
+
+def test_a_jump_down_is_a_load_cell_not_seed_and_is_counted_apart_from_refills() -> None:
+    est = fresh()
+    rng = random.Random(3)
+    t, x = simulate(est, k=1.08, sigma_kg=0.5, minutes=6.0, rng=rng)
+    factor = est.factor
+    # a load cell slips by 250 kg for 5 s while seeding, then comes back
+    t, x = simulate(est, k=1.08, sigma_kg=0.5, minutes=5.0 / 60.0, rng=rng, t0=t, x0=x,
+                    extra_kg=lambda _t: -250.0)
+    t, x = simulate(est, k=1.08, sigma_kg=0.5, minutes=1.0, rng=rng, t0=t, x0=x)
+    st_ = est.state()
+    assert st_.jumps == 1 and st_.refills == 1  # down (a fault), then back up
+    assert est.factor == pytest.approx(factor, abs=0.003)
+
+
+def test_the_loop_alarms_a_jump_down(tmp_path: Path) -> None:
+    alarms = AlarmBoard()
+    loop = HopperLoop(HopperScaleSection(enabled=True), alarms, "wheat")
+    t = 0.0
+    for i in range(120):
+        kg = 500.0 - (300.0 if i >= 100 else 0.0)
+        loop.on_weight(kg, t)
+        loop.tick(t, q_model_g_min=3000.0, seeding=True, speed_kmh=5.0, modelled=True)
+        t += POLL_S
+    assert alarms.is_active("hopper_scale.jump")
+    assert "300 kg" in next(a for a in alarms.active if a.code == "hopper_scale.jump").message
