@@ -45,11 +45,11 @@ CLASS_UNKNOWN, CLASS_MULTIPLE, CLASS_GOOD, CLASS_MISS = 0, 1, 2, 3
 RATE_HISTORY_S = 600.0  # the rate chart's span: the last 10 minutes
 ALARM_HISTORY = 200  # raised/cleared alarms listed per machine (newest kept)
 # The applied rate is the seed mass over the area between two states. Both are published
-# rounded (1 g, 1 m²): a ratio is only drawn once 50 g have gone out over 30 m² (2 % and
-# 3.3 % at most from the roundings; rapeseed at 6 kg/ha: 83 m², under a minute at 4 km/h with
-# 2 m; wheat at 180 kg/ha: a point every ~7 s), or 0.1 ha has been worked (a crop sown by the
-# gram at a lower rate). Each second alone (4 m² of wheat) drew ±25 % of rounding noise.
-MIN_APPLIED_MASS_KG = 0.05
+# rounded (1 g, 1 m²): a ratio is only drawn once 30 g have gone out over 30 m² (3.3 % at
+# most from each rounding; rapeseed at 6 kg/ha: 50 m², about 30 s at 3 km/h with 2 m; wheat
+# at 180 kg/ha: a point every ~7 s), or 0.1 ha has been worked (a crop sown by the gram at a
+# lower rate). Each second alone (4 m² of wheat) drew ±25 % of rounding noise.
+MIN_APPLIED_MASS_KG = 0.03
 MIN_APPLIED_SPAN_M2 = 30  # compared in whole m², as published (0.005 ha in floats is 0.00499…)
 MIN_APPLIED_AREA_HA = 0.1
 MAX_PAYLOAD_BYTES = 8_000_000  # a seed batch is ≤ 500 records (~150 kB); far more is hostile
