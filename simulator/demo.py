@@ -322,6 +322,22 @@ def _shown(path: Path) -> str:
     return shlex.quote(str(path))
 
 
+def program() -> str:
+    """``sowgate`` as the user can type it in this shell: after ``make demo`` on a fresh
+    clone the entry point is ``.venv/bin/sowgate``, not on PATH, and a bare ``sowgate report``
+    said "command not found" to exactly the new user the printed next steps are for."""
+    entry = Path(sys.executable).parent / "sowgate"
+    if not entry.exists():
+        return "sowgate"
+    found = shutil.which("sowgate")
+    if found is not None and Path(found).resolve() == entry.resolve():
+        return "sowgate"
+    try:
+        return shlex.quote(str(entry.absolute().relative_to(Path.cwd())))
+    except ValueError:
+        return shlex.quote(str(entry.absolute()))
+
+
 async def start_text(
     machine: SimulatedMachine,
     settings: Settings,
@@ -401,17 +417,18 @@ def end_text(machine: SimulatedMachine, state: Path, channels: bool) -> str:
         outputs = "motor and fan set to 0 (the simulated PWM module reads 0 %)"
     else:
         outputs = f"WARNING: the PWM module still reads motor {motor:.1f} %, fan {fan:.1f} %"
+    sowgate = program()
     lines = [
         outputs,
         f"next: the seeds it recorded, with per-row spacing quality: "
-        f"sowgate export --state-dir {_shown(state)} --output demo-seeds.csv",
+        f"{sowgate} export --state-dir {_shown(state)} --output demo-seeds.csv",
         f"      the field report (seed map, per-row quality, rate, alarms; opens offline): "
-        f"sowgate report --config {_shown(state / CONFIG_FILE)} --state-dir {_shown(state)} "
+        f"{sowgate} report --config {_shown(state / CONFIG_FILE)} --state-dir {_shown(state)} "
         f"--output demo-report.html",
     ]
     if channels:
         lines.append(
-            f"      the channels' as-applied log: sowgate export --what as-applied "
+            f"      the channels' as-applied log: {sowgate} export --what as-applied "
             f"--state-dir {_shown(state)} --output demo-applied.csv"
         )
     return "\n".join(lines)

@@ -18,6 +18,12 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 UNIT = REPO / "systemd" / "sowgate.service"
+DASHBOARD_UNIT = REPO / "systemd" / "sowgate-dashboard.service"
+UNITS = [
+    pytest.param(UNIT, "sowgate run --config /etc/sowgate/sowgate.toml", id="daemon"),
+    pytest.param(DASHBOARD_UNIT, "sowgate dashboard --config /etc/sowgate/sowgate.toml",
+                 id="dashboard"),
+]
 UDEV = REPO / "systemd" / "99-sowgate.rules"
 MAX_EXPOSURE = 2.5
 
@@ -29,9 +35,9 @@ def systemd_analyze() -> str:
     return found
 
 
-def directives() -> dict[str, list[str]]:
+def directives(unit: Path = UNIT) -> dict[str, list[str]]:
     out: dict[str, list[str]] = {}
-    for line in UNIT.read_text().splitlines():
+    for line in unit.read_text().splitlines():
         line = line.strip()
         if not line or line.startswith(("#", ";", "[")):
             continue
@@ -40,12 +46,13 @@ def directives() -> dict[str, list[str]]:
     return out
 
 
-def test_unit_verifies_without_any_warning(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("unit", "command"), UNITS)
+def test_unit_verifies_without_any_warning(tmp_path: Path, unit: Path, command: str) -> None:
     entry = Path(sys.executable).parent / "sowgate"
     assert entry.exists(), "install the project (`make`) so the sowgate entry point exists"
-    text = UNIT.read_text()
-    assert "ExecStart=/usr/bin/sowgate run --config /etc/sowgate/sowgate.toml" in text
-    copy = tmp_path / "sowgate.service"
+    text = unit.read_text()
+    assert f"ExecStart=/usr/bin/{command}" in text
+    copy = tmp_path / unit.name
     copy.write_text(text.replace("ExecStart=/usr/bin/sowgate", f"ExecStart={entry}"))
     result = subprocess.run(
         [systemd_analyze(), "verify", str(copy)], capture_output=True, text=True, timeout=60,
@@ -69,9 +76,10 @@ def test_verify_catches_a_typo_so_the_test_above_is_meaningful(tmp_path: Path) -
     assert "Unknown key" in result.stderr
 
 
-def test_security_exposure_is_at_most_2_5() -> None:
+@pytest.mark.parametrize(("unit", "command"), UNITS)
+def test_security_exposure_is_at_most_2_5(unit: Path, command: str) -> None:
     result = subprocess.run(
-        [systemd_analyze(), "security", "--offline=yes", "--no-pager", str(UNIT)],
+        [systemd_analyze(), "security", "--offline=yes", "--no-pager", str(unit)],
         capture_output=True, text=True, timeout=60,
     )
     match = re.search(r"Overall exposure level for \S+: (\d+(?:\.\d+)?)", result.stdout)
@@ -103,6 +111,24 @@ def test_exit_code_78_matches_the_config_error_exit() -> None:
     from gateway.config import EXIT_CONFIG
 
     assert directives()["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
+    assert directives(DASHBOARD_UNIT)["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
+
+
+def test_the_dashboard_unit_is_hardened_like_the_daemon_and_opens_no_device() -> None:
+    """The web page is the part reachable from the network: it gets less than the daemon,
+    never more. It opens no serial port, so no dialout and no device node at all."""
+    daemon, page = directives(), directives(DASHBOARD_UNIT)
+    same = ("ProtectSystem", "ProtectHome", "PrivateTmp", "NoNewPrivileges", "DynamicUser",
+            "CapabilityBoundingSet", "MemoryDenyWriteExecute", "RestrictNamespaces",
+            "SystemCallFilter", "SystemCallArchitectures", "ConfigurationDirectory",
+            "ProtectKernelTunables", "ProtectKernelModules", "ProtectControlGroups", "UMask")
+    for key in same:
+        assert page.get(key) == daemon[key], key
+    assert page["PrivateDevices"] == ["yes"] and "DeviceAllow" not in page
+    assert "SupplementaryGroups" not in page
+    assert page["RestrictAddressFamilies"] == ["AF_UNIX AF_INET AF_INET6"]
+    assert page["Restart"] == ["on-failure"]
+    assert "StateDirectory" not in page  # it keeps nothing: the store is the daemon's
 
 
 def test_udev_rule_names_every_device() -> None:

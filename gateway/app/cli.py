@@ -15,6 +15,7 @@ from gateway.config import (
     EXIT_CONFIG,
     ConfigError,
     Settings,
+    dashboard_problems,
     input_file_problems,
     load_config,
     output_location_problems,
@@ -67,6 +68,7 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
     """
     problems: list[str] = input_file_problems(settings)
     problems += output_location_problems(settings, create=False)
+    problems += dashboard_problems(settings)
     warnings: list[str] = settings.deprecation_notes()
     p = settings.prescription
     undriven = [c.name for c in undriven_channels(settings)]

@@ -47,6 +47,7 @@ from gateway.config.recording import (
     row_lateral_from_width,
 )
 from gateway.config.startup import (
+    dashboard_problems,
     input_file_problems,
     output_location_problems,
     parts_summary,
@@ -90,6 +91,7 @@ __all__ = [
     "StoreSection",
     "TlsSection",
     "as_applied_path",
+    "dashboard_problems",
     "format_validation_error",
     "input_file_problems",
     "load_config",

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import re
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from gateway.config._base import OptionalPart, Section
 
@@ -64,6 +65,9 @@ class CommandsSection(Section):
 
 
 LOCAL_HOSTS = frozenset({"127.0.0.1", "localhost", "::1", "[::1]"})
+# the commands the dashboard's page can send, of those [commands] enabled allows
+DASHBOARD_COMMANDS = ("start", "stop", "rate", "ack_alarm")
+LISTEN_FORM = r"^(\[[0-9a-fA-F:.]+\]|[^:\s\[\]]+):(\d{1,5})$"
 
 
 class DashboardSection(Section):
@@ -75,7 +79,7 @@ class DashboardSection(Section):
     ``https://tile.example/{z}/{x}/{y}.png``) only adds a background map where there is one.
     """
 
-    listen: str = Field("127.0.0.1:8080", pattern=r"^(\[[0-9a-fA-F:.]+\]|[^:\s]+):\d{1,5}$")
+    listen: str = "127.0.0.1:8080"
     tile_url: str | None = Field(None, pattern=r"^https?://.*\{z\}.*\{x\}.*\{y\}")
     password_file: str | None = None
     # a persistent MQTT session under this id: seeds published while the dashboard was away
@@ -83,6 +87,19 @@ class DashboardSection(Section):
     client_id: str = Field("sowgate-dashboard", min_length=1, max_length=128)
     # seeds kept per machine for the map (the oldest go first); the page draws all of them
     max_seeds: int = Field(300_000, ge=1000, le=5_000_000)
+
+    @field_validator("listen")
+    @classmethod
+    def _listen(cls, value: str) -> str:
+        match = re.fullmatch(LISTEN_FORM, value.strip())
+        if match is None:
+            raise ValueError(
+                "must be HOST:PORT, e.g. 127.0.0.1:8080 (this box only), 0.0.0.0:8080 (every "
+                "network; needs password_file when the page offers commands) or [::1]:8080"
+            )
+        if not 1 <= int(match.group(2)) <= 65535:
+            raise ValueError(f"the port must be 1-65535, not {match.group(2)}")
+        return value.strip()
 
     @property
     def host(self) -> str:

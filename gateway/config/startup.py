@@ -131,6 +131,35 @@ def input_file_problems(settings: Settings) -> list[str]:
     return problems
 
 
+def dashboard_problems(settings: Settings) -> list[str]:
+    """What stops ``sowgate dashboard`` from starting (exit 78), each naming its key.
+
+    ``check-config`` says them too: the fitter who sets ``listen = "0.0.0.0:8080"`` to open
+    the page from the office should hear that the password file is missing before the
+    dashboard's unit fails at boot. The listen address's form is the schema's.
+    """
+    from gateway.config.farm import DASHBOARD_COMMANDS
+
+    d = settings.dashboard
+    controls = [c for c in DASHBOARD_COMMANDS if c in settings.commands.enabled]
+    problems: list[str] = []
+    if d.password_file is not None:
+        problem = file_problem(d.password_file)
+        if problem is None and not Path(d.password_file).read_text(
+                encoding="utf-8", errors="replace").strip():
+            problem = "the file is empty (it holds the page's password on one line)"
+        if problem is not None:
+            problems.append(f"dashboard.password_file: {problem} (got {d.password_file!r})")
+    elif controls and not d.local_only:
+        problems.append(
+            f"dashboard.password_file: needed when dashboard.listen ({d.listen}) is not "
+            f"localhost (127.0.0.1, ::1, localhost) and the page offers commands ([commands] "
+            f"enabled: {', '.join(controls)}); set it, listen on 127.0.0.1, or disable those "
+            "commands"
+        )
+    return problems
+
+
 # ---- directories the daemon writes to ------------------------------------------------------------
 
 

@@ -10,34 +10,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from gateway.config import EXIT_CONFIG, ConfigError, Settings, load_config
-from gateway.config.startup import file_problem
+from gateway.config import EXIT_CONFIG, ConfigError, dashboard_problems, load_config
 
 log = logging.getLogger("sowgate.dashboard")
-
-
-def dashboard_problems(settings: Settings) -> list[str]:
-    """What stops the dashboard from starting (exit 78), each naming its key."""
-    d = settings.dashboard
-    problems: list[str] = []
-    from gateway.dashboard.server import page_config
-
-    controls = page_config(settings)["commands"]
-    if d.password_file is not None:
-        problem = file_problem(d.password_file)
-        if problem is not None:
-            problems.append(f"dashboard.password_file: {d.password_file}: {problem}")
-        elif not _read_password(d.password_file):
-            problems.append(f"dashboard.password_file: {d.password_file}: the file is empty")
-    elif controls and not d.local_only:
-        problems.append(
-            f"dashboard.password_file: needed when dashboard.listen ({d.listen}) is not "
-            f"localhost and the page offers commands ([commands] enabled: "
-            f"{', '.join(controls)}); set it, listen on 127.0.0.1, or disable those commands"
-        )
-    if not 1 <= d.port <= 65535:
-        problems.append(f"dashboard.listen: port must be 1-65535 (got {d.listen!r})")
-    return problems
 
 
 def _read_password(path: str) -> str:

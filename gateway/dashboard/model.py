@@ -45,9 +45,12 @@ CLASS_UNKNOWN, CLASS_MULTIPLE, CLASS_GOOD, CLASS_MISS = 0, 1, 2, 3
 RATE_HISTORY_S = 600.0  # the rate chart's span: the last 10 minutes
 ALARM_HISTORY = 200  # raised/cleared alarms listed per machine (newest kept)
 # The applied rate is the seed mass over the area between two states. Both are published
-# rounded (10 g, 1 m²): a ratio is only drawn once 0.5 kg has gone out (2 % at most from the
-# rounding), or 0.1 ha has been worked for a crop sown by the gram (rapeseed, 6 kg/ha).
-MIN_APPLIED_MASS_KG = 0.5
+# rounded (1 g, 1 m²): a ratio is only drawn once 30 g have gone out over 30 m² (3.3 % at
+# most from each rounding; rapeseed at 6 kg/ha: 50 m², about 30 s at 3 km/h with 2 m; wheat
+# at 180 kg/ha: a point every ~7 s), or 0.1 ha has been worked (a crop sown by the gram at a
+# lower rate). Each second alone (4 m² of wheat) drew ±25 % of rounding noise.
+MIN_APPLIED_MASS_KG = 0.03
+MIN_APPLIED_SPAN_M2 = 30  # compared in whole m², as published (0.005 ha in floats is 0.00499…)
 MIN_APPLIED_AREA_HA = 0.1
 MAX_PAYLOAD_BYTES = 8_000_000  # a seed batch is ≤ 500 records (~150 kB); far more is hostile
 
@@ -263,8 +266,9 @@ class Fleet:
             d_area = state.area_ha - area0
             if d_area < 0 or state.seed_mass_kg < mass0:  # counters reset on the box
                 view.last_counter = (now, state.area_ha, state.seed_mass_kg)
-            elif d_area > 0 and (state.seed_mass_kg - mass0 >= MIN_APPLIED_MASS_KG
-                                 or d_area >= MIN_APPLIED_AREA_HA):
+            elif d_area >= MIN_APPLIED_AREA_HA or (
+                    round(d_area * 1e4) >= MIN_APPLIED_SPAN_M2
+                    and state.seed_mass_kg - mass0 >= MIN_APPLIED_MASS_KG):
                 applied = round((state.seed_mass_kg - mass0) / d_area, 2)
                 view.last_counter = (now, state.area_ha, state.seed_mass_kg)
         else:

@@ -34,6 +34,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from gateway.config import Settings
+from gateway.config.farm import DASHBOARD_COMMANDS
 from gateway.dashboard.model import Fleet, encode
 from gateway.dashboard.subscriber import CommandRefused, DashboardSubscriber
 
@@ -43,7 +44,7 @@ STATIC = Path(__file__).parent / "static"
 PUSH_PERIOD_S = 0.25
 CLIENT_QUEUE = 64  # messages a page may lag behind before it is resynchronised
 # the commands the page can send, of those [commands] enabled allows
-PAGE_COMMANDS = ("start", "stop", "rate", "ack_alarm")
+PAGE_COMMANDS = DASHBOARD_COMMANDS
 REALM = 'Basic realm="sowgate dashboard", charset="UTF-8"'
 
 Scope = MutableMapping[str, Any]

@@ -139,7 +139,8 @@ STATE_DECIMALS = {
     "motor_duty_pct": 1,  # 0.1 %, the PWM module's duty register
     "fan_duty_pct": 1,
     "area_ha": 4,  # 0.0001 ha = 1 m2
-    "seed_mass_kg": 2,  # 10 g
+    # 1 g: at 10 g a dashboard needed 0.1 ha of rapeseed (6 kg/ha) to draw one applied rate
+    "seed_mass_kg": 3,
 }
 
 

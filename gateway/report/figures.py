@@ -8,7 +8,7 @@ across the report: good seeds green, multiples purple, misses red, target lines 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 
 import matplotlib
@@ -19,7 +19,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
-from matplotlib.ticker import FuncFormatter, MaxNLocator
+from matplotlib.ticker import FixedLocator, FuncFormatter
 
 from gateway.recording.field_stats import (
     CLASS_NAMES,
@@ -36,6 +36,10 @@ CLASS_COLOURS = {GOOD: "#2e9e44", MULTIPLE: "#7b3fbf", MISS: "#d62728", UNRATED:
 SEVERITY_COLOURS = {"critical": "#d62728", "warning": "#ff9f1c", "info": "#4a90d9"}
 MIN_CELL_SEEDS = 30  # a raster square with fewer rated seeds is not coloured
 DRIVE_POINTS = 400  # points along the drive (each a stretch of equal distance)
+# A point of the rate along the drive is the mean of at least this many spacings: 10 % CV
+# per spacing gives ±1.4 % per point. The first and last second of a drive hold a handful of
+# seeds, and drawn alone they showed a 25 % spike a farmer would read as a failing meter.
+MIN_STRETCH_SPACINGS = 50
 
 
 def _us_to_dt(us: float) -> datetime:
@@ -108,14 +112,23 @@ def _map_axes(ax: Axes, how: str) -> None:
     ax.grid(alpha=0.3)
 
 
+def histogram_columns(rows: int) -> int:
+    """Panels per line: 3 up to 9 rows (each panel wide enough to read its ticks on a
+    laptop screen; 6 in one line were 2.6 inches and their labels 7 px), 4 up to 24, then 6."""
+    return max(1, min(rows, 3 if rows <= 9 else 4 if rows <= 24 else 6))
+
+
 def spacing_histograms(s: FieldSummary, rows: Sequence[int]) -> Figure:
-    cols = min(6, max(1, len(rows)))
+    cols = histogram_columns(len(rows))
     nrows = math.ceil(len(rows) / cols)
-    height = 2.0 * nrows + 1.4
-    fig = Figure(figsize=(2.6 * cols + 0.6, height))
+    width = 11.0 if cols <= 4 else 2.6 * cols + 0.6
+    panel_h = 2.6 if cols <= 4 else 2.0
+    height = panel_h * nrows + 1.2
+    fig = Figure(figsize=(width, height))
     # laid out by hand: constrained layout over 48 axes costs seconds
-    fig.subplots_adjust(left=0.6 / (2.6 * cols + 0.6), right=0.99, top=1 - 0.8 / height,
-                        bottom=0.6 / height, hspace=0.45, wspace=0.25)
+    # top: room for the PDF page heading (document.to_pdf puts it in the suptitle)
+    fig.subplots_adjust(left=0.7 / width, right=0.99, top=1 - 0.8 / height,
+                        bottom=0.75 / height, hspace=0.5, wspace=0.2)
     axes = fig.subplots(nrows, cols, squeeze=False, sharex=True)
     edges_cm = s.hist_edges_m * 100
     for k, row in enumerate(rows):
@@ -133,13 +146,13 @@ def spacing_histograms(s: FieldSummary, rows: Sequence[int]) -> Figure:
             ax.axvline(r, color="black", ls="--", lw=1)
         a = "–" if q is None or q.quality_of_feed_index is None else (
             f"{q.quality_of_feed_index:.1f} %")
-        ax.set_title(f"row {row}: singles {a}", fontsize=9)
-        ax.tick_params(labelsize=7)
+        ax.set_title(f"row {row}: singles {a}", fontsize=10 if cols <= 4 else 9)
+        ax.tick_params(labelsize=9 if cols <= 4 else 7, labelbottom=True)
     for k in range(len(rows), nrows * cols):
         axes[k // cols][k % cols].set_visible(False)
     fig.supxlabel("spacing to the previous seed in the row (cm); dashed: target "
-                  "(or the row's median); purple: multiples, red: misses", fontsize=9)
-    fig.supylabel("% of the row's spacings", fontsize=9)
+                  "(or the row's median); purple: multiples, red: misses", fontsize=10)
+    fig.supylabel("% of the row's spacings", fontsize=10)
     return fig
 
 
@@ -153,10 +166,10 @@ def _drive_stretches(s: FieldSummary) -> dict[str, np.ndarray]:
     cum = np.cumsum(dist)
     total = cum[-1] if cum.size else 0.0
     if cum.size == 0 or total <= 0:
-        return {"km": np.zeros(0), "pop": np.zeros(0), "speed": np.zeros(0),
-                "t": np.zeros(0)}
+        return {"km": np.zeros(0), "n": np.zeros(0), "pop": np.zeros(0),
+                "speed": np.zeros(0), "t": np.zeros(0)}
     bounds = np.searchsorted(cum, np.linspace(0, total, DRIVE_POINTS + 1)[:-1])
-    starts = np.unique(np.clip(bounds, 0, cum.size - 1))
+    starts = _merge_thin(np.unique(np.clip(bounds, 0, cum.size - 1)), d["sp_n"])
 
     def grouped(a: np.ndarray) -> np.ndarray:
         return np.add.reduceat(a, starts)
@@ -166,10 +179,28 @@ def _drive_stretches(s: FieldSummary) -> dict[str, np.ndarray]:
     mid = (cum[starts] - dist[starts] / 2 + np.append(cum[starts[1:] - 1], total)) / 2
     return {
         "km": mid / 1000,
+        "n": sp_n,
         "pop": s.population_per_ha(sp_n, sp_sum),
         "speed": np.divide(sp_speed, seeds, out=np.full_like(seeds, np.nan), where=seeds > 0),
         "t": d["start_us"][starts],
     }
+
+
+def _merge_thin(starts: np.ndarray, sp_n: np.ndarray) -> np.ndarray:
+    """The group starts (indices into the time bins) with every group holding at least
+    ``MIN_STRETCH_SPACINGS`` spacings: a thin group joins the next; a thin last one the one
+    before (a drive shorter than that is one point)."""
+    counts = np.add.reduceat(sp_n, starts) if starts.size else np.zeros(0)
+    keep: list[int] = []
+    held = 0.0
+    for start, n in zip(starts.tolist(), counts.tolist(), strict=True):
+        if not keep or held >= MIN_STRETCH_SPACINGS:
+            keep.append(start)
+            held = 0.0
+        held += n
+    if len(keep) > 1 and held < MIN_STRETCH_SPACINGS:
+        keep.pop()
+    return np.asarray(keep, dtype=starts.dtype)
 
 
 def _rate_axis(ax: Axes, pop: np.ndarray, target: float | None) -> None:
@@ -246,6 +277,31 @@ def rate_against_speed(s: FieldSummary, tsw_g: float | None) -> Figure:
     return fig
 
 
+TICK_STEPS_S = (1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200, 10800, 21600)
+
+
+def clock_ticks_h(start_us: int, span_h: float, most: int = 12) -> list[float]:
+    """Ticks (hours from ``start_us``) on round clock times: every 10 s, 5 min, 1 h...,
+    the smallest step that gives at most ``most`` ticks."""
+    span_s = span_h * 3600
+    step = next((s for s in TICK_STEPS_S if span_s / s <= most), 3600 * math.ceil(
+        span_s / most / 3600))
+    start_s = start_us / 1e6
+    first = math.ceil(start_s / step) * step
+    return [(t - start_s) / 3600 for t in np.arange(first, start_s + span_s + 1e-9, step)]
+
+
+def time_tick_formatter(start_us: int, span_h: float) -> Callable[[float, object], str]:
+    """Tick labels for an axis in hours from ``start_us``: HH:MM, with seconds when the
+    window is under 20 minutes (a 90 s window labelled 10:57 ten times said nothing)."""
+    fmt = "%H:%M:%S" if span_h < 1 / 3 else "%H:%M"
+
+    def label(h: float, _pos: object) -> str:
+        return _us_to_dt(start_us + h * 3.6e9).strftime(fmt)
+
+    return label
+
+
 def alarm_timeline(
     intervals: Sequence[tuple[str, str, int, int, bool]], start_us: int, end_us: int
 ) -> Figure:
@@ -273,10 +329,8 @@ def alarm_timeline(
         ax.legend(handles=[Patch(color=c, label=k) for k, c in SEVERITY_COLOURS.items()],
                   loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8, title="severity")
     ax.set_xlim(0, span_h)
-    ax.xaxis.set_major_locator(MaxNLocator(nbins=12, steps=[1, 2, 2.5, 5, 10]))
-    ax.xaxis.set_major_formatter(
-        FuncFormatter(lambda h, _pos: _us_to_dt(start_us + h * 3.6e9).strftime("%H:%M"))
-    )
+    ax.xaxis.set_major_locator(FixedLocator(clock_ticks_h(start_us, span_h)))
+    ax.xaxis.set_major_formatter(FuncFormatter(time_tick_formatter(start_us, span_h)))
     ax.set_xlabel("time (UTC); a bar runs from raised to cleared, outlined if still active")
     ax.set_title("Alarms")
     ax.grid(alpha=0.3, axis="x")

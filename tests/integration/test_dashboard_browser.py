@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import aiomqtt
+import pytest
 
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
@@ -123,6 +124,14 @@ async def test_the_page_shows_what_the_daemon_published_and_sends_commands(
         assert (await s.text("work-state")) == state["work_state"]
         assert (await s.text("target-rate")).startswith(f"{state['target_rate_kg_ha']:.1f}")
         assert "radar" in await s.text("devices")
+        # the applied rate (seed mass over area, both published to the gram and the m²) is
+        # shown once some seed has gone out: over its last stretch, near the mean over the
+        # whole pass (this pass drives faster than the meter can follow: below the target)
+        applied = await s.text("applied-rate")
+        assert applied.endswith("kg/ha"), applied
+        mean = state["seed_mass_kg"] / state["area_ha"]
+        assert float(applied.split()[0]) == pytest.approx(mean, rel=0.2), (applied, mean)
+        assert await s.page.locator("#rate-crop").get_attribute("placeholder") == state["crop"]
         rows = await s.page.locator("#rows tbody tr[data-row]").count()
         assert rows == s.rig.daemon.settings.machine.rows
 

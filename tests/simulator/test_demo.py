@@ -13,7 +13,7 @@ import pytest
 
 from gateway.app.cli import main as cli_main
 from gateway.state import ActiveAlarmState, MachineState, RecorderState
-from simulator.demo import status_line, summary, truth_report
+from simulator.demo import program, status_line, summary, truth_report
 from simulator.machine import STARTUP_TRANSIENT_S, Truth
 from tests.helpers import run_sowgate, sowgate_env
 
@@ -214,3 +214,22 @@ async def test_make_demo_serves_the_dashboard_on_a_private_broker_and_prints_its
         return True
 
     assert not reachable()  # the dashboard stopped with the demo (and its broker)
+
+
+def test_the_next_steps_name_sowgate_as_the_user_can_type_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """`make demo` on a fresh clone runs .venv/bin/sowgate, which is not on PATH: the printed
+    `sowgate report ...` must be a command that runs in the same shell."""
+    import os
+    import sys
+
+    entry = Path(sys.executable).parent / "sowgate"
+    assert entry.exists(), "install the project so the sowgate entry point exists"
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    monkeypatch.chdir(entry.parent.parent.parent)  # the checkout, as `make demo` runs it
+    assert program() == os.path.join(entry.parent.parent.name, "bin", "sowgate")
+    monkeypatch.chdir(tmp_path)  # elsewhere: the absolute path
+    assert program() == str(entry.absolute())
+    monkeypatch.setenv("PATH", f"{entry.parent}:/usr/bin:/bin")  # an activated venv
+    assert program() == "sowgate"

@@ -29,10 +29,13 @@ function fmt(v, digits, unit) {
   if (v === null || v === undefined) return "–";
   return (typeof v === "number" ? v.toFixed(digits) : String(v)) + (unit ? " " + unit : "");
 }
+function clock(seconds) {
+  return new Date(seconds * 1000).toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", second: "2-digit", hour12: false });
+}
 function time(iso) {
   if (!iso) return "";
   const d = new Date(iso);
-  return isNaN(d) ? iso : d.toLocaleTimeString();
+  return isNaN(d) ? iso : clock(d.getTime() / 1000);
 }
 
 // ---- machines and seeds ---------------------------------------------------------------------
@@ -175,8 +178,11 @@ function renderAll() {
   $("fan").textContent = fmt(st.fan_duty_pct, 1, "%");
   $("tilt").textContent = fmt(st.tilt_deg, 1, "°") + (st.raised === true ? " (raised)" : st.raised === false ? " (lowered)" : "");
   $("gnss-fix").textContent = st.gnss_fix || "–";
-  $("area").textContent = fmt(st.area_ha, 2, u.area || "ha");
-  $("mass").textContent = fmt(st.seed_mass_kg, 1, u.mass || "kg");
+  // a demo or a first headland is hundredths of a hectare: 0.00 ha said nothing moved
+  $("area").textContent = fmt(st.area_ha, st.area_ha < 10 ? 3 : 2, u.area || "ha");
+  $("mass").textContent = fmt(st.seed_mass_kg, st.seed_mass_kg < 10 ? 3 : 1, u.mass || "kg");
+  $("applied-rate").textContent = appliedText(m.rate || [], st, u.rate);
+  $("rate-crop").placeholder = st.crop || "crop";
   $("state-utc").textContent = st.utc ? time(st.utc) : "–";
   const dev = $("devices");
   const devices = Object.entries(st.devices || {});
@@ -191,6 +197,15 @@ function renderAll() {
   renderAlarms(s);
   renderRows(s.quality || {});
   renderChart(m.rate || []);
+}
+
+// The newest applied rate (seed mass over area since the last one, drawn in the chart);
+// until the first, say why the line is not there yet rather than show nothing.
+function appliedText(rate, st, unit) {
+  for (let i = rate.length - 1; i >= 0; i--) {
+    if (rate[i][3] !== null && rate[i][3] !== undefined) return fmt(rate[i][3], 1, unit);
+  }
+  return st.work_state === "seeding" ? "measuring…" : "–";
 }
 
 function renderAlarms(s) {
@@ -253,10 +268,15 @@ function renderChart(rate) {
     app.chart = new uPlot({
       width, height: 200,
       scales: { x: { time: true } },
+      // values only in the labels: "--" under every series until hovered read as "no data"
+      legend: { live: false },
       series: [{}, { label: `target (${unit})`, stroke: "#2e7d32", width: 2 },
         { label: `commanded (${unit})`, stroke: "#1565c0", dash: [4, 4] },
-        { label: `applied (${unit})`, stroke: "#ef6c00", width: 2, spanGaps: true, points: { show: true, size: 4 } }],
-      axes: [{}, { label: unit }],
+        // a point every ~50 g of seed, on top of the target when all is well: big enough to see
+        { label: `applied (${unit})`, stroke: "#ef6c00", width: 2, spanGaps: true,
+          points: { show: true, size: 9, fill: "#ef6c00" } }],
+      // clock time on one line (uPlot's default adds the date under some ticks, overlapping)
+      axes: [{ space: 70, values: (_u, ticks) => ticks.map(clock) }, { label: unit }],
     }, data, el);
   } else {
     app.chart.setData(data);
@@ -276,7 +296,9 @@ function setupControls() {
   $("cmd-stop").onclick = () => sendCommand("stop", {});
   $("rate-form").onsubmit = (ev) => {
     ev.preventDefault();
-    sendCommand("rate", { crop: $("rate-crop").value.trim(), rate_kg_ha: Number($("rate-value").value) });
+    const m = app.selected && app.machines.get(app.selected);
+    const crop = $("rate-crop").value.trim() || (m && m.summary && m.summary.state && m.summary.state.crop) || "";
+    sendCommand("rate", { crop, rate_kg_ha: Number($("rate-value").value) });
   };
 }
 

@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
-from gateway.config import EXIT_CONFIG, ConfigError, parse_config
-from gateway.dashboard.cli import dashboard_problems
+from gateway.app.cli import main
+from gateway.config import EXIT_CONFIG, ConfigError, dashboard_problems, parse_config
 from gateway.dashboard.server import check_password, page_config
 from tests.browser import DashboardProcess
 from tests.helpers import run_sowgate, sowgate_env
@@ -31,11 +31,19 @@ def test_defaults_listen_on_localhost_without_a_password() -> None:
     assert page_config(settings)["commands"] == []  # commands off: the page has no controls
 
 
-@pytest.mark.parametrize("listen", ["8080", "host:", ":8080", "a b:1"])
-def test_a_bad_listen_address_is_a_config_error_naming_the_key(listen: str) -> None:
+@pytest.mark.parametrize("listen", ["8080", "host:", ":8080", "a b:1", "0.0.0.0:0",
+                                    "0.0.0.0:70000", "[::1:8080"])
+def test_a_bad_listen_address_is_a_config_error_naming_the_key_and_the_form(listen: str) -> None:
     with pytest.raises(ConfigError) as err:
         parse_config({"dashboard": {"listen": listen}})
-    assert any(p.startswith("dashboard.listen") for p in err.value.problems), err.value.problems
+    (problem,) = [p for p in err.value.problems if p.startswith("dashboard.listen")]
+    assert "HOST:PORT" in problem or "the port must be 1-65535" in problem, problem
+
+
+@pytest.mark.parametrize("listen", ["127.0.0.1:8080", "0.0.0.0:80", "[::1]:8080",
+                                    "cab-box.local:65535"])
+def test_good_listen_addresses_are_taken(listen: str) -> None:
+    assert parse_config({"dashboard": {"listen": listen}}).dashboard.listen == listen
 
 
 def test_a_tile_url_needs_the_xyz_placeholders() -> None:
@@ -61,7 +69,35 @@ def test_controls_beyond_localhost_need_a_password_file(tmp_path: Path) -> None:
     assert dashboard_problems(parse_config(with_password)) == []
     missing = {"dashboard": {"password_file": str(tmp_path / "nope")}}
     (problem,) = dashboard_problems(parse_config(missing))
-    assert problem.startswith(f"dashboard.password_file: {tmp_path / 'nope'}")
+    assert problem == f"dashboard.password_file: file not found (got {str(tmp_path / 'nope')!r})"
+    empty = tmp_path / "empty"
+    empty.write_text("\n")
+    (problem,) = dashboard_problems(parse_config({"dashboard": {"password_file": str(empty)}}))
+    assert problem.startswith("dashboard.password_file: the file is empty")
+    (problem,) = dashboard_problems(parse_config({"dashboard": {"password_file": str(tmp_path)}}))
+    assert problem.startswith("dashboard.password_file: a directory, not a file")
+
+
+def test_check_config_reports_dashboard_problems_with_exit_78(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The fitter hears it from check-config, not from a dashboard unit failing at boot."""
+    f = tmp_path / "sowgate.toml"
+    f.write_text('[commands]\nenabled = ["start", "stop"]\n[dashboard]\nlisten = "0.0.0.0:8080"\n')
+    assert main(["check-config", str(f)]) == EXIT_CONFIG
+    err = capsys.readouterr().err
+    assert "dashboard.password_file: needed when dashboard.listen (0.0.0.0:8080)" in err
+    f.write_text(f'[dashboard]\npassword_file = "{tmp_path / "missing"}"\n')
+    assert main(["check-config", str(f)]) == EXIT_CONFIG
+    assert "dashboard.password_file: file not found" in capsys.readouterr().err
+    f.write_text('[dashboard]\nlisten = "0.0.0.0:99999"\n')
+    assert main(["check-config", str(f)]) == EXIT_CONFIG
+    assert "dashboard.listen: the port must be 1-65535, not 99999" in capsys.readouterr().err
+    secret = tmp_path / "pw"
+    secret.write_text("s3cret\n")
+    f.write_text(f'[commands]\nenabled = ["start"]\n[dashboard]\nlisten = "0.0.0.0:8080"\n'
+                 f'password_file = "{secret}"\n')
+    assert main(["check-config", str(f)]) == 0, capsys.readouterr().err
 
 
 def test_the_command_refuses_to_start_open_controls_with_exit_78(tmp_path: Path) -> None:

@@ -131,11 +131,32 @@ def test_the_applied_rate_is_seed_mass_over_area_between_states() -> None:
     clock = iter(range(100)).__next__
     fleet = Fleet(clock=lambda: float(clock()))
     fleet.handle("sowgate/seeder-01/state", state(area_ha=1.0, seed_mass_kg=200.0))
-    fleet.handle("sowgate/seeder-01/state", state(area_ha=1.001, seed_mass_kg=200.1))  # < 0.5 kg
-    fleet.handle("sowgate/seeder-01/state", state(area_ha=1.004, seed_mass_kg=200.88))
+    fleet.handle("sowgate/seeder-01/state", state(area_ha=1.0001, seed_mass_kg=200.02))  # < 30 g
+    fleet.handle("sowgate/seeder-01/state", state(area_ha=1.0029, seed_mass_kg=201.0))  # < 30 m²
+    fleet.handle("sowgate/seeder-01/state", state(area_ha=1.003, seed_mass_kg=200.66))
     rates = [r[3] for r in fleet.machines["seeder-01"].rate]
-    assert rates == [None, None, 220.0]  # 0.88 kg over 0.004 ha
-    assert [r[1] for r in fleet.machines["seeder-01"].rate] == [225.0] * 3
+    assert rates == [None, None, None, 220.0]  # 0.66 kg over 0.003 ha
+    assert [r[1] for r in fleet.machines["seeder-01"].rate] == [225.0] * 4
+
+
+@pytest.mark.parametrize(("crop", "rate", "kmh"), [("rapeseed", 6.0, 4.0), ("wheat", 180.0, 7.6)])
+def test_the_applied_rate_shows_within_a_minute_and_within_its_rounding(
+    crop: str, rate: float, kmh: float,
+) -> None:
+    """States at 1 Hz carry the mass to the gram and the area to the m² (docs/mqtt.md).
+    Rapeseed (6 kg/ha, 2 m at 4 km/h: 2.2 m² and 1.3 g a second) must not wait for 0.1 ha
+    (7.5 min) to show a rate (the demo's first minute showed none); wheat (4.2 m² a
+    second) must not be drawn from one second's area, whose 1 m² rounding alone is ±25 %."""
+    fleet = Fleet()
+    for t in range(61):
+        area = 2.0 * kmh / 3.6 * t / 1e4 + 0.00003 * (t % 3)  # uneven seconds
+        # parsed as the payload model: rounded to 1 m² and 1 g as published
+        fleet.handle("sowgate/seeder-01/state", state(
+            utc=f"2026-04-20T08:{t // 60:02d}:{t % 60:02d}Z", crop=crop,
+            target_rate_kg_ha=rate, area_ha=area, seed_mass_kg=area * rate))
+    applied = [r[3] for r in fleet.machines["seeder-01"].rate if r[3] is not None]
+    assert len(applied) >= 2, f"under two applied rates in a minute of {crop}: {applied}"
+    assert all(abs(a / rate - 1) < 0.035 for a in applied), applied
 
 
 def test_alarms_are_deduplicated_and_keep_their_raise_and_clear_times() -> None:

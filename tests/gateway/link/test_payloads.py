@@ -124,7 +124,7 @@ def test_state_values_are_rounded_to_their_resolution() -> None:
     assert (sent["speed_kmh"], sent["tilt_deg"]) == (6.0, -2.0)
     assert (sent["target_rate_kg_ha"], sent["commanded_rate_kg_ha"]) == (225.0, 6.0)
     assert (sent["motor_duty_pct"], sent["fan_duty_pct"]) == (41.0, 60.0)
-    assert (sent["area_ha"], sent["seed_mass_kg"]) == (3.42, 769.5)
+    assert (sent["area_ha"], sent["seed_mass_kg"]) == (3.42, 769.505)
     assert StatePayload(machine_id="m", utc=T0, work_state="stopped").speed_kmh is None
 
 
