@@ -12,9 +12,11 @@ control loop is stopped and motor and fan set to 0 at once, and beside that the 
 registered with a ``stop_stage`` are stopped one stage after the other (CAN metering and the
 seed sensors first, the sensors handing over the lines already sent; then the GNSS reader its
 open epoch; then the recorder positions and stores everything; then the store commits; see
-``gateway.app.wiring``); only then is the rest (MQTT, HMI, ...) cancelled. Cancelling
-everything at once let the recorder's final flush run before the sensors had delivered what
-they had already received.
+``gateway.app.wiring``); then the ``stop_drains`` run (the MQTT link publishes what that
+last commit added to the outbox, bounded); only then is the rest (MQTT, HMI, ...) cancelled.
+Cancelling everything at once let the recorder's final flush run before the sensors had
+delivered what they had already received; cancelling MQTT right after the last commit left
+the seeds stored by that flush unpublished until the next start.
 
 The supervisor is hand-written rather than an ``asyncio.TaskGroup`` because a TaskGroup
 cancels each child once and then waits for ever: on Python 3.11 a polling loop can swallow
@@ -191,6 +193,9 @@ class Daemon:
         self.tick_hooks: list[Callable[[ControlOutputs], None]] = []
         self.tick_hooks.append(lambda _out: self.live_calibration.poll())
         self.closers: list[Callable[[], None]] = []
+        # Awaited on a stop after the last stage (the store's commit), before the rest is
+        # cancelled: each is bounded by its own timeout and must not raise.
+        self.stop_drains: list[Callable[[], Coroutine[Any, Any, None]]] = []
         self.epoch_listeners: list[Callable[[Any], None]] = []
         self._build_optional()
 
@@ -326,7 +331,9 @@ class Daemon:
             # The ordered stop, after a failure too: what was recorded must still be stored.
             try:
                 async with asyncio.timeout(SHUTDOWN_TIMEOUT_S):
-                    await asyncio.gather(self._stop_control(control), _stop_in_stages(stages))
+                    await asyncio.gather(
+                        self._stop_control(control), _stop_in_stages(stages, self.stop_drains)
+                    )
             except TimeoutError:
                 log.error("ordered stop took over %.0f s; cancelling the rest", SHUTDOWN_TIMEOUT_S)
         finally:
@@ -617,12 +624,21 @@ class Daemon:
             seed_lots=dict(self.live_calibration.lots),
         )
 
-async def _stop_in_stages(stages: dict[int, list[asyncio.Task[None]]]) -> None:
-    """Cancel each stage's tasks and wait until they have finished, lowest stage first.
+async def _stop_in_stages(
+    stages: dict[int, list[asyncio.Task[None]]],
+    drains: list[Callable[[], Coroutine[Any, Any, None]]],
+) -> None:
+    """Cancel each stage's tasks and wait until they have finished, lowest stage first; then
+    run the drains (what the last stage committed, published while the link still runs).
 
     Only waited for, never awaited: a task's own error is the supervisor's to report. A task
     that swallows its cancel is cancelled again (``cancel_all``) rather than waited for
-    forever.
+    forever. A drain that fails is logged; the stop goes on.
     """
     for stage in sorted(stages):
         await cancel_all(stages[stage])
+    for drain in drains:
+        try:
+            await drain()
+        except Exception:
+            log.exception("drain on stop failed")

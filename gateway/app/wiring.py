@@ -37,8 +37,10 @@ log = logging.getLogger(__name__)
 # the safe state never waits for recording) and the seed sensors, which hand over the lines
 # already sent while the receiver still runs (those seeds can still get their bracketing
 # epoch). Then the receiver hands over its open epoch, then the recorder positions (or
-# extrapolates and flags) and stores every seed, then the store commits; MQTT and the rest go
-# after that, so the last records are durable before the status goes offline.
+# extrapolates and flags) and stores every seed, then the store commits; then the MQTT link
+# publishes what that commit added (``Daemon.stop_drains``, bounded), and MQTT and the rest
+# are cancelled after that, so the last records are durable and, with the broker up,
+# delivered before the status goes offline.
 STOP_FIRST, STOP_GNSS, STOP_RECORDER, STOP_STORE = range(4)
 
 
@@ -56,6 +58,7 @@ class Daemon(Protocol):
     outputs: ControlOutputs | None
     tick_hooks: list[Callable[[ControlOutputs], None]]
     closers: list[Callable[[], None]]
+    stop_drains: list[Callable[[], Coroutine[Any, Any, None]]]
     epoch_listeners: list[Callable[[Any], None]]
     roll_listeners: list[Callable[[float, float], None]]
     # told of a [positioning] changed by a calibration saved while running (LiveCalibration)
@@ -311,6 +314,7 @@ def _attach_mqtt(daemon: Daemon, store: Any) -> None:
 
     daemon.tick_hooks.append(on_tick)
     daemon.add_task("mqtt", link.run)
+    daemon.stop_drains.append(link.drain)
 
 
 def _gnss_pose(daemon: Daemon) -> Any:

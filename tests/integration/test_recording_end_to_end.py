@@ -54,6 +54,21 @@ def stored_ids(db: Path) -> list[int]:
         return [r.id for r in store.query_seeds()]
 
 
+def undelivered_seeds(db: Path) -> int:
+    """Stored seeds the broker never acknowledged (the outbox, read after the daemon exited)."""
+    with RecordStore.open_readonly(db, MACHINE_ID) as store:
+        return store.count_pending_seeds()
+
+
+async def received_after_stop(db: Path, sub: Subscriber) -> list[int]:
+    """Every stored id, once the dashboard has them all. The daemon's last batches were
+    acknowledged by the broker before it exited, but the broker's copy to the dashboard may
+    still be on its way: waited for here (5 s), not assumed."""
+    ids = stored_ids(db)
+    await eventually(lambda: set(sub.seed_ids()) >= set(ids), 5.0, "the last seeds forwarded")
+    return ids
+
+
 
 
 
@@ -113,6 +128,30 @@ async def test_seeds_sensed_just_before_a_stop_are_all_recorded(tmp_path: Path) 
     assert [r.row for r in records] == [k % 6 + 1 for k in range(lines)]
 
 
+async def test_a_stop_while_sowing_publishes_every_stored_seed_before_exiting(
+    tmp_path: Path,
+) -> None:
+    """A stop mid-pass with the broker up: the seeds the recorder stores in its final flush
+    (those still waiting for their epoch) and those of the last commits reach the dashboard
+    before the daemon exits; none is left in the outbox for the next start.
+
+    The MQTT link used to be cancelled right after the store's last commit, so the seeds of
+    the last half second or so stayed undelivered until the daemon ran again.
+    """
+    db = tmp_path / "state" / "records.sqlite3"
+    with Mosquitto(persistent=True) as broker:
+        async with subscriber(broker.port, BASE) as sub:
+            machine = recording_machine(30.0)
+            async with running(tmp_path, machine, **mqtt_overrides(broker.port)) as rig:
+                await eventually(lambda: len(sub.seed_ids()) > 300, 20.0, "seeds on the broker")
+                assert machine.pose().speed_kmh > 0.0  # still sowing: seeds are in flight
+                await rig.stop()
+            assert undelivered_seeds(db) == 0
+            ids = await received_after_stop(db, sub)
+    assert len(ids) > 300
+    assert sorted(set(sub.seed_ids())) == ids == list(range(1, len(ids) + 1))
+
+
 async def test_broker_down_for_30_s_mid_run_loses_no_record(tmp_path: Path) -> None:
     with Mosquitto(persistent=True) as broker:
         async with subscriber(broker.port, BASE) as sub:
@@ -129,7 +168,8 @@ async def test_broker_down_for_30_s_mid_run_loses_no_record(tmp_path: Path) -> N
                 await eventually(lambda: machine.pose().speed_kmh == 0.0, 30.0, "end of pass")
                 await eventually(lambda: all_delivered(db, sub), 30.0, "every stored id")
                 await rig.stop()
-            ids = stored_ids(db)
+            assert undelivered_seeds(db) == 0
+            ids = await received_after_stop(db, sub)
     assert sorted(set(sub.seed_ids())) == ids == list(range(1, len(ids) + 1))
 
 
@@ -186,6 +226,7 @@ async def test_sigkilled_daemon_leaves_its_will_and_resends_after_restart(tmp_pa
                 if first.returncode is None:
                     first.kill()
                     await first.wait()
-            ids = stored_ids(state / "records.sqlite3")
+            assert undelivered_seeds(state / "records.sqlite3") == 0
+            ids = await received_after_stop(state / "records.sqlite3", sub)
     assert sorted(set(sub.seed_ids())) == ids == list(range(1, len(ids) + 1))
     assert sub.on("status")[-1] == b"offline"  # clean shutdown of the second process

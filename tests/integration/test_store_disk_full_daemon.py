@@ -18,8 +18,9 @@ from tests.integration.test_recording_end_to_end import (
     _spawn,
     all_delivered,
     mqtt_overrides,
+    received_after_stop,
     recording_machine,
-    stored_ids,
+    undelivered_seeds,
 )
 from tests.mosquitto import Mosquitto, subscriber
 from tests.tiny_disk import fill, grow, may_mount, run_in_mount_namespace, tiny_tmpfs
@@ -82,6 +83,8 @@ async def test_a_full_state_disk_loses_no_seed_and_raises_its_alarm_without_the_
                 if proc.returncode is None:
                     proc.kill()
                     await proc.wait()
-        ids = stored_ids(db)
+            # what the stop stored (the recorder's final flush) was published before the exit
+            assert undelivered_seeds(db) == 0
+            ids = await received_after_stop(db, sub)
     assert len(ids) > published_while_full + held
     assert sorted(set(sub.seed_ids())) == ids == list(range(1, len(ids) + 1))

@@ -633,3 +633,48 @@ async def test_two_boxes_with_one_client_id_back_off_instead_of_thrashing(
         assert attempts >= 4, attempts
         assert connects() - before <= 8, (before, connects())
     assert "another client using client id 'sowgate-seeder-t'" in caplog.text
+
+
+def slow_batch_settings(port: int) -> Settings:
+    """Partial batches wait 10 s: longer than a stop's drain may take."""
+    return parse_config({
+        "machine": {"id": MACHINE},
+        "mqtt": {"enabled": True, "host": "127.0.0.1", "port": port, "keepalive": 5,
+                 "reconnect_max_s": 0.5, "batch_max_ms": 10_000},
+    })
+
+
+async def test_drain_on_stop_publishes_the_last_commit_at_once(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """What the store committed last (the recorder's final flush on a stop) is published and
+    acknowledged within the drain, not held back for its batch window: the link is
+    cancelled right after the drain, and seeds left in the outbox wait for the next start."""
+    async with subscriber(mosquitto.port, BASE) as sub, \
+            running_link(slow_batch_settings(mosquitto.port), tmp_path / "r.db") as run:
+        await eventually(lambda: run.link.connected, what="connected")
+        ids = [r.id for r in run.store.add_seeds(drops(30))]
+        run.store.flush()
+        assert run.store.backlog() == 30
+        started = time.monotonic()
+        await run.link.drain(timeout_s=2.0)
+        assert time.monotonic() - started < 1.0  # not the 10 s batch window, nor the 2 s bound
+        assert run.store.backlog() == 0
+        await eventually(lambda: set(sub.seed_ids()) == set(ids), 5.0, "the drained seeds")
+
+
+async def test_drain_with_the_broker_down_returns_at_once_and_says_what_waits(
+    stopped_mosquitto: Mosquitto, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """No broker: the stop is not held up; the records stay in the outbox (nothing is lost)
+    and the log says how many wait for the next start."""
+    async with running_link(make_settings(stopped_mosquitto.port), tmp_path / "r.db") as run:
+        run.store.add_seeds(drops(12))
+        run.store.flush()
+        started = time.monotonic()
+        await run.link.drain(timeout_s=2.0)
+        assert time.monotonic() - started < 0.5
+        assert run.store.backlog() == 12
+    assert "12 records not acknowledged by the broker at stop (not connected)" in caplog.text
+    with RecordStore.open_readonly(tmp_path / "r.db", MACHINE) as store:
+        assert store.count_pending_seeds() == 12
