@@ -36,7 +36,7 @@ M_PER_DEG_LAT = 111_200.0
 BATCH = 1000  # rows per seed_spans entry (the daemon writes ~1 050 a flush at this rate)
 MACHINE_ID = "bench-48row"
 # bump when the generated field changes, so a cached store is rebuilt
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3  # 3: the terrain and re-positioning columns are filled too
 
 
 def _pass_rows(k: int, rng: np.random.Generator, t_start_s: float) -> tuple[np.ndarray, ...]:
@@ -75,7 +75,8 @@ def _pass_rows(k: int, rng: np.random.Generator, t_start_s: float) -> tuple[np.n
 
 def _rows(n: int) -> Iterator[tuple[list[tuple[Any, ...]], list[tuple[str, int, bool]]]]:
     """Batches of store rows (id, utc_us, row, lat, lon, fix, speed, heading, source,
-    extrapolated, method, spacing) and the fix changes within them, ``n`` rows in all."""
+    extrapolated, method, spacing, and the terrain columns) and the fix changes within them,
+    ``n`` rows in all."""
     rng = np.random.default_rng(20260504)
     t_s = 0.0
     k = 0
@@ -92,6 +93,7 @@ def _rows(n: int) -> Iterator[tuple[list[tuple[Any, ...]], list[tuple[str, int, 
         us = utc_to_us(T0) + (t * 1e6).astype(np.int64)
         extrap = rng.random(t.size) < 0.004
         heading = 0.0 if k % 2 == 0 else 180.0
+        roll = rng.normal(0.0, 1.5, t.size)
         for lo in range(0, m, BATCH):
             hi = min(m, lo + BATCH)
             idx = np.arange(lo, hi)
@@ -105,7 +107,9 @@ def _rows(n: int) -> Iterator[tuple[list[tuple[Any, ...]], list[tuple[str, int, 
                 (next_id + i - lo, int(us[i]), int(row[i]), float(lat[i]), float(lon[i]),
                  "rtk_float" if in_float[i - lo] else "rtk_fixed", float(speed[i]), heading,
                  "dual_antenna", bool(extrap[i]), "interpolated",
-                 None if math.isnan(spacing[i]) else float(spacing[i]))
+                 None if math.isnan(spacing[i]) else float(spacing[i]),
+                 # what a terrain-compensated record carries (issue 16): the row holds them
+                 "dual_antenna", float(roll[i]), None, 412.0, 0.7, -2.1)
                 for i in range(lo, hi)
             ]
             next_id += len(batch)
@@ -129,7 +133,9 @@ def build_store(path: Path, n: int) -> Path:
     for batch, changes in _rows(n):
         db.executemany(
             "INSERT INTO seeds (id, utc_us, row, lat, lon, fix, speed_kmh, heading_deg, "
-            "heading_source, extrapolated, method, spacing_m) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+            "heading_source, extrapolated, method, spacing_m, attitude, roll_deg, pitch_deg, "
+            "delay_ms, offset_east_m, offset_north_m) VALUES "
+            "(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
             batch,
         )
         db.execute(
