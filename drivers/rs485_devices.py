@@ -9,6 +9,7 @@ decode (e.g. a NaN float) raises :class:`BadReading`. Polling and control live i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Literal
 
 from drivers.errors import DeviceRejected
@@ -37,7 +38,30 @@ class WatchdogNotSet(DeviceRejected):
     written: it has no such watchdog (or a different one) and would not stop by itself."""
 
 
-class Radar:
+class _BusDevice:
+    """What the device wrappers share: a name on the bus, a Modbus id, and a read whose intact
+    reply that does not decode becomes :class:`BadReading` naming the device (a bus failure
+    stays DeviceUnavailable / DeviceRejected, raised by the bus)."""
+
+    bus: ModbusBus
+    name: str
+    device_id: int
+
+    @property
+    def available(self) -> bool:
+        return self.bus.available(self.name)
+
+    async def _read_decoded(
+        self, address: int, count: int, decode: Callable[[list[int]], float]
+    ) -> float:
+        registers = await self.bus.read_holding(self.name, self.device_id, address, count)
+        try:
+            return decode(registers)
+        except ProtocolError as exc:
+            raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
+
+
+class Radar(_BusDevice):
     """Ground speed from the mm-wave radar, in km/h (Doppler eq. 1 applied if configured)."""
 
     def __init__(self, bus: ModbusBus, section: Any, *, name: str = "radar") -> None:
@@ -53,21 +77,11 @@ class Radar:
             mount_angle_deg=section.mount_angle_deg,
         )
 
-    @property
-    def available(self) -> bool:
-        return self.bus.available(self.name)
-
     async def read(self) -> float:
-        registers = await self.bus.read_holding(
-            self.name, self.device_id, self.address, self.format.count
-        )
-        try:
-            return self.format.decode_kmh(registers)
-        except ProtocolError as exc:
-            raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
+        return await self._read_decoded(self.address, self.format.count, self.format.decode_kmh)
 
 
-class Inclinometer:
+class Inclinometer(_BusDevice):
     """Raw angle of the configured axis in degrees (zeroing and raised/lowered are gateway's)."""
 
     def __init__(self, bus: ModbusBus, section: Any, *, name: str = "inclinometer") -> None:
@@ -78,21 +92,14 @@ class Inclinometer:
         self.layout: str = section.layout
         self.address, self.count = inclinometer_span(section.layout, section.axis)
 
-    @property
-    def available(self) -> bool:
-        return self.bus.available(self.name)
-
     async def read(self) -> float:
-        registers = await self.bus.read_holding(
-            self.name, self.device_id, self.address, self.count
-        )
-        try:
-            return decode_angle(registers, self.layout)  # type: ignore[arg-type]
-        except ProtocolError as exc:
-            raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
+        return await self._read_decoded(self.address, self.count, self._decode)
+
+    def _decode(self, registers: list[int]) -> float:
+        return decode_angle(registers, self.layout)  # type: ignore[arg-type]
 
 
-class HopperScale:
+class HopperScale(_BusDevice):
     """Gross mass on the hopper's load cells in kg, from a Modbus weight transmitter."""
 
     def __init__(self, bus: ModbusBus, section: Any, *, name: str = "hopper_scale") -> None:
@@ -112,22 +119,15 @@ class HopperScale:
 
         self.bad_readings = 0  # replies that arrived intact but held no plausible weight
 
-    @property
-    def available(self) -> bool:
-        return self.bus.available(self.name)
-
     async def read(self) -> float:
-        registers = await self.bus.read_holding(
-            self.name, self.device_id, self.address, self.format.count
-        )
         try:
-            return self.format.decode_kg(registers)
-        except ProtocolError as exc:
+            return await self._read_decoded(self.address, self.format.count, self.format.decode_kg)
+        except BadReading:
             self.bad_readings += 1
-            raise BadReading(f"{self.name} (id {self.device_id}): {exc}") from exc
+            raise
 
 
-class PwmModule:
+class PwmModule(_BusDevice):
     """The PWM output module driving the metering motor and the fan."""
 
     def __init__(self, bus: ModbusBus, section: Any, *, name: str = "pwm") -> None:
@@ -139,10 +139,6 @@ class PwmModule:
             "fan": section.fan_register,
         }
         self.comm_timeout_register: int = section.comm_timeout_register
-
-    @property
-    def available(self) -> bool:
-        return self.bus.available(self.name)
 
     def _register(self, channel: str) -> int:
         try:

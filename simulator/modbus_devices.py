@@ -81,6 +81,25 @@ NOISE_BYTES = 5  # line noise put before every reply under a "noise" fault
 WATCHDOG_CHECK_S = 0.05  # how often the simulated PWM module looks at its watchdog
 
 
+def _answer_encoded(
+    registers: list[int],
+    start_address: int,
+    address: int,
+    encode: Callable[[], list[int]],
+    what: str,
+) -> ExcCodes | None:
+    """Put the words ``encode`` gives at ``address`` in the reply a read is building (it
+    starts at ``start_address``); a value the device cannot represent is what a real one does
+    with it: a device-failure exception, and a warning naming ``what``."""
+    try:
+        words = encode()
+    except (ProtocolError, ArithmeticError, ValueError) as exc:
+        log.warning("simulated %s: %s", what, exc)
+        return ExcCodes.DEVICE_FAILURE
+    offset = address - start_address
+    registers[offset : offset + len(words)] = words
+    return None
+
 class Rs485Simulator(StartClose):
     """Radar, WitMotion inclinometer and PWM module on one simulated RS485 bus.
 
@@ -486,14 +505,11 @@ class Rs485Simulator(StartClose):
         if self.radar.device_id in self._silent or set_values is not None:
             return None
         kmh = self._radar_kmh() if self._radar_held is None else self._radar_held
-        try:
-            words = self._radar_format.encode_kmh(kmh)
-        except (ProtocolError, ArithmeticError, ValueError) as exc:
-            log.warning("simulated radar cannot encode its speed: %s", exc)
-            return ExcCodes.DEVICE_FAILURE
-        offset = self.radar.address - start_address
-        registers[offset : offset + len(words)] = words
-        return None
+        radar_format = self._radar_format
+        return _answer_encoded(
+            registers, start_address, self.radar.address,
+            lambda: radar_format.encode_kmh(kmh), "radar cannot encode its speed",
+        )
 
     async def _scale_action(
         self,
@@ -508,14 +524,11 @@ class Rs485Simulator(StartClose):
             return ExcCodes.DEVICE_FAILURE
         if self.hopper.device_id in self._silent or set_values is not None:
             return None
-        try:
-            words = self._weight_format.encode_kg(self._hopper_kg())
-        except (ProtocolError, ArithmeticError, ValueError) as exc:
-            log.warning("simulated hopper scale cannot encode its weight: %s", exc)
-            return ExcCodes.DEVICE_FAILURE
-        offset = self.hopper.address - start_address
-        registers[offset : offset + len(words)] = words
-        return None
+        weight_format, hopper_kg = self._weight_format, self._hopper_kg
+        return _answer_encoded(
+            registers, start_address, self.hopper.address,
+            lambda: weight_format.encode_kg(hopper_kg()), "hopper scale cannot encode its weight",
+        )
 
     async def _incl_action(
         self,

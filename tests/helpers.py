@@ -4,6 +4,8 @@
   its own deadline loop);
 - ``sowgate_argv`` / ``sowgate_env`` / ``run_sowgate`` / ``spawn_sowgate`` / ``sowgate_process``:
   the daemon (``python -m gateway.app.cli …``, what systemd starts) as a separate process;
+- ``wheat_drill`` / ``calibration_cli``: a one-channel CAN drill's settings, and
+  ``sowgate calibrate …`` run in-process (no questions may be asked) with its output on one line;
 - ``Plant``: the values the simulated RS485 devices report, which a test changes between
   requests (the ``plant`` and ``sim`` fixtures in ``tests/conftest.py`` build on it).
 
@@ -12,14 +14,22 @@ The real mosquitto broker and the dashboard subscriber live in ``tests/mosquitto
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
+import io
 import os
 import subprocess
 import sys
 from collections.abc import AsyncIterator, Callable, Mapping
 from pathlib import Path
 from typing import IO, Any
+
+import pytest
+from rich.console import Console
+
+from gateway.calibration.cli import add_calibration_commands, run_calibration
+from gateway.config import Settings, parse_config
 
 WAIT_S = 15.0  # generous (two cores shared by many test runs): only a failing test waits it out
 POLL_S = 0.05
@@ -56,6 +66,30 @@ async def eventually(
             )
         await asyncio.sleep(interval)
     return loop.time() - start
+
+
+# ---- calibration --------------------------------------------------------------------------------
+
+
+def wheat_drill() -> Settings:
+    """A 3 m, 24-row drill sowing wheat from one CAN-metered channel ``seed`` (no touchscreen)."""
+    return parse_config({
+        "hmi": {"enabled": False},
+        "machine": {"working_width_m": 3.0, "rows": 24},
+        "channel": [{"name": "seed", "product": "wheat", "target_rate_kg_ha": 225.0,
+                     "node_id": 3, "outlets": 24, "grams_per_rev": 11.2}],
+    })
+
+
+def calibration_cli(argv: list[str]) -> tuple[int, str]:
+    """``sowgate <argv>`` for the calibration commands, in-process: its exit code and its
+    output with white space folded (rich wraps); a question asked fails the test."""
+    root = argparse.ArgumentParser(prog="sowgate")
+    add_calibration_commands(root.add_subparsers(dest="command"))
+    out = io.StringIO()
+    code = run_calibration(root.parse_args(argv), console=Console(file=out, width=200),
+                           ask=lambda q: pytest.fail(f"asked {q!r}"))
+    return code, " ".join(out.getvalue().split())
 
 
 # ---- the daemon as its own process --------------------------------------------------------------

@@ -23,7 +23,7 @@ import aiomqtt
 from drivers.backoff import Backoff
 from gateway.config import Settings
 from gateway.dashboard.model import Fleet
-from gateway.link.mqtt import _read_named, _tls_context
+from gateway.link.mqtt import mqtt_client
 
 log = logging.getLogger(__name__)
 
@@ -54,26 +54,7 @@ class DashboardSubscriber:
         self.connects = 0
 
     def _make_client(self) -> aiomqtt.Client:
-        password = self.cfg.password
-        if self.cfg.password_file:
-            password = _read_named("mqtt.password_file", self.cfg.password_file).strip()
-        tls_context = None
-        tls_insecure = None
-        if self.cfg.tls is not None:
-            tls_context = _tls_context(self.cfg.tls)
-            tls_insecure = self.cfg.tls.insecure
-        return aiomqtt.Client(
-            self.cfg.host,
-            self.cfg.port,
-            identifier=self.client_id,
-            username=self.cfg.username,
-            password=password if self.cfg.username else None,
-            clean_session=False,
-            keepalive=self.cfg.keepalive,
-            timeout=max(10.0, float(self.cfg.keepalive)),
-            tls_context=tls_context,
-            tls_insecure=tls_insecure,
-        )
+        return mqtt_client(self.cfg, self.client_id, clean_session=False)
 
     async def run(self) -> None:
         """Connect, receive, reconnect; for ever. Only ``CancelledError`` escapes."""

@@ -34,7 +34,7 @@ from typing import Any
 import aiomqtt
 
 from drivers.backoff import Backoff
-from gateway.config import Settings, TlsSection
+from gateway.config import MqttSection, Settings, TlsSection
 from gateway.config.startup import file_problem
 from gateway.core.alarms import AlarmBoard
 from gateway.core.commands import CommandSink
@@ -252,26 +252,11 @@ class MqttLink:
             await asyncio.sleep(self.backoff.next_delay())
 
     def _client(self) -> aiomqtt.Client:
-        password = self.cfg.password
-        if self.cfg.password_file:
-            password = _read_named("mqtt.password_file", self.cfg.password_file).strip()
-        tls_context = None
-        tls_insecure = None
-        if self.cfg.tls is not None:
-            tls_context = _tls_context(self.cfg.tls)
-            tls_insecure = self.cfg.tls.insecure
-        return aiomqtt.Client(
-            self.cfg.host,
-            self.cfg.port,
-            identifier=self.client_id,
-            username=self.cfg.username,
-            password=password if self.cfg.username else None,
+        return mqtt_client(
+            self.cfg,
+            self.client_id,
             will=aiomqtt.Will(self.topics.status, b"offline", qos=1, retain=True),
-            keepalive=self.cfg.keepalive,
-            timeout=max(10.0, float(self.cfg.keepalive)),
             max_inflight_messages=self.cfg.max_inflight_batches + 8,
-            tls_context=tls_context,
-            tls_insecure=tls_insecure,
         )
 
     async def _connect(self, client: aiomqtt.Client) -> None:
@@ -560,6 +545,42 @@ def _force_close(client: aiomqtt.Client) -> None:
     if callable(reset):
         with contextlib.suppress(Exception):
             reset()
+
+
+def mqtt_client(
+    cfg: MqttSection,
+    client_id: str,
+    *,
+    will: aiomqtt.Will | None = None,
+    clean_session: bool | None = None,
+    max_inflight_messages: int | None = None,
+) -> aiomqtt.Client:
+    """An aiomqtt client for the ``[mqtt]`` section (host, port, user, password file, TLS,
+    keepalive). The daemon and the dashboard both connect with it, so a broker that takes one
+    takes the other; each adds only what differs (client id, will, persistent session).
+    Reads the password file and TLS files now: a missing one raises ``OSError`` naming the key."""
+    password = cfg.password
+    if cfg.password_file:
+        password = _read_named("mqtt.password_file", cfg.password_file).strip()
+    tls_context = None
+    tls_insecure = None
+    if cfg.tls is not None:
+        tls_context = _tls_context(cfg.tls)
+        tls_insecure = cfg.tls.insecure
+    return aiomqtt.Client(
+        cfg.host,
+        cfg.port,
+        identifier=client_id,
+        username=cfg.username,
+        password=password if cfg.username else None,
+        will=will,
+        clean_session=clean_session,
+        keepalive=cfg.keepalive,
+        timeout=max(10.0, float(cfg.keepalive)),
+        max_inflight_messages=max_inflight_messages,
+        tls_context=tls_context,
+        tls_insecure=tls_insecure,
+    )
 
 
 def _read_named(key: str, path: str) -> str:

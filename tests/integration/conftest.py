@@ -51,19 +51,26 @@ async def running(
 ) -> AsyncIterator[Rig]:
     async with machine:
         daemon = Daemon(machine.settings(**overrides), tmp_path / "state")
-        task = asyncio.create_task(daemon.run(), name="daemon")
-        rig = Rig(machine, daemon, task)
-        try:
-            yield rig
-        finally:
-            if not task.done():
-                daemon.request_stop()
-                with contextlib.suppress(Exception):
-                    await asyncio.wait_for(task, 5.0)
-            if not task.done():
-                task.cancel()
-                # bounded: a daemon that ignores cancellation fails the leak check, not CI
-                await asyncio.wait({task}, timeout=5.0)
+        async with daemon_task(daemon) as task:
+            yield Rig(machine, daemon, task)
+
+
+@contextlib.asynccontextmanager
+async def daemon_task(daemon: Daemon) -> AsyncIterator[asyncio.Task[None]]:
+    """``daemon.run()`` as a task for the block; on leaving it the daemon is asked to stop
+    (5 s), then cancelled (5 s more), so no test leaves a daemon behind."""
+    task = asyncio.create_task(daemon.run(), name="daemon")
+    try:
+        yield task
+    finally:
+        if not task.done():
+            daemon.request_stop()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(task, 5.0)
+        if not task.done():
+            task.cancel()
+            # bounded: a daemon that ignores cancellation fails the leak check, not CI
+            await asyncio.wait({task}, timeout=5.0)
 
 
 @contextlib.asynccontextmanager

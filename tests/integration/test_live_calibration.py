@@ -3,32 +3,20 @@ so; a broken calibration file changes nothing, raises an alarm, and a good one c
 
 from __future__ import annotations
 
-import argparse
 import asyncio
-import io
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from rich.console import Console
 
 from gateway.calibration import fits as cal
-from gateway.calibration.cli import add_calibration_commands, run_calibration
 from gateway.control.rate_model import plan_duty
 from simulator.machine import SimulatedMachine
+from tests.helpers import calibration_cli
 from tests.integration.conftest import metering
 
 W = [20.0, 25.0, 30.0, 35.0, 40.0, 45.0]
 SLOPE, INTERCEPT = 0.6671 * 1.10, -19.8309  # this drill's motor: 10 % steeper than paper A's
-
-
-def cli(argv: list[str]) -> tuple[int, str]:
-    root = argparse.ArgumentParser(prog="sowgate")
-    add_calibration_commands(root.add_subparsers(dest="command"))
-    out = io.StringIO()
-    code = run_calibration(root.parse_args(argv), console=Console(file=out, width=200),
-                           ask=lambda q: pytest.fail(f"asked {q!r}"))
-    return code, " ".join(out.getvalue().split())
 
 
 def rotation_argv(state: Path, config: Path) -> list[str]:
@@ -49,7 +37,7 @@ async def test_a_rotation_test_saved_while_seeding_changes_the_duty_at_once(
         state = tmp_path / "state"
         config = machine.write_config(tmp_path / "sowgate.toml", control={"crop": "wheat"})
         assert daemon.controller.crop_model.motor_slope == pytest.approx(0.6671)
-        code, out = await asyncio.to_thread(cli, rotation_argv(state, config))
+        code, out = await asyncio.to_thread(calibration_cli, rotation_argv(state, config))
         assert code == 0, out
         # the CLI waited for the daemon: applied already when it returns
         assert "The running daemon" in out and "applied" in out, out
@@ -69,7 +57,9 @@ async def test_a_rotation_test_saved_while_seeding_changes_the_duty_at_once(
         assert not daemon.alarms.is_active("calibration.file_invalid")
         # undo: the config's line again, live
         code, out = await asyncio.to_thread(
-            cli, ["calibrate", "--state-dir", str(state), "undo", "--key", "rotation.wheat"])
+            calibration_cli,
+            ["calibrate", "--state-dir", str(state), "undo", "--key", "rotation.wheat"],
+        )
         assert code == 0 and "applied" in out, out
         assert daemon.controller.crop_model.motor_slope == pytest.approx(0.6671)
 
@@ -100,6 +90,6 @@ async def test_with_no_daemon_running_the_cli_says_it_applies_at_next_start(
 ) -> None:
     config = tmp_path / "sowgate.toml"
     config.write_text("[machine]\nrows = 6\n")
-    code, out = cli(rotation_argv(tmp_path, config))
+    code, out = calibration_cli(rotation_argv(tmp_path, config))
     assert code == 0, out
     assert "No daemon is running" in out and "next start" in out

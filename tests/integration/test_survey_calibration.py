@@ -12,11 +12,9 @@ seed where the fitted model says: the other seeds must then be within 25 mm on a
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import csv
 import math
 import statistics
-from collections.abc import Callable
 from pathlib import Path
 
 import pymap3d
@@ -33,6 +31,8 @@ from gateway.recording.store import RecordStore
 from simulator.machine import ORIGIN_LAT, ORIGIN_LON, SimulatedMachine
 from simulator.plant import Drive, Leg
 from simulator.seed_tubes import SeedTruth
+from tests.helpers import eventually
+from tests.integration.conftest import daemon_task
 
 MACHINE_ID = "seeder-01"
 TRUE_BEHIND_M = 1.2  # the simulated planter's outlets (the default machine)
@@ -59,27 +59,31 @@ def fitter_config(machine: SimulatedMachine) -> dict[str, object]:
     )
 
 
-async def sow(tmp_path: Path) -> tuple[Path, list[SeedTruth]]:
-    """Run the daemon over the drive; the config file it ran with and the seeds' truth."""
-    machine = SimulatedMachine(
+def slope_machine() -> SimulatedMachine:
+    """The machine on the side slope, its antennas side by side (the baseline pitch is the roll)."""
+    return SimulatedMachine(
         drive=DRIVE, with_gnss=True, with_seed_tubes=True,
         roll_deg=ROLL_DEG, antenna_height_m=ANTENNA_HEIGHT_M, heading_offset_deg=90.0,
     )
+
+
+def stored_seeds(state: Path) -> list[SeedRecord]:
+    with RecordStore.open_readonly(state / "records.sqlite3", MACHINE_ID) as store:
+        return list(store.query_seeds())
+
+
+async def sow(tmp_path: Path) -> tuple[Path, list[SeedTruth]]:
+    """Run the daemon over the drive; the config file it ran with and the seeds' truth."""
+    machine = slope_machine()
     config = tmp_path / "sowgate.toml"
     async with machine:
         data = fitter_config(machine)
         config.write_text(tomli_w.dumps(data))
         # parse_config, not machine.settings(): the daemon is told a lever arm the simulated
         # planter does not have (machine.settings refuses that, rightly, everywhere else)
-        daemon = Daemon(parse_config(data), tmp_path / "state")
-        task = asyncio.create_task(daemon.run(), name="daemon")
-        try:
+        async with daemon_task(Daemon(parse_config(data), tmp_path / "state")):
             await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
             await asyncio.sleep(1.0)  # the epochs after the last landing, one flush
-        finally:
-            daemon.request_stop()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(task, 5.0)
         truth = list(machine.seed_tubes.truth)
         assert machine.seed_tubes.late_writes <= len(truth) // 20, "the simulator was starved"
     return config, truth
@@ -111,8 +115,7 @@ async def test_fifty_surveyed_seeds_fix_a_wrong_lever_arm_on_a_side_slope(
 ) -> None:
     config, truth = await sow(tmp_path)
     state = tmp_path / "state"
-    with RecordStore.open_readonly(state / "records.sqlite3", MACHINE_ID) as store:
-        records = list(store.query_seeds())
+    records = stored_seeds(state)
     assert len(records) > 400
     true = truth_by_id(records, truth)
     # every seed was corrected for the slope, by the roll the receiver's baseline measured
@@ -160,18 +163,11 @@ async def test_the_inclinometer_roll_axis_corrects_seeds_on_a_side_slope(tmp_pat
     async with machine:
         data = machine.config(control={"start_working": True}, positioning={
             "antenna_height_m": ANTENNA_HEIGHT_M, "attitude_source": "inclinometer"})
-        daemon = Daemon(parse_config(data), tmp_path / "state")
-        task = asyncio.create_task(daemon.run(), name="daemon")
-        try:
+        async with daemon_task(Daemon(parse_config(data), tmp_path / "state")):
             await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
             await asyncio.sleep(1.0)
-        finally:
-            daemon.request_stop()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(task, 5.0)
         truth = list(machine.seed_tubes.truth)
-    with RecordStore.open_readonly(tmp_path / "state" / "records.sqlite3", MACHINE_ID) as s:
-        records = list(s.query_seeds())
+    records = stored_seeds(tmp_path / "state")
     true = truth_by_id(records, truth)
     corrected = [r for r in records if r.attitude == "inclinometer"]
     assert len(corrected) > 0.9 * len(records)
@@ -181,53 +177,38 @@ async def test_the_inclinometer_roll_axis_corrects_seeds_on_a_side_slope(tmp_pat
     assert statistics.median(errors) < 0.03  # uncorrected, the antenna's lean alone is 13 cm
 
 
-async def until(done: Callable[[], bool], timeout_s: float) -> None:
-    for _ in range(int(timeout_s / 0.02)):
-        if done():
-            return
-        await asyncio.sleep(0.02)
-    pytest.fail(f"not within {timeout_s} s")
-
-
 async def test_a_position_calibration_saved_while_sowing_positions_the_next_seeds(
     tmp_path: Path,
 ) -> None:
     """No restart: the calibration file is watched (live calibration) and the seed recorder's
     positioner takes the saved lever arm; seeds stored before the save keep the fitter's
     5 cm error, seeds sown after it land where they are."""
-    machine = SimulatedMachine(
-        drive=DRIVE, with_gnss=True, with_seed_tubes=True,
-        roll_deg=ROLL_DEG, antenna_height_m=ANTENNA_HEIGHT_M, heading_offset_deg=90.0,
-    )
+    machine = slope_machine()
     state = tmp_path / "state"
     async with machine:
         data = fitter_config(machine)
         daemon = Daemon(parse_config(data), state)
         recorder_rows = daemon.settings.positioning.lateral_offsets()
-        task = asyncio.create_task(daemon.run(), name="daemon")
-        try:
-            await until(lambda: daemon.parts.seeds is not None
-                        and daemon.parts.seeds.records_stored >= 120, 30.0)
+        async with daemon_task(daemon) as task:
+            await eventually(lambda: daemon.parts.seeds is not None
+                             and daemon.parts.seeds.records_stored >= 120, 30.0,
+                             "120 seeds stored", unless=task)
             # what `sowgate calibrate positions` saves: the lever arm as it really is
             CalibrationStore(state).save(POSITIONS_KEY, to_entry(
                 {"delay_correction_ms": 0.0, "outlet_behind_antenna_m": TRUE_BEHIND_M,
                  "row_lateral_m": recorder_rows, "outlets_behind_hitch_m": None},
                 survey="test", seeds=50))
             reloads = daemon.live_calibration.reloads
-            await until(lambda: daemon.live_calibration.reloads > reloads, 10.0)
+            await eventually(lambda: daemon.live_calibration.reloads > reloads, 10.0,
+                             "the saved calibration reloaded", unless=task)
             assert daemon.parts.seeds is not None
             switched_at = daemon.parts.seeds.records_stored
             assert daemon.settings.positioning.outlet_behind_antenna_m == TRUE_BEHIND_M
             await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
             await asyncio.sleep(1.0)
-        finally:
-            daemon.request_stop()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(task, 5.0)
         truth = list(machine.seed_tubes.truth)
         assert machine.seed_tubes.late_writes <= len(truth) // 20, "the simulator was starved"
-    with RecordStore.open_readonly(state / "records.sqlite3", MACHINE_ID) as store:
-        records = list(store.query_seeds())
+    records = stored_seeds(state)
     true = truth_by_id(records, truth)
     # seeds stored before the switch, and those sown well after it (past the pending queue)
     before = [error_m(r.lat, r.lon, true[r.id]) for r in records if r.id <= switched_at]

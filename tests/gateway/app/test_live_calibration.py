@@ -10,17 +10,8 @@ import pytest
 from gateway.app.daemon import Daemon
 from gateway.calibration import fits as cal
 from gateway.calibration.presence import WATCH_S
-from gateway.config import Settings, parse_config
 from gateway.core.errors import CommandError
-
-
-def drill() -> Settings:
-    return parse_config({
-        "hmi": {"enabled": False},
-        "machine": {"working_width_m": 3.0, "rows": 24},
-        "channel": [{"name": "seed", "product": "wheat", "target_rate_kg_ha": 225.0,
-                     "node_id": 3, "outlets": 24, "grams_per_rev": 11.2}],
-    })
+from tests.helpers import wheat_drill
 
 
 def save_gpr(state: Path, per_outlet: float, key: str = "rotation.seed") -> None:
@@ -38,7 +29,7 @@ class Clock:
 
 
 def daemon_at(state: Path, clock: Clock) -> Daemon:
-    daemon = Daemon(drill(), state, clock=clock)
+    daemon = Daemon(wheat_drill(), state, clock=clock)
     for close in daemon.closers:
         close()
     return daemon

@@ -3,30 +3,17 @@ applied; a calibration file from before seed lots is every crop's default lot, u
 
 from __future__ import annotations
 
-import argparse
-import io
 from pathlib import Path
 from typing import Any
 
 import pytest
-from rich.console import Console
 
 from gateway.calibration import fits as cal
 from gateway.calibration import lots
 from gateway.calibration.apply import apply_calibrations
-from gateway.calibration.cli import add_calibration_commands, run_calibration
-from gateway.config import Settings, parse_config
+from tests.helpers import calibration_cli, wheat_drill
 
 W = [20.0, 25.0, 30.0, 35.0, 40.0, 45.0]
-
-
-def drill() -> Settings:
-    return parse_config({
-        "hmi": {"enabled": False},
-        "machine": {"working_width_m": 3.0, "rows": 24},
-        "channel": [{"name": "seed", "product": "wheat", "target_rate_kg_ha": 225.0,
-                     "node_id": 3, "outlets": 24, "grams_per_rev": 11.2}],
-    })
 
 
 def gpr_entry(per_outlet: float, **extra: Any) -> dict[str, Any]:
@@ -50,7 +37,7 @@ def test_a_lot_name_the_screen_and_keys_cannot_carry_is_refused(bad: str) -> Non
 
 def test_a_file_from_before_seed_lots_applies_as_the_default_lot(tmp_path: Path) -> None:
     cal.CalibrationStore(tmp_path).save("rotation.seed", gpr_entry(12.0))  # no seed_lot field
-    settings = drill()
+    settings = wheat_drill()
     apply_calibrations(settings, tmp_path)
     assert settings.channel[0].grams_per_rev == pytest.approx(12.0)
 
@@ -59,11 +46,11 @@ def test_the_active_lot_of_the_channels_crop_is_the_one_applied(tmp_path: Path) 
     store = cal.CalibrationStore(tmp_path)
     store.save("rotation.seed", gpr_entry(12.0))
     store.save("rotation.seed@2026-B", gpr_entry(10.5, seed_lot="2026-B"))
-    settings = drill()
+    settings = wheat_drill()
     apply_calibrations(settings, tmp_path)
     assert settings.channel[0].grams_per_rev == pytest.approx(12.0)  # default active
     lots.select_lot(store, "wheat", "2026-B")  # the channel sows wheat
-    settings = drill()
+    settings = wheat_drill()
     apply_calibrations(settings, tmp_path)
     assert settings.channel[0].grams_per_rev == pytest.approx(10.5)
     # the selection is not an undo step: undo still restores the last save's predecessor
@@ -78,13 +65,13 @@ def test_a_lot_without_its_own_test_of_a_channel_uses_the_config_value(
     store = cal.CalibrationStore(tmp_path)
     store.save("rotation.seed", gpr_entry(12.0))
     lots.select_lot(store, "wheat", "other")
-    settings = drill()
+    settings = wheat_drill()
     apply_calibrations(settings, tmp_path)
     assert settings.channel[0].grams_per_rev == 11.2  # the default lot's fit is another seed
 
 
 def test_lots_are_listed_default_first_then_by_name_per_crop() -> None:
-    settings = drill()
+    settings = wheat_drill()
     current = {"rotation.seed@b": {}, "rotation.seed@a": {}, "rotation.wheat@x": {},
                "rotation.rapeseed@r": {}, "speed.radar": {}}
     assert lots.lots_of(settings, current, "wheat") == ["default", "a", "b", "x"]
@@ -96,7 +83,7 @@ def test_the_active_rotation_entry_carries_crop_lot_and_saved_at(tmp_path: Path)
     store = cal.CalibrationStore(tmp_path)
     store.save("rotation.seed", gpr_entry(12.0))  # an old entry: crop and lot filled in
     store.save("rotation.seed@2026-B", gpr_entry(10.5, crop="wheat", seed_lot="2026-B"))
-    settings = drill()
+    settings = wheat_drill()
     doc = store.load()
     old = lots.active_rotation(settings, doc["current"], {}, "seed")
     assert old is not None and (old["crop"], old["seed_lot"]) == ("wheat", "default")
@@ -108,15 +95,6 @@ def test_the_active_rotation_entry_carries_crop_lot_and_saved_at(tmp_path: Path)
 
 
 # ---- the CLI ------------------------------------------------------------------------------
-
-
-def cli(argv: list[str]) -> tuple[int, str]:
-    root = argparse.ArgumentParser(prog="sowgate")
-    add_calibration_commands(root.add_subparsers(dest="command"))
-    out = io.StringIO()
-    code = run_calibration(root.parse_args(argv), console=Console(file=out, width=200),
-                           ask=lambda q: pytest.fail(f"asked {q!r}"))
-    return code, " ".join(out.getvalue().split())
 
 
 def rotation(tmp_path: Path, per_outlet: float, *extra: str) -> list[str]:
@@ -132,8 +110,8 @@ def rotation(tmp_path: Path, per_outlet: float, *extra: str) -> list[str]:
 def test_a_rotation_test_for_a_lot_is_kept_beside_the_others_and_made_active(
     tmp_path: Path,
 ) -> None:
-    assert cli(rotation(tmp_path, 11.5))[0] == 0
-    code, out = cli(rotation(tmp_path, 10.8, "--seed-lot", "2026-B"))
+    assert calibration_cli(rotation(tmp_path, 11.5))[0] == 0
+    code, out = calibration_cli(rotation(tmp_path, 10.8, "--seed-lot", "2026-B"))
     assert code == 0, out
     assert "seed lot 2026-B is now wheat's active lot" in out
     store = cal.CalibrationStore(tmp_path)
@@ -150,13 +128,13 @@ def test_a_rotation_test_for_a_lot_is_kept_beside_the_others_and_made_active(
 
 
 def test_seed_lot_command_switches_and_refuses_a_lot_never_calibrated(tmp_path: Path) -> None:
-    assert cli(rotation(tmp_path, 10.8, "--seed-lot", "2026-B"))[0] == 0
+    assert calibration_cli(rotation(tmp_path, 10.8, "--seed-lot", "2026-B"))[0] == 0
     cfg = str(tmp_path / "sowgate.toml")
     base = ["calibrate", "--config", cfg, "--state-dir", str(tmp_path), "seed-lot",
             "--crop", "wheat"]
-    code, out = cli([*base, "--lot", "2026-C"])
+    code, out = calibration_cli([*base, "--lot", "2026-C"])
     assert code == 1 and "no rotation test for seed lot '2026-C'" in out
     assert "default, 2026-B" in out
-    code, out = cli([*base, "--lot", "default"])
+    code, out = calibration_cli([*base, "--lot", "default"])
     assert code == 0 and "wheat: seed lot default is the active lot" in out, out
     assert lots.active_lots(cal.CalibrationStore(tmp_path).load()) == {"wheat": "default"}
