@@ -65,18 +65,44 @@ def _config(store: Path) -> Path:
     return cfg
 
 
+# Runs a command line in this interpreter and, at exit, reports the process's own peak RSS
+# (VmHWM: the high-water mark of its address space since exec). Not ru_maxrss: Linux carries
+# the parent's high-water mark across fork and exec into it, so a child of a bench process
+# that has built a 10 M-record store would report the parent's size, not its own.
+PEAK_RSS = """
+import atexit, runpy, sys
+
+def _peak() -> None:
+    with open("/proc/self/status") as f:
+        kb = next(line.split()[1] for line in f if line.startswith("VmHWM:"))
+    sys.stderr.write(f"\\nSOWGATE_BENCH_VMHWM_KB={kb}\\n")
+
+atexit.register(_peak)
+sys.argv = sys.argv[1:]
+if sys.argv[0] == "-c":
+    sys.argv = sys.argv[1:]
+    exec(compile(sys.argv[0], "<bench>", "exec"), {"__name__": "__main__"})
+else:
+    runpy.run_module(sys.argv[0], run_name="__main__", alter_sys=True)
+"""
+
+
 def _measure(argv: list[str]) -> tuple[float, float]:
-    """Wall seconds and peak RSS (MB) of a child process run to its end."""
+    """Wall seconds and peak RSS (MB, the child's own VmHWM) of ``python argv[1:]`` run to
+    its end (``argv[1]`` is ``-m`` then a module, or ``-c`` then a script)."""
+    py, flag, *rest = argv
+    child = [py, "-c", PEAK_RSS, *(["-c"] if flag == "-c" else []), *rest]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            env={**os.environ, "SOWGATE_STATE_DIR": str(CACHE)})
-    _pid, status, usage = os.wait4(proc.pid, 0)
+    proc = subprocess.run(child, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          env={**os.environ, "SOWGATE_STATE_DIR": str(CACHE)}, check=False)
     elapsed = time.perf_counter() - t0
-    err = proc.stderr.read().decode() if proc.stderr else ""
-    proc.returncode = os.waitstatus_to_exitcode(status)
+    err = proc.stderr.decode(errors="replace")
     if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(argv)} exited {proc.returncode}: {err}")
-    return elapsed, usage.ru_maxrss / 1024.0  # ru_maxrss is in KiB on Linux
+        raise RuntimeError(f"{' '.join(argv)} exited {proc.returncode}: {err[-2000:]}")
+    kb = [line for line in err.splitlines() if line.startswith("SOWGATE_BENCH_VMHWM_KB=")]
+    if not kb:
+        raise RuntimeError(f"{' '.join(argv)}: no peak RSS reported: {err[-2000:]}")
+    return elapsed, int(kb[-1].split("=", 1)[1]) / 1024.0
 
 
 def run() -> dict[str, object]:
