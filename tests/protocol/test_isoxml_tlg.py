@@ -58,7 +58,9 @@ def logs(draw: st.DrawFn) -> tuple[TimeLogLayout, list[TimeLogRecord]]:
 
 
 @given(logs())
-def test_any_records_decode_to_what_was_encoded(log: tuple[TimeLogLayout, list[TimeLogRecord]]) -> None:
+def test_any_records_decode_to_what_was_encoded(
+    log: tuple[TimeLogLayout, list[TimeLogRecord]],
+) -> None:
     layout, recs = log
     data = b"".join(encode_record(layout, r) for r in recs)
     assert list(decode_records(layout, data)) == recs
