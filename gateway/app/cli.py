@@ -234,10 +234,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument(
         "--format",
-        choices=["geojson", "csv"],
+        choices=["geojson", "csv", "isoxml"],
         default=None,
         help="default: from the --output extension (.csv -> csv; .geojson or .json -> "
-        "geojson; geojson for -)",
+        "geojson; geojson for -); isoxml: an ISO 11783-10 TaskData folder "
+        "OUTPUT/TASKDATA with the seeds and the as-applied log as a task time log "
+        "(docs/isoxml.md)",
+    )
+    e.add_argument(
+        "--zip",
+        action="store_true",
+        help="with --format isoxml: write the TASKDATA folder into the zip file OUTPUT",
     )
     e.add_argument(
         "--output",

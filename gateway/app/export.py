@@ -72,6 +72,10 @@ def main_export(args: argparse.Namespace) -> int:
     """
     from gateway.recording.store import RecordStore, StoreError
 
+    if getattr(args, "format", None) == "isoxml":  # a folder of several files, its own writer
+        from gateway.app.isoxml_export import main_export_isoxml
+
+        return main_export_isoxml(args)
     try:
         config = getattr(args, "config", None)
         settings = load_config(config) if config is not None else parse_config({})

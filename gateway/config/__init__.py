@@ -20,6 +20,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 
 from gateway.config._base import FieldProblem, OptionalPart, switch_on_present_parts
 from gateway.config.farm import CommandsSection, DashboardSection, MqttSection, TlsSection
+from gateway.config.farm_task import FarmSection
 from gateway.config.machine import (
     ActuatorsSection,
     ControlSection,
@@ -72,6 +73,7 @@ __all__ = [
     "ControlSection",
     "CropModel",
     "DashboardSection",
+    "FarmSection",
     "GnssSection",
     "HitchSection",
     "HmiSection",
@@ -137,6 +139,7 @@ class Settings(BaseSettings):
     isobus: IsobusSection = Field(default_factory=IsobusSection)
     prescription: PrescriptionSection = Field(default_factory=PrescriptionSection)
     hopper_scale: HopperScaleSection = Field(default_factory=HopperScaleSection)
+    farm: FarmSection = Field(default_factory=FarmSection)  # names for ISO-XML export
 
     @classmethod
     def settings_customise_sources(
