@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto chromium demo test reliability lint typecheck bench schemas dist clean lock
+.PHONY: mosquitto chromium isoxml-js demo test reliability lint typecheck bench schemas dist clean lock
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -35,12 +35,23 @@ chromium:
 	  { (apt-get update -qq && apt-get install -y -qq chromium) || \
 	    { echo "chromium is needed for the dashboard's browser tests: apt-get install -y chromium" >&2; exit 1; }; }
 
+# isoxml-js (npm `isoxml`, locked in tools/isoxml-js/package-lock.json) reads the ISO-XML
+# export in the tests, as a second reader independent of ours; node_modules stays untracked
+ISOXML_JS := tools/isoxml-js/node_modules/.package-lock.json
+isoxml-js: $(ISOXML_JS)
+$(ISOXML_JS): tools/isoxml-js/package.json tools/isoxml-js/package-lock.json
+	@command -v npm >/dev/null 2>&1 || \
+	  { (apt-get update -qq && apt-get install -y -qq nodejs npm) || \
+	    { echo "node and npm are needed for the ISO-XML export tests: apt-get install -y nodejs npm" >&2; exit 1; }; }
+	cd tools/isoxml-js && npm ci --no-audit --no-fund --silent
+	touch $@
+
 demo: $(STAMP)
 	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || \
 	  echo "note: without mosquitto (make mosquitto) the demo runs without its web dashboard" >&2
 	$(BIN)/sowgate demo --dashboard
 
-test: $(STAMP) mosquitto chromium
+test: $(STAMP) mosquitto chromium isoxml-js
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/lint-imports
