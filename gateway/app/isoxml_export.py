@@ -40,6 +40,7 @@ import sys
 import tempfile
 import xml.etree.ElementTree as ET
 import zipfile
+from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -196,6 +197,8 @@ class TimeLogWriter:
         self.first_us: int | None = None
         self.last_us: int | None = None
         self._second = -1
+        self._off_us = round(SECTION_OFF_AFTER_S * 1_000_000)
+        self._recent: deque[tuple[int, int]] = deque()
         self._set((ACTUAL_WORK_STATE.number, d.device.det_id), 0)
         self._sections_changed()
         if d.target_spacing_m is not None:
@@ -241,30 +244,31 @@ class TimeLogWriter:
         self.quality_dirty.clear()
         self._set((TOTAL_AREA.number, d.device.det_id), round(self.sown_m * d.row_width_m))
 
-    def _tick(self, now_us: int) -> None:
-        """Once a second of record time (and at the end): rows idle for
-        ``SECTION_OFF_AFTER_S`` close, at the instant they did; quality is refreshed."""
-        off_after = round(SECTION_OFF_AFTER_S * 1_000_000)
-        closed = [r for r, last in self.row_last_us.items() if now_us - last >= off_after]
-        self._update_quality()
-        if not closed:
-            return
-        at = max(self.row_last_us[r] for r in closed) + off_after
-        for r in closed:
-            del self.row_last_us[r]
-        self._sections_changed()
-        for log in self.logs:
-            if log.pending:
-                self._write(log, at, [])
+    def _close_idle(self, now_us: int) -> None:
+        """Rows without a seed for ``SECTION_OFF_AFTER_S`` close, each with a record at the
+        instant it did (before the record at ``now_us``, so the log stays in time order).
+
+        ``_recent`` holds every seed's (time, row) in arrival order: a row's entry that is no
+        longer its last seed is stale and dropped; each seed is queued and dropped once."""
+        recent, off = self._recent, self._off_us
+        while recent and recent[0][0] + off <= now_us:
+            us, row = recent.popleft()
+            if self.row_last_us.get(row) != us:
+                continue
+            del self.row_last_us[row]
+            self._sections_changed()
+            for log in self.logs:
+                if log.pending:
+                    self._write(log, us + off, [])
 
     def _advance(self, us: int) -> None:
-        if self.first_us is None:
-            self.first_us = us
+        self.first_us = us if self.first_us is None else min(self.first_us, us)
         self.last_us = us if self.last_us is None else max(self.last_us, us)
+        self._close_idle(us)
         second = us // 1_000_000
-        if second > self._second:
+        if second > self._second:  # the rows' quality, once a second of record time
             self._second = second
-            self._tick(us)
+            self._update_quality()
 
     def _write(self, log: TimeLogFile, us: int, values: list[tuple[int, int]]) -> None:
         if log.pending:
@@ -287,6 +291,7 @@ class TimeLogWriter:
                          POSITION_STATUS.get(r[_FIX], STATUS_NOT_AVAILABLE))
         was_on = row in self.row_last_us
         self.row_last_us[row] = us
+        self._recent.append((us, row))
         if not was_on:
             self._sections_changed()
         self._set(self.speed_key, round(r[_SPEED] / 3.6 * 1000))
@@ -307,10 +312,12 @@ class TimeLogWriter:
         self._write(log, us, values)
 
     def applied(self, us: int, lat: float, lon: float, channel: str, target_kg_ha: float,
-                applied_kg_ha: float | None) -> None:
+                applied_kg_ha: float | None) -> bool:
+        """Log one as-applied row; False (not logged) for a channel the configuration no
+        longer has: there is no device element to log it against."""
         keys = self.channel_keys.get(channel)
         if keys is None:
-            return  # a channel no longer configured: its device element is gone
+            return False
         self._advance(us)
         status = self.position[2]
         self.position = (degrees_to_tlg(lat), degrees_to_tlg(lon), status)
@@ -319,13 +326,13 @@ class TimeLogWriter:
         if applied_kg_ha is not None:
             values.append((log.index[keys[1]], round(applied_kg_ha * 100)))
         self._write(log, us, values)
+        return True
 
     def finish(self) -> None:
         """Close every row at its end, with the final quality and totals."""
         if self.last_us is None:
             return
-        end = max([self.last_us, *self.row_last_us.values()])
-        self._tick(end + round(SECTION_OFF_AFTER_S * 1_000_000))
+        self._close_idle(self.end_us)
         self._update_quality()
         for log in self.logs:
             if log.pending:
@@ -333,8 +340,9 @@ class TimeLogWriter:
 
     @property
     def end_us(self) -> int:
+        """When the last row closed: the export's end."""
         assert self.last_us is not None
-        return self.last_us + round(SECTION_OFF_AFTER_S * 1_000_000)
+        return self.last_us + self._off_us
 
 
 # ---------------------------------------------------------------- sources
@@ -439,6 +447,7 @@ class IsoxmlResult:
     applied: int = 0
     records: int = 0
     logs: int = 0
+    unknown_channel: int = 0  # as-applied rows of channels no longer configured (left out)
 
 
 def write_taskdata(
@@ -467,9 +476,10 @@ def write_taskdata(
             if kind == 0:
                 writer.seed(payload)
                 result.seeds += 1
-            else:
-                writer.applied(us, *payload)
+            elif writer.applied(us, *payload):
                 result.applied += 1
+            else:
+                result.unknown_channel += 1
         writer.finish()
     except TimeLogError as exc:
         raise ExportError(f"a value does not fit the time log: {exc}") from None
@@ -548,6 +558,12 @@ def main_export_isoxml(args: argparse.Namespace) -> int:
         f"{result.records} time log records ({result.logs} time logs) to {where} (ISO-XML)",
         file=sys.stderr,
     )
+    if result.unknown_channel:
+        print(
+            f"left out {result.unknown_channel} as-applied rows of channels that are not in "
+            "the configuration ([[channel]] name): the device has no element for them",
+            file=sys.stderr,
+        )
     return 0
 
 

@@ -173,6 +173,8 @@ def test_rows_close_after_a_pause_and_reopen_with_the_next_seed(tmp_path: Path) 
             changes.append((tlg_time_to_utc_us(r.ms_of_day, r.days_since_1980),
                             values[work], values.get(condensed, 0) & 0xF,
                             values.get(width)))
+    times = [tlg_time_to_utc_us(r.ms_of_day, r.days_since_1980) for r in records]
+    assert times == sorted(times)  # the closing records are in time order too
     t0 = utc_to_us(T0)
     off = round(SECTION_OFF_AFTER_S * 1e6)
     last_before_pause = t0 + 1_900_000 + 2_000  # k = 19, row 2
@@ -301,3 +303,25 @@ def test_the_writer_can_be_fed_without_a_store(tmp_path: Path) -> None:
 
     result = write_taskdata(tmp_path, settings, chunks(), iter(()), "test")
     assert (result.seeds, result.applied, result.logs) == (len(drops()), 0, 1)
+
+
+def test_as_applied_rows_of_an_unknown_channel_are_counted_and_left_out(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from gateway.metering.prescription import AsAppliedLog, AsAppliedRow
+
+    cfg = make_store(tmp_path, drops(), '[[channel]]\nname = "seed"\ntarget_rate_kg_ha = 150\n'
+                     f'[prescription]\nas_applied_path = "{tmp_path}/applied.csv"\n'
+                     "enabled = false\n")
+    log = AsAppliedLog(tmp_path / "applied.csv")
+    for k, channel in enumerate(["seed", "fert", "seed"]):
+        log.record(AsAppliedRow((T0 + timedelta(seconds=k)).isoformat(), 126.63, 45.75,
+                                channel, "x", 150.0, 149.0))
+    assert export(cfg, tmp_path / "out") == 0
+    err = capsys.readouterr().err
+    assert "240 seed records and 2 as-applied rows" in err
+    assert "left out 1 as-applied rows of channels that are not in the configuration" in err
+    ((keys, records),) = logs(tmp_path / "out" / "TASKDATA").values()
+    rates = [dict(r.values)[keys.index((0x0007, "DET-3"))] for r in records
+             if keys.index((0x0007, "DET-3")) in dict(r.values)]
+    assert rates == [14900, 14900]  # 149 kg/ha in mg/m²
