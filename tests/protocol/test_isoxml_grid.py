@@ -68,9 +68,9 @@ def test_row_zero_is_the_south_and_columns_run_east() -> None:
 
 def test_a_binary_of_the_wrong_size_is_refused() -> None:
     g = GridGeometry(48.0, 15.0, 0.001, 0.001, columns=4, rows=3)
-    with pytest.raises(FrameError, match="47 bytes.*has 48"):
+    with pytest.raises(FrameError, match=r"47 bytes.*has 48"):
         decode_type2(bytes(47), g, 1)
-    with pytest.raises(FrameError, match="13 bytes.*has 12"):
+    with pytest.raises(FrameError, match=r"13 bytes.*has 12"):
         decode_type1(bytes(13), g)
     with pytest.raises(GridError, match=">= 1 value"):
         decode_type2(b"", g, 0)
