@@ -3,7 +3,12 @@ the bytes are the ones the Python ``isoxml`` package reads and writes."""
 
 from __future__ import annotations
 
+import shutil
 import struct
+import subprocess
+import xml.etree.ElementTree as ET
+import zipfile
+from pathlib import Path
 
 import pytest
 from hypothesis import given
@@ -20,6 +25,7 @@ from protocol.isoxml_grid import (
 )
 
 INT32 = st.integers(-(2**31), 2**31 - 1)
+TOOLS = Path(__file__).parents[2] / "tools" / "isoxml-js"
 
 
 @st.composite
@@ -123,3 +129,27 @@ def test_the_python_isoxml_package_reads_and_writes_the_same_bytes() -> None:
                     maximum_row=3, filename="GRD00002", type=iso.GridType.GridType1)
     codes = [[(r + c) % 3 + 1 for c in range(4)] for r in range(3)]
     assert from_numpy_array(np.array(codes, dtype=np.uint8), grd1) == encode_type1(codes, g)
+
+
+def test_a_grid_isoxml_js_made_from_geojson_reads_south_row_first(tmp_path: Path) -> None:
+    """isoxml-js (an independent writer) rasterises two zones, the southern half at 7000 and
+    the northern at 9000 (0.001 seeds/m²); our codec finds each at its place."""
+    node = shutil.which("node")
+    assert node is not None and (TOOLS / "node_modules" / "isoxml").is_dir(), (
+        "isoxml-js is not installed: run `make isoxml-js` (needs node and npm)")
+    out = tmp_path / "grid.zip"
+    subprocess.run([node, str(TOOLS / "make_grid.js"), str(out)], check=True, timeout=120)
+    with zipfile.ZipFile(out) as z:
+        root = ET.fromstring(z.read("TASKDATA/TASKDATA.XML"))
+        grd = root.find("TSK/GRD")
+        assert grd is not None and grd.get("I") == "2"
+        g = GridGeometry(float(grd.get("A", "")), float(grd.get("B", "")),
+                         float(grd.get("C", "")), float(grd.get("D", "")),
+                         int(grd.get("E", "")), int(grd.get("F", "")))
+        cells = decode_type2(z.read(f"TASKDATA/{grd.get('G')}.bin"), g, 1)
+    assert int(grd.get("H", "")) == g.cells * 4
+    for lat, lon, rate in ((48.1003, 15.1020, 7000), (48.1017, 15.1020, 9000)):
+        cell = g.cell_of(lat, lon)
+        assert cell is not None
+        assert cells[cell[0]][cell[1]] == (rate,), (lat, lon)
+    assert cells[0][g.columns // 2] == (7000,) and cells[-1][g.columns // 2] == (9000,)
