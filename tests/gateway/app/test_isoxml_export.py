@@ -325,3 +325,32 @@ def test_as_applied_rows_of_an_unknown_channel_are_counted_and_left_out(
     rates = [dict(r.values)[keys.index((0x0007, "DET-3"))] for r in records
              if keys.index((0x0007, "DET-3")) in dict(r.values)]
     assert rates == [14900, 14900]  # 149 kg/ha in mg/m²
+
+
+@pytest.fixture
+def full_disk(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Path | None]:
+    """A 2 MiB tmpfs with its last bytes taken; None when the test already ran (and passed)
+    in a mount namespace (tests/tiny_disk.py)."""
+    from tests.tiny_disk import fill, may_mount, run_in_mount_namespace, tiny_tmpfs
+
+    if not may_mount():
+        run_in_mount_namespace(request)
+        yield None
+        return
+    with tiny_tmpfs(tmp_path / "usb") as path:
+        fill(path)
+        yield path
+
+
+@pytest.mark.parametrize("as_zip", [False, True], ids=["folder", "zip"])
+def test_an_export_to_a_full_disk_fails_and_leaves_no_half_task(
+    tmp_path: Path, full_disk: Path | None, as_zip: bool, capsys: pytest.CaptureFixture[str]
+) -> None:
+    if full_disk is None:
+        return
+    cfg = make_store(tmp_path, drops(seconds=20))
+    before = sorted(p.name for p in full_disk.iterdir())
+    target = full_disk / "task.zip" if as_zip else full_disk
+    assert export(cfg, target, *(["--zip"] if as_zip else [])) == 1
+    assert "No space left on device" in capsys.readouterr().err
+    assert sorted(p.name for p in full_disk.iterdir()) == before  # no TASKDATA, no temp
