@@ -154,6 +154,9 @@ class PrescriptionMap:
         if not zones:
             raise PrescriptionError(f"{source}: the map has no polygons")
         self.source = source
+        # rates outside every zone, where the map says (an ISO-XML task's default or
+        # out-of-field zone); an attribute not here falls back to the caller's default
+        self.outside: dict[str, float] = {}
         self.zones = list(zones)
         self._tree = STRtree([z.polygon for z in self.zones])
         self.attributes = set.intersection(*(set(z.rates) for z in self.zones))
@@ -204,10 +207,15 @@ class PrescriptionMap:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], attributes: Sequence[str]) -> PrescriptionMap:
-        """Load ``.geojson``/``.json`` or ``.shp`` (with its .dbf/.shx, optional .prj)."""
+        """Load ``.geojson``/``.json`` or ``.shp`` (with its .dbf/.shx, optional .prj), or an
+        ISO-XML TaskData folder or zip (``gateway.metering.isoxml_prescription``)."""
+        from gateway.metering.isoxml_prescription import is_taskdata
+
         p = Path(path)
         if not p.exists():
             raise PrescriptionError(f"{p}: prescription map not found")
+        if is_taskdata(p):
+            return cls._load_taskdata(p, attributes)
         suffix = p.suffix.lower()
         if suffix in (".geojson", ".json"):
             try:
@@ -218,6 +226,37 @@ class PrescriptionMap:
         if suffix == ".shp":
             return cls._load_shapefile(p, attributes)
         raise PrescriptionError(f"{p}: unsupported map format {suffix!r} (use .geojson or .shp)")
+
+    @classmethod
+    def _load_taskdata(cls, p: Path, attributes: Sequence[str]) -> PrescriptionMap:
+        from gateway.metering.isoxml_prescription import (
+            TaskDataError,
+            count_per_area_products,
+            read_taskdata,
+        )
+
+        try:
+            plan = read_taskdata(p)
+        except TaskDataError as exc:
+            raise PrescriptionError(str(exc)) from None
+        given = set.intersection(*(set(rates) for _, rates in plan.features))
+        for attr in attributes:
+            if attr in given:
+                continue
+            if attr in count_per_area_products(p):
+                raise PrescriptionError(
+                    f"{p}: {attr!r} is prescribed as seeds per area (DDI 000B); sowgate's "
+                    "channels meter kg/ha and the plan gives no seed weight to convert it: "
+                    "export the plan as mass per area (DDI 0006)"
+                )
+            have = ", ".join(sorted(given)) or "none"
+            raise PrescriptionError(
+                f"{p}: no mass-per-area rate {attr!r} in every zone (the zones give: {have}); "
+                "[[channel]] prescription_attribute names the plan's product"
+            )
+        loaded = cls.from_features(plan.features, attributes, str(p))
+        loaded.outside = {a: plan.outside[a] for a in attributes if a in plan.outside}
+        return loaded
 
     @classmethod
     def _load_shapefile(cls, p: Path, attributes: Sequence[str]) -> PrescriptionMap:
@@ -250,7 +289,9 @@ class PrescriptionMap:
         if attribute not in self.attributes:
             raise PrescriptionError(f"{self.source}: map has no rate attribute {attribute!r}")
         zone = self.zone_at(lon, lat)
-        return default if zone is None else zone.rates[attribute]
+        if zone is None:
+            return self.outside.get(attribute, default)
+        return zone.rates[attribute]
 
     def rate_ahead(
         self,

@@ -1,7 +1,7 @@
 // Writes a TaskData zip with a type 2 grid made by isoxml-js from a GeoJSON (two zones: a
 // southern and a northern half at different seed rates), for the grid codec's test to read
 // back: an independent writer's idea of row order and cell values.
-// Usage: node make_grid.js OUT.zip
+// Usage: node make_grid.js OUT.zip [DDI]   (default 000B, count per area; 0006: mass per area)
 'use strict'
 const { writeFileSync } = require('fs')
 const { ISOXMLManager, TAGS } = require('isoxml')
@@ -25,7 +25,7 @@ async function main () {
     ]
   }
   const pdv = manager.createEntityFromAttributes(TAGS.ProcessDataVariable, {
-    ProcessDataDDI: '000B', ProcessDataValue: 0
+    ProcessDataDDI: process.argv[3] || '000B', ProcessDataValue: 0
   })
   task.addGridFromGeoJSON(geoJSON, [pdv], ['RATE'])
   manager.registerEntity(task)
