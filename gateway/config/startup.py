@@ -119,9 +119,14 @@ def input_file_problems(settings: Settings) -> list[str]:
                 ("mqtt.tls.cert_file", mqtt.tls.cert_file),
                 ("mqtt.tls.key_file", mqtt.tls.key_file),
             ]
-    if settings.prescription.enabled:
-        files.append(("prescription.path", settings.prescription.path))
     problems = []
+    rx = settings.prescription.path
+    if settings.prescription.enabled:
+        if rx is not None and Path(rx).is_dir():  # an ISO-XML TaskData folder
+            if not os.access(rx, os.R_OK | os.X_OK):
+                problems.append(f"prescription.path: the folder is not readable (got {rx!r})")
+        else:
+            files.append(("prescription.path", rx))
     for key, path in files:
         if path is None:
             continue
