@@ -263,8 +263,10 @@ class MeteringComponent:
     def target_rate(self, ch: ChannelSection, pose: Pose | None) -> float:
         default = self.rates.get(ch.name, ch.target_rate_kg_ha)
         p = self.prescription
-        if p is None or ch.prescription_attribute is None or pose is None:
+        if p is None or ch.prescription_attribute is None:
             return default
+        if pose is None:  # the map's position-lost rate if it has one (ISO-XML TSK I)
+            return p.position_lost.get(ch.prescription_attribute, default)
         return p.rate_ahead(pose, ch.prescription_attribute, default,
                             self.settings.prescription.lookahead_s, ch.outlet_behind_m,
                             ch.outlet_lateral_m)

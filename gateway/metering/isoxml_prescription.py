@@ -11,15 +11,14 @@ order of the PDVs of the zone ``GRD J``). ``PrescriptionMap.load`` reads them th
   a channel takes it by ``[[channel]] prescription_attribute = "<product>"``;
 - the task's default zone (``TSK H``) and out-of-field zone (``TSK J``) give the rate outside
   every zone (out-of-field first: a position outside the zones and the grid is outside the
-  field the plan covers); without them the channel's ``target_rate_kg_ha`` applies, as for a
-  GeoJSON map;
+  field the plan covers), its position-lost zone (``TSK I``) the rate while there is no
+  position; without them the channel's ``target_rate_kg_ha`` applies, as for a GeoJSON map;
 - a count-per-area plan (0x000B, seeds per area) is refused with the reason: sowgate's
   channels meter mass (kg/ha), and seeds/ha need the lot's thousand-kernel weight to become
   that, which the plan does not carry.
 
-Not read (refused or ignored with the reason): more than one task with zones (the file
-must say which to sow), grid cells of the position-lost zone (``TSK I``: sowgate keeps the
-last rate when GNSS is lost, as for any map).
+Refused with the reason: more than one task with zones (the file must say which to sow),
+grids that do not match their ``GRD`` (size, type, zone), zones without a polygon or cell.
 """
 
 from __future__ import annotations
@@ -51,6 +50,7 @@ class TaskDataMap:
 
     features: list[tuple[dict[str, Any], dict[str, float]]] = field(default_factory=list)
     outside: dict[str, float] = field(default_factory=dict)
+    position_lost: dict[str, float] = field(default_factory=dict)
 
 
 def is_taskdata(path: Path) -> bool:
@@ -88,6 +88,9 @@ def read_taskdata(path: Path) -> TaskDataMap:
         code = task.get(code_attr)
         if code is not None and code in rates:
             out.outside.update(rates[code])
+    lost = task.get("I")
+    if lost is not None and lost in rates:
+        out.position_lost.update(rates[lost])
     for code, zone in zones.items():
         for pln in zone.findall("PLN"):
             if pln.get("A") != "2":

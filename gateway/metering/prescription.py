@@ -157,6 +157,9 @@ class PrescriptionMap:
         # rates outside every zone, where the map says (an ISO-XML task's default or
         # out-of-field zone); an attribute not here falls back to the caller's default
         self.outside: dict[str, float] = {}
+        # rates while the position is lost (an ISO-XML task's position-lost zone); an
+        # attribute not here: the channel's own rate, as for any map
+        self.position_lost: dict[str, float] = {}
         self.zones = list(zones)
         self._tree = STRtree([z.polygon for z in self.zones])
         self.attributes = set.intersection(*(set(z.rates) for z in self.zones))
@@ -256,6 +259,9 @@ class PrescriptionMap:
             )
         loaded = cls.from_features(plan.features, attributes, str(p))
         loaded.outside = {a: plan.outside[a] for a in attributes if a in plan.outside}
+        loaded.position_lost = {
+            a: plan.position_lost[a] for a in attributes if a in plan.position_lost
+        }
         return loaded
 
     @classmethod

@@ -68,8 +68,8 @@ class PwmChannelPart:
         if self.prescription is None or ch.prescription_attribute is None:
             return None
         pose = self.pose()
-        if pose is None:
-            return None
+        if pose is None:  # the map's position-lost rate if it has one (ISO-XML TSK I)
+            return self.prescription.position_lost.get(ch.prescription_attribute)
         rate: float = self.prescription.rate_ahead(
             pose, ch.prescription_attribute, self.operator_rate(), self.lookahead_s,
             ch.outlet_behind_m, ch.outlet_lateral_m,

@@ -140,3 +140,28 @@ def test_a_grid_binary_of_the_wrong_size_is_refused(tmp_path: Path) -> None:
     grd.write_bytes(grd.read_bytes()[:-3])
     with pytest.raises(PrescriptionError, match="GRD00001: grid binary of"):
         PrescriptionMap.load(tmp_path / "stick", ["0006"])
+
+
+LOST = POLYGONS.replace('<TSK A="TSK1" B="Sow maize VR zones" G="1" H="1">',
+                        '<TSK A="TSK1" B="Sow maize VR zones" G="1" H="1" I="4">').replace(
+    "</TSK>", '<TZN A="4" B="position lost"><PDV A="0006" B="2800" C="PDT1"/></TZN></TSK>')
+
+
+def test_the_position_lost_zone_is_the_rate_without_a_position(tmp_path: Path) -> None:
+    from gateway.config import parse_config
+    from gateway.metering.channels import MeteringComponent
+
+    (tmp_path / "TASKDATA.XML").write_text(LOST)
+    plan = PrescriptionMap.load(tmp_path, ["maize"])
+    assert plan.position_lost == {"maize": pytest.approx(28.0)}
+    settings = parse_config({
+        "channel": [{"name": "seed", "product": "maize", "target_rate_kg_ha": 30.0,
+                     "node_id": 1, "prescription_attribute": "maize"}],
+    })
+    metering = MeteringComponent(settings, lambda: 5.0, lambda: True, lambda: None,
+                                 lambda _alarm: None, prescription=plan)
+    (ch,) = metering.channels
+    assert metering.target_rate(ch, None) == pytest.approx(28.0)  # not the channel's 30
+    (tmp_path / "TASKDATA.XML").write_text(POLYGONS)  # a plan without one: the channel's
+    metering.prescription = PrescriptionMap.load(tmp_path, ["maize"])
+    assert metering.target_rate(ch, None) == 30.0
