@@ -108,6 +108,10 @@ _US, _ROW, _LAT, _LON, _FIX, _SPEED, _SPACING = (
 Key = tuple[int, str]  # (DDI, DET id): one logged value
 
 
+class AsAppliedLogError(ExportError):
+    """The as-applied log has a row that is not one (a damaged file, not a bad request)."""
+
+
 @dataclass
 class TimeLogFile:
     """One ``TLGnnnnn``: its DLVs and the binary being written."""
@@ -375,7 +379,7 @@ def applied_events(
                        float(rec["target_kg_ha"]),
                        float(applied) if applied not in ("", None) else None)
             except (KeyError, TypeError, ValueError, ExportError) as exc:
-                raise ExportError(f"{path}:{n}: not an as-applied row ({exc})") from None
+                raise AsAppliedLogError(f"{path}:{n}: not an as-applied row ({exc})") from None
             if (lo is None or us >= lo) and (hi is None or us < hi):
                 yield us, 1, row
 
@@ -546,6 +550,9 @@ def main_export_isoxml(args: argparse.Namespace) -> int:
         for line in exc.problems:
             print(line, file=sys.stderr)
         return EXIT_USAGE
+    except AsAppliedLogError as exc:
+        print(f"sowgate export: {exc}", file=sys.stderr)
+        return EXIT_FAILED
     except ExportError as exc:
         print(f"sowgate export: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -354,3 +354,18 @@ def test_an_export_to_a_full_disk_fails_and_leaves_no_half_task(
     assert export(cfg, target, *(["--zip"] if as_zip else [])) == 1
     assert "No space left on device" in capsys.readouterr().err
     assert sorted(p.name for p in full_disk.iterdir()) == before  # no TASKDATA, no temp
+
+
+def test_a_damaged_as_applied_log_fails_naming_the_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = make_store(tmp_path, drops(), '[[channel]]\nname = "seed"\ntarget_rate_kg_ha = 150\n'
+                     f'[prescription]\nas_applied_path = "{tmp_path}/applied.csv"\n'
+                     "enabled = false\n")
+    (tmp_path / "applied.csv").write_text(
+        "time,lon,lat,channel,product,target_kg_ha,applied_kg_ha\n"
+        "2026-05-02T06:00:00+00:00,126.63,45.75,seed,x,150,149\n"
+        "2026-05-02T06:00:01+00:00,126.63,45.75,seed,x,lots,149\n")
+    assert export(cfg, tmp_path / "out") == 1
+    assert "applied.csv:3: not an as-applied row" in capsys.readouterr().err
+    assert list((tmp_path / "out").iterdir()) == []
