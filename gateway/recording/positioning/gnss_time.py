@@ -212,9 +212,10 @@ class GnssTimeGuard:
         self._last_gnss = gnss
         self._cand_n = 0
         if leap_second:
-            midnight = float(math.floor(gnss - self._leap_shift_total()))
+            # gnss − 1 is the stamp's 23:59:59.x on the scale; the midnight after it in POSIX
+            midnight = float(math.floor(self.posix_of(gnss - 1.0))) + 1.0
             if not self._leaps or self._leaps[-1][0] != midnight:
-                self._leaps.append((midnight, midnight + self._leap_shift_total()))
+                self._leaps.append((midnight, math.floor(gnss)))
                 self.events.leap_seconds += 1
                 self.events.last_leap_mono = t_mono
                 message = (
@@ -224,9 +225,6 @@ class GnssTimeGuard:
         return TimeCheck(verdict, gnss, 0.0, weeks, leap_second, message)
 
     # ------------------------------------------------------------ the continuous scale
-
-    def _leap_shift_total(self) -> float:
-        return float(len(self._leaps))
 
     def _leap_shift(self, posix_s: float) -> float:
         """Leap seconds seen before ``posix_s`` (their midnight at or before it)."""
