@@ -131,6 +131,7 @@ class GnssTimeGuard:
         self._cand_delay = 0.0
         self._cand_n = 0
         self._cand_last = -math.inf
+        self._cand_saved: tuple[int, float | None] = (0, None)  # outlier events before it
         # leap seconds seen: (POSIX midnight after it, scale value at its start)
         self._leaps: list[tuple[float, float]] = []
         self.events = TimeEvents()
@@ -180,6 +181,7 @@ class GnssTimeGuard:
             self._cand_delay = min(self._cand_delay, delay)
         else:
             self._cand_n, self._cand_delay = 1, delay
+            self._cand_saved = (self.events.outliers, self.events.last_outlier_mono)
         self._cand_last = gnss
         if self._cand_n >= self.step_confirm_epochs:
             step = min(self._delays) - self._cand_delay
@@ -190,6 +192,8 @@ class GnssTimeGuard:
             ev = self.events
             ev.steps += 1
             ev.last_step_mono, ev.last_step_s = t_mono, step
+            # the epochs that confirmed the step were the new time line, not outliers
+            ev.outliers, ev.last_outlier_mono = self._cand_saved
             return TimeCheck(
                 "step", gnss, step, weeks, leap_second,
                 f"GNSS time stepped by {step:+.1f} s ({self.step_confirm_epochs} epochs in a "

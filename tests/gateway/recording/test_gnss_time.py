@@ -12,7 +12,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway.recording.positioning import Landing, SeedPositioner
+from gateway.core.alarms import AlarmBoard
+from gateway.recording.health import TIME_EVENT_ALARM_S, RecordingHealth
+from gateway.recording.positioning import Landing, SeedPositioner, TimeEvents
 from gateway.recording.positioning.gnss_time import (
     EARLIEST_PLAUSIBLE_UTC,
     GPS_WEEK_ROLLOVER_S,
@@ -240,3 +242,69 @@ def test_a_leap_second_keeps_every_seed_interpolated_and_stamps_in_order() -> No
     for la in out:
         by_row.setdefault(la.drop.row, []).append(la.drop.utc)
     assert all(stamps == sorted(stamps) for stamps in by_row.values())
+
+
+# ---------------------------------------------------------------- alarms
+
+
+class _Recorder:
+    """The part of SeedRecorder that RecordingHealth reads, around a real guard."""
+
+    store_error = None
+    records_lost = 0
+
+    def __init__(self, guard: GnssTimeGuard) -> None:
+        self.guard = guard
+
+    @property
+    def gnss_time(self) -> TimeEvents:
+        return self.guard.events
+
+    def implausible_rows(self, within_s: float) -> list[int]:
+        return []
+
+
+@pytest.mark.parametrize(
+    ("code", "severity", "fault"),
+    [
+        ("gnss.time_outlier", "warning", lambda k, s: s + 7200.0 if k in (12, 13) else s),
+        ("gnss.time_step", "warning", lambda k, s: s - 3600.0 if k >= 12 else s),
+        ("gnss.week_rollover", "warning", lambda k, s: s - GPS_WEEK_ROLLOVER_S),
+    ],
+)
+def test_each_kind_of_bad_time_raises_its_own_alarm_and_clears_a_minute_later(
+    code: str, severity: str, fault: Callable[[int, float], float]
+) -> None:
+    guard = GnssTimeGuard()
+    now = [MONO0]
+    alarms = AlarmBoard()
+    health = RecordingHealth(alarms, recorder=_Recorder(guard), clock=lambda: now[0])
+    for k in range(30):
+        now[0] = MONO0 + 0.1 * k + 0.04
+        guard.judge(now[0], fault(k, T0 + 0.1 * k))
+        health.check()
+    active = {a.code: a.severity for a in alarms.active}
+    assert active == {code: severity}
+    now[0] += TIME_EVENT_ALARM_S + 1.0
+    health.check()
+    assert not alarms.active
+
+
+def test_a_leap_second_raises_an_info_alarm() -> None:
+    guard = GnssTimeGuard()
+    now = [MONO0]
+    alarms = AlarmBoard()
+    health = RecordingHealth(alarms, recorder=_Recorder(guard), clock=lambda: now[0])
+    midnight = datetime(2027, 1, 1, tzinfo=UTC).timestamp()
+    for k in range(40):
+        now[0] = MONO0 + 0.1 * k
+        real = midnight - 2.0 + 0.1 * k
+        if real < midnight:
+            guard.judge(now[0], real)
+        elif real < midnight + 1.0:
+            guard.judge(now[0], real - 1.0, leap_second=True)
+        else:
+            guard.judge(now[0], real - 1.0)
+        health.check()
+    assert {a.code: a.severity for a in alarms.active} == {"gnss.leap_second": "info"}
+    assert guard.events.outliers == guard.events.steps == 0
