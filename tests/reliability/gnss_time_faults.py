@@ -44,7 +44,9 @@ MIDNIGHT = datetime(2027, 1, 1, tzinfo=UTC)  # a leap second is inserted before 
 LEAP_AFTER_S = 45.0  # drive seconds from the start to that midnight
 SOW_S = 110.0
 ORIGIN_ALT_M = 100.0  # the emulator's default origin height
-STAMP_MATCH_S = 0.04  # a record's stamp vs the truth's landing instant (model ≈ simulator)
+# A record's stamp vs the truth's landing instant: the model's fall time and the seed line's
+# arrival stamps on a loaded host put it tens of ms off; the faults judged here are 1 s to 2 h.
+STAMP_MATCH_S = 0.15
 ALARM_WAIT_S = 4.0  # for the alarm to reach the broker after the fault (hold 1 s, 1 Hz state)
 
 
@@ -168,6 +170,8 @@ def _judge(
     it landed, where it landed, not extrapolated (but in ``skip``)."""
     seeds = [s for s in tubes.truth if window[0] <= edge_mono(tubes, s.t_land) <= window[1]]
     missing = far = extrapolated = 0
+    misses: list[str] = []
+    stamped: list[datetime] = []  # the expected stamps of the seeds judged
     worst = 0.0
     leap_end = MIDNIGHT - timedelta(microseconds=1)
     for s in seeds:
@@ -183,11 +187,18 @@ def _judge(
             near += _stamped_near(recs, leap_end)
         if not near:
             missing += 1
+            if len(misses) < 4:
+                closest = min(recs, key=lambda r: abs((r.utc - expected).total_seconds()),
+                              default=None)
+                misses.append(f"row {s.row} landed {expected:%H:%M:%S.%f}: nearest record "
+                              + ("none" if closest is None else
+                                 f"{(closest.utc - expected).total_seconds():+.3f} s, "
+                                 f"{_error_m(closest, s):.2f} m"))
             continue
-        if any(r.utc == leap_end for r in near):  # several seeds share the stamp: by place
-            best = min(near, key=lambda r: _error_m(r, s))
-        else:
-            best = min(near, key=lambda r: abs((r.utc - expected).total_seconds()))
+        # neighbours in the row are stamped ~0.1 s apart: the seed's record is the closest
+        # in space (that no record is lost is counted below)
+        best = min(near, key=lambda r: _error_m(r, s))
+        stamped.append(expected)
         err = _error_m(best, s)
         worst = max(worst, err)
         far += err > GNSS_TIME_POSITION_M
@@ -197,10 +208,15 @@ def _judge(
     res.lost = f"{missing} of {judged} seeds of the window without a record at their stamp"
     res.check(judged > 20, f"only {judged} seeds landed in the window")
     res.check(missing == 0, f"{missing} of {judged} seeds have no record stamped when they "
-                            "landed (lost, or stamped in another time)")
+                            "landed (lost, or stamped in another time): " + "; ".join(misses))
     res.check(extrapolated == 0, f"{extrapolated} of {judged} records extrapolated or without fix")
     res.check(far == 0, f"{far} of {judged} records more than {GNSS_TIME_POSITION_M:g} m from "
                         f"where the seed landed (worst {worst:.2f} m)")
+    if stamped:
+        lo, hi = min(stamped), max(stamped)
+        in_range = sum(1 for recs in records.values() for r in recs if lo <= r.utc <= hi)
+        res.check(in_range >= 0.98 * len(stamped),
+                  f"{in_range} records stamped in the window for {len(stamped)} seeds")
     res.duty = "—"
     res.notes.append(f"{judged} seeds judged, worst position error {worst * 100:.1f} cm")
 
