@@ -308,3 +308,23 @@ def test_a_leap_second_raises_an_info_alarm() -> None:
         health.check()
     assert {a.code: a.severity for a in alarms.active} == {"gnss.leap_second": "info"}
     assert guard.events.outliers == guard.events.steps == 0
+
+
+def test_each_bad_time_is_logged_once_not_once_per_epoch(caplog: pytest.LogCaptureFixture) -> None:
+    """An outlier run, a step and a rollover each leave one line in the journal."""
+    def faults(k: int, e: LeapEpoch) -> LeapEpoch:
+        if k in (10, 11):
+            return replace(e, utc=e.utc + timedelta(hours=2))
+        if 20 <= k < 30:
+            return replace(e, utc=e.utc - ROLLOVER)
+        if k >= 40:
+            return replace(e, utc=e.utc - timedelta(hours=1))
+        return e
+
+    with caplog.at_level("WARNING", logger="gateway.recording.positioning.positioner"):
+        sow(faults)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len([m for m in lines if "rejected: 7200.0 s ahead" in m]) == 1
+    assert len([m for m in lines if "1024 weeks early" in m]) == 1
+    assert len([m for m in lines if "GNSS time stepped by -3600.0 s" in m]) == 1
+    assert len(lines) == 4  # and the first epoch of the step's run, rejected before it
