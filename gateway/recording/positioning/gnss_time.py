@@ -18,9 +18,10 @@ rollover bug stamped records 2007. So each epoch is judged before it is used:
 - **step**: :data:`STEP_CONFIRM_EPOCHS` outliers in a row that agree with each other (one
   new mapping, time advancing) are not outliers but the receiver's clock stepping (a restart,
   a new almanac): the mapping is re-established on them, with a log line and an alarm.
-- **GPS week rollover**: a date before :data:`EARLIEST_PLAUSIBLE_UTC` (this software's own
-  release: no epoch it receives can be older) is a receiver counting weeks modulo 1024; it is
-  corrected by adding 1024 weeks until it is not, and alarmed (the firmware needs updating).
+- **GPS week rollover**: a date before :data:`EARLIEST_PLAUSIBLE_UTC` (older than any field
+  this software has sown, or any log it may replay) is a receiver counting weeks modulo
+  1024; it is corrected by adding 1024 weeks until it is not, and alarmed (the firmware
+  needs updating). True dates from then for 1024 weeks (to 2039) are told apart.
 - **leap second**: an epoch at 23:59:60 (``GnssEpoch.leap_second``) continues the time line
   (it is one second after 23:59:59), and every later epoch is counted one second further on,
   so the mapping never sees a step. Records are stamped in POSIX time, which has no second
@@ -54,8 +55,9 @@ REFERENCE_WINDOW_EPOCHS: Final = 100
 # GPS counts weeks in 10 bits: a receiver that does not know its era is 1024 weeks early.
 GPS_WEEK_ROLLOVER_WEEKS: Final = 1024
 GPS_WEEK_ROLLOVER_S: Final = GPS_WEEK_ROLLOVER_WEEKS * 7 * 86_400.0
-# No epoch this build receives can be older than its release: earlier is a week rollover.
-EARLIEST_PLAUSIBLE_UTC: Final = datetime(2026, 1, 1, tzinfo=UTC)
+# No epoch this software receives (or replays from a log) is older: earlier is a week
+# rollover. After the 2019 rollover, and 1024 weeks of true dates from it reach 2039.
+EARLIEST_PLAUSIBLE_UTC: Final = datetime(2020, 1, 1, tzinfo=UTC)
 # Where a record landing inside a leap second is stamped: this much before the midnight.
 LEAP_SECOND_STAMP_BEFORE_S: Final = 1e-6
 
