@@ -6,9 +6,17 @@ together, with *when they arrived on this host* — that arrival time, not the r
 is what a seed-tube edge (stamped on the same monotonic clock) can be compared with.
 
 An epoch is emitted as soon as every sentence kind in ``required`` has been seen for its UTC
-time, or, if one never comes (heading lost, line corrupted), when a newer UTC time begins or
-the line goes quiet; it then carries what it had. A sentence for an epoch already emitted is
-counted as ``late`` and dropped, so consumers see each UTC instant at most once, in order.
+time, or, if one never comes (heading lost, line corrupted), when another UTC time begins or
+the line goes quiet; it then carries what it had. A sentence for an epoch already emitted (up
+to ``LATE_WINDOW_MS`` behind the newest) is counted as ``late`` and dropped. A stamp further
+from the newest is not judged here: it is a new time line (a bad stamp, the receiver's time
+stepping), assembled like any other, and the position model decides whether to believe it
+(``gateway.recording.positioning.gnss_time``). So one epoch stamped hours ahead cannot make
+every later, correct one "late".
+
+A UTC leap second (``235960.xx``) is an epoch of its own, after 23:59:59.9 and before
+00:00:00.0 (``GnssEpoch.leap_second``), and a heading log of that instant is matched to it
+(``protocol.unicore.place_in_leap_second``).
 """
 
 from __future__ import annotations
@@ -18,7 +26,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, date, datetime, timedelta
 from datetime import time as dtime
 from typing import Final, Literal
@@ -28,15 +36,20 @@ from drivers.log_limit import RateLimitedLog
 from drivers.serial_line import SerialLine
 from drivers.tasks import StartClose, cancel_and_wait
 from protocol.gnss import REASON_UNKNOWN, GnssEvent, GnssLineDecoder, Rejected
-from protocol.nmea import Gga, Hdt, Rmc, Ths, Vtg
-from protocol.unicore import GPS_UTC_LEAP_S, Heading
+from protocol.nmea import MS_PER_DAY, Gga, Hdt, Rmc, Ths, Vtg, utc_ms_of_day
+from protocol.unicore import GPS_UTC_LEAP_S, Heading, place_in_leap_second
 
 log = logging.getLogger(__name__)
 
 Fix = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
 
 READ_CHUNK_BYTES: Final = 4096
-DAY_MS: Final = 86_400_000
+DAY_MS: Final = MS_PER_DAY
+# the keys of a day: its milliseconds, and the second 60 of a leap second after them
+KEY_SPAN_MS: Final = DAY_MS + 1000
+# A sentence at most this far behind the newest epoch is a straggler of an epoch already
+# emitted (late); further back it starts a new time line.
+LATE_WINDOW_MS: Final = 2000
 DEFAULT_REQUIRED: Final = frozenset({"RMC", "GGA", "HEADING"})
 EPOCH_MAX_WAIT_S: Final = 0.3  # an open epoch older than this is emitted when the line is quiet
 SILENCE_RECONNECT_S: Final = 5.0  # no byte for this long: reopen the port (adapter wedged)
@@ -74,6 +87,8 @@ class GnssEpoch:
     # positive when the secondary is higher; None without a Unicore heading solution. The
     # machine's roll or pitch depending on how the antennas sit (gnss.heading_offset_deg).
     baseline_pitch_deg: float | None = None
+    # second 60 of 23:59 (a UTC leap second): ``utc`` then holds 23:59:59 + the fraction
+    leap_second: bool = False
 
 
 def fix_from_gga_quality(quality: int) -> Fix:
@@ -100,13 +115,10 @@ class _Partial:
     heading: Heading | Hdt | Ths | None = None
 
 
-def _ms_of_day(t: dtime) -> int:
-    return ((t.hour * 60 + t.minute) * 60 + t.second) * 1000 + round(t.microsecond / 1000)
-
-
-def _newer(a: int, b: int) -> bool:
-    """``a`` is later than ``b`` on the daily clock, allowing for midnight."""
-    return 0 < (a - b) % DAY_MS < DAY_MS // 2
+def _behind(a: int, b: int) -> bool:
+    """``a`` is ``b`` or up to ``LATE_WINDOW_MS`` before it on the daily clock (midnight and
+    a leap second allowed for)."""
+    return (b - a) % KEY_SPAN_MS <= LATE_WINDOW_MS
 
 
 class EpochAssembler:
@@ -130,6 +142,7 @@ class EpochAssembler:
         self._open: dict[int, _Partial] = {}
         self._last_key: int | None = None
         self._last_utc: datetime | None = None
+        self._leap_midnight: datetime | None = None  # the end of a leap second in progress
         self.counts: Counter[str] = Counter()  # epochs, late, untimed, no_position
 
     def add(self, event: GnssEvent, t_mono: float) -> list[GnssEpoch]:
@@ -138,19 +151,22 @@ class EpochAssembler:
             return self._add_untimed(event)
         if isinstance(event, Heading):
             utc = event.utc(event.leap_s if event.leap_s is not None else self.leap_s)
-            key = _ms_of_day(utc.time())
+            utc, leap = place_in_leap_second(utc, self._leap_midnight)
+            key = utc_ms_of_day(utc.time(), leap)
             day: date | None = utc.date()
         else:
             if event.utc is None:
                 self.counts["untimed"] += 1  # no fix yet: receiver leaves the time empty
                 return []
-            key = _ms_of_day(event.utc)
+            key = utc_ms_of_day(event.utc, event.leap_second)
             day = event.date if isinstance(event, Rmc) else None
-        if self._last_key is not None and not _newer(key, self._last_key):
+            self._note_leap_second(event, day)
+        if self._last_key is not None and _behind(key, self._last_key):
             self.counts["late"] += 1
             return []
-        out = [self._emit(k) for k in sorted(self._open, key=lambda k: (k - key) % DAY_MS)
-               if _newer(key, k)]
+        # what is open for another instant is complete unless it is just after this one
+        out = [self._emit(k) for k in sorted(self._open, key=lambda k: self._open[k].t_first)
+               if k != key and not _behind(key, k)]
         partial = self._open.get(key)
         if partial is None:
             partial = self._open[key] = _Partial(key, t_mono)
@@ -166,6 +182,17 @@ class EpochAssembler:
         if partial.kinds >= self.required:
             out.append(self._emit(key))
         return [e for e in out if e is not None]
+
+    def _note_leap_second(self, event: Rmc | Gga, day: date | None) -> None:
+        """Second 60 begins: headings of it are matched to it; once it is over, a heading
+        without its own leap count is converted with one more (``leap_s``)."""
+        if event.leap_second:
+            if self._leap_midnight is None:
+                on = day or (self._last_utc.date() if self._last_utc else self._today())
+                self._leap_midnight = datetime.combine(on, dtime(), UTC) + timedelta(days=1)
+        elif self._leap_midnight is not None:
+            self._leap_midnight = None
+            self.leap_s += 1
 
     def _add_untimed(self, event: Hdt | Ths | Vtg) -> list[GnssEpoch]:
         """HDT/THS/VTG carry no time: they belong to the epoch whose burst is in progress."""
@@ -199,7 +226,8 @@ class EpochAssembler:
         return [e for e in (self._emit(k) for k in keys) if e is not None]
 
     def _utc(self, p: _Partial) -> datetime:
-        tod = timedelta(milliseconds=p.ms_of_day)
+        # second 60 is carried as 23:59:59 + fraction (GnssEpoch.leap_second)
+        tod = timedelta(milliseconds=p.ms_of_day - (1000 if p.ms_of_day >= DAY_MS else 0))
         if p.day is not None:
             return datetime.combine(p.day, dtime(), UTC) + tod
         if self._last_utc is not None:
@@ -211,11 +239,13 @@ class EpochAssembler:
 
     def _emit(self, key: int) -> GnssEpoch | None:
         p = self._open.pop(key)
-        if self._last_key is None or _newer(key, self._last_key):
+        if self._last_key is None or not _behind(key, self._last_key):
             self._last_key = key
         utc = self._utc(p)
         self._last_utc = utc
         epoch = _build_epoch(p, utc, self.heading_offset_deg)
+        if epoch is not None and key >= DAY_MS:
+            epoch = replace(epoch, leap_second=True)
         self.counts["epochs" if epoch is not None else "no_position"] += 1
         return epoch
 

@@ -26,6 +26,9 @@ DEGREES: Final = (0.0, 360.0)
 
 SUPPORTED_SENTENCES: Final = frozenset({"RMC", "GGA", "VTG", "HDT", "THS"})
 
+# hhmm60(.ss): second 60, a leap second; UTC inserts one only as 23:59:60
+_LEAP_SECOND = re.compile(r"^(?P<hhmm>\d{4})60(?P<frac>\.\d{1,6})?$")
+MS_PER_DAY: Final = 86_400_000
 _ADDRESS = re.compile(r"^(?P<talker>[A-Z]{2})(?P<msg>[A-Z][A-Z0-9]{2,})$")
 _TRAILER = re.compile(r"\*(?P<cs>[0-9A-Fa-f]{2})$")
 
@@ -59,6 +62,9 @@ class Rmc:
     speed_kmh: float | None
     course_deg: float | None
     mode: str | None  # NMEA 2.3: A autonomous, D differential, R RTK fixed, F RTK float, N none
+    # ``235960.xx``: a UTC leap second, second 60 of 23:59, which ``datetime.time`` cannot
+    # hold; ``utc`` then carries 23:59:59 with the fraction (see utc_ms_of_day)
+    leap_second: bool = False
 
     kind: ClassVar[str] = "RMC"
 
@@ -77,6 +83,7 @@ class Gga:
     alt_m: float | None  # above mean sea level (geoid)
     geoid_sep_m: float | None
     diff_age_s: float | None
+    leap_second: bool = False  # as Rmc.leap_second
 
     kind: ClassVar[str] = "GGA"
 
@@ -261,13 +268,39 @@ class _Fields:
         return (-lat_f if hemis[0] == "S" else lat_f), (-lon_f if hemis[1] == "W" else lon_f)
 
 
-def _time(fields: _Fields, index: int = 0) -> time | None:
+def utc_ms_of_day(utc: time, leap_second: bool = False) -> int:
+    """Milliseconds since 00:00 UTC; second 60 of a leap second counts on past 86 400 000,
+    so 23:59:60.5 is after 23:59:59.9 and before the next day's 00:00:00.0."""
+    ms = ((utc.hour * 60 + utc.minute) * 60 + utc.second) * 1000 + round(utc.microsecond / 1000)
+    return ms + 1000 if leap_second else ms
+
+
+def parse_leap_second(raw: str) -> time | None:
+    """``235960.xx`` as 23:59:59.xx (the caller flags it as the leap second), None when
+    ``raw`` is not second 60. Second 60 anywhere but 23:59 is no UTC time: a bad field."""
+    match = _LEAP_SECOND.match(raw)
+    if match is None:
+        return None
+    if match.group("hhmm") != "2359":
+        raise FieldError(f"time {raw!r}: second 60 exists only as 23:59:60 (a leap second)")
+    frac = match.group("frac") or ".0"
+    return time(23, 59, 59, round(float(frac) * 1e6) if len(frac) > 1 else 0)
+
+
+def _time(fields: _Fields, index: int = 0) -> tuple[time | None, bool]:
+    """(time, leap second?) of the sentence's time field."""
+    try:
+        leap = parse_leap_second(fields.raw[index]) if index < len(fields.raw) else None
+    except FieldError as exc:
+        raise FieldError(f"{fields.name}: field {exc}") from exc
+    if leap is not None:
+        return leap, True
     value = fields.opt("time", index)
     if value is None:
-        return None
+        return None, False
     if not isinstance(value, time):
         raise FieldError(f"{fields.name}: field time: bad value {fields.raw[index]!r}")
-    return value
+    return value, False
 
 
 def _rmc(talker: str, f: _Fields) -> Rmc:
@@ -281,9 +314,10 @@ def _rmc(talker: str, f: _Fields) -> Rmc:
     day = f.opt("date", 8)
     if day is not None and not isinstance(day, date):
         raise FieldError(f"{f.name}: field date: bad value {f.raw[8]!r}")
+    utc, leap = _time(f)
     return Rmc(
         talker=talker,
-        utc=_time(f),
+        utc=utc,
         date=day,
         valid=status == "A",
         lat=lat,
@@ -291,6 +325,7 @@ def _rmc(talker: str, f: _Fields) -> Rmc:
         speed_kmh=None if knots is None else knots * KMH_PER_KNOT,
         course_deg=f.opt_float("cog", 7, *DEGREES),
         mode=f.opt_str("posMode", 11),
+        leap_second=leap,
     )
 
 
@@ -300,9 +335,10 @@ def _gga(talker: str, f: _Fields) -> Gga:
     if quality > 0 and lat is None:
         raise MissingFieldError(f"{f.name}: missing field lat (quality {quality} needs one)")
     num_sv = f.opt("numSV", 6)
+    utc, leap = _time(f)
     return Gga(
         talker=talker,
-        utc=_time(f),
+        utc=utc,
         lat=lat,
         lon=lon,
         quality=quality,
@@ -311,6 +347,7 @@ def _gga(talker: str, f: _Fields) -> Gga:
         alt_m=f.opt_float("alt", 8),
         geoid_sep_m=f.opt_float("sep", 10),
         diff_age_s=f.opt_float("diffAge", 12) if len(f.raw) > 12 else None,
+        leap_second=leap,
     )
 
 

@@ -125,6 +125,21 @@ def gps_to_utc(week: int, tow_s: float, leap_s: int = GPS_UTC_LEAP_S) -> datetim
     return GPS_EPOCH + timedelta(weeks=week, milliseconds=ms) - timedelta(seconds=leap_s)
 
 
+def place_in_leap_second(utc: datetime, leap_midnight: datetime | None) -> tuple[datetime, bool]:
+    """A log's UTC on the NMEA time line while a leap second is being inserted.
+
+    GPS time has no leap seconds and runs on through one: converted with the GPS−UTC count
+    from before it, a log of the leap second reads 00:00:00.x while the NMEA sentences of the
+    same instant say 23:59:60.x (the count in the header changes only after it). Given the
+    midnight that ends the leap second in progress (known from the NMEA ``235960``), a UTC in
+    ``[midnight, midnight + 1 s)`` is that second: returned as 23:59:59.x with True, the
+    representation ``protocol.nmea`` uses for second 60. Any other UTC is returned as is.
+    """
+    if leap_midnight is not None and leap_midnight <= utc < leap_midnight + timedelta(seconds=1):
+        return utc - timedelta(seconds=1), True
+    return utc, False
+
+
 def utc_to_gps(utc: datetime, leap_s: int = GPS_UTC_LEAP_S) -> tuple[int, float]:
     """Aware UTC datetime to (GPS week, time of week in seconds)."""
     delta = utc + timedelta(seconds=leap_s) - GPS_EPOCH

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import random
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -111,6 +112,9 @@ class SimulatedMachine(StartClose):
     roll_deg: float = 0.0
     antenna_height_m: float = 0.0
     heading_offset_deg: float = 0.0
+    # the receiver's UTC at the start of the drive (default: now); a fault row sets it so
+    # that a UTC midnight, where a leap second can be inserted, falls within the run
+    gnss_utc_start: datetime | None = None
 
     def __post_init__(self) -> None:
         self.rng = random.Random(self.seed)
@@ -242,6 +246,7 @@ class SimulatedMachine(StartClose):
                 antenna_height_m=self.antenna_height_m,
                 roll_deg=self.roll_deg,
                 heading_offset_deg=self.heading_offset_deg,
+                utc_start=self.gnss_utc_start,
             )
         )
 

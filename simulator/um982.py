@@ -11,7 +11,9 @@ Two layers:
   instant it describes, which is what every accuracy check compares against.
 
 Faults a field receiver produces can be injected: corrupted checksums, line noise, a heading
-solution that drops out, and the port vanishing (USB adapter unplugged) and coming back.
+solution that drops out, and the port vanishing (USB adapter unplugged) and coming back; and
+its time going wrong: stamps shifted for a few epochs or for good (``shift_stamps``), dates
+1024 weeks early (``week_rollover``), a UTC leap second (``insert_leap_second``).
 """
 
 from __future__ import annotations
@@ -84,10 +86,12 @@ def _dm(value: float, deg_digits: int) -> str:
     return f"{deg:0{deg_digits}d}{minutes // 10**8:02d}.{minutes % 10**8:08d}"
 
 
-def _hms(utc: datetime) -> str:
+def _hms(utc: datetime, leap_second: bool = False) -> str:
     centis = round(utc.microsecond / 10_000)
     if centis == 100:  # only reachable for sub-centisecond times; keep the field valid
         centis = 99
+    if leap_second:  # utc is 23:59:59.x: the receiver prints second 60
+        return f"{utc:%H%M}60.{centis:02d}"
     return f"{utc:%H%M%S}.{centis:02d}"
 
 
@@ -109,16 +113,20 @@ def um982_sentences(
     hdg_std: float = 0.08,
     geoid_sep_m: float = GEOID_SEP_M,
     talker: str = "GN",
+    leap_second: bool = False,
+    gps_utc_leap_s: int = GPS_UTC_LEAP_S,
 ) -> list[str]:
     """One epoch's RMC, GGA and #HEADINGA (no line terminators).
 
     ``alt_m`` is the height above mean sea level that GGA carries. With ``fix="none"`` the
-    position fields are empty, as a receiver without a fix sends them.
+    position fields are empty, as a receiver without a fix sends them. With ``leap_second``
+    ``utc`` is 23:59:59.x and the sentences say 23:59:60.x; the heading log carries the GPS
+    time of that instant (one second after ``utc``, ``gps_utc_leap_s`` still the old count).
     """
     if utc.tzinfo is None:
         raise ValueError("utc must be timezone-aware")
     utc = utc.astimezone(UTC)
-    hms = _hms(utc)
+    hms = _hms(utc, leap_second)
     has_fix = fix != "none"
     ns, ew = ("N" if lat >= 0 else "S"), ("E" if lon >= 0 else "W")
     pos = f"{_dm(lat, 2)},{ns},{_dm(lon, 3)},{ew}" if has_fix else ",,,"
@@ -132,7 +140,7 @@ def um982_sentences(
     gga_fix = f"{alt_m:.4f},M,{geoid_sep_m:.4f},M,{diff}" if has_fix else ",M,,M,,"
     gga = f"{talker}GGA,{hms},{pos},{quality},{num_sv if has_fix else 0:02d},"
     gga += f"{hdop if has_fix else 99.9:.1f},{gga_fix}"
-    week, tow = utc_to_gps(utc, GPS_UTC_LEAP_S)
+    week, tow = utc_to_gps(utc + timedelta(seconds=1 if leap_second else 0), gps_utc_leap_s)
     if heading_ok:
         heading = encode_headinga(
             week, tow, heading_deg, pitch_deg, baseline_m, hdg_std=hdg_std,
@@ -218,6 +226,11 @@ class Um982Emulator(StartClose):
         self._garbage = bytearray()
         self._drop_heading = False
         self._interleave = b""
+        # time faults: (shift, epochs left or None for good), rollover, leap second midnight
+        self._stamp_shift = timedelta(0)
+        self._shift_epochs: int | None = None
+        self._rollover = False
+        self._leap_midnight: datetime | None = None
         self.truth: deque[TruthEpoch] = deque(maxlen=TRUTH_CAPACITY)
         self.epochs_written = 0
         self.lines_corrupted = 0
@@ -279,6 +292,37 @@ class Um982Emulator(StartClose):
         binary logs switched on mixes them with its NMEA sentences on the one port."""
         self._interleave = data or b""
 
+    def shift_stamps(self, by: timedelta, epochs: int | None = None) -> None:
+        """Stamp the next ``epochs`` epochs (None: every one from now on) ``by`` off the true
+        time, sentences and heading log alike (a glitch, or the receiver's clock stepping)."""
+        self._stamp_shift, self._shift_epochs = by, epochs
+
+    def week_rollover(self, on: bool = True) -> None:
+        """Stamp dates 1024 weeks early, as a receiver with the GPS week rollover bug does."""
+        self._rollover = on
+
+    def insert_leap_second(self, midnight: datetime) -> None:
+        """A UTC leap second before ``midnight``: the epochs of the second after it are sent
+        as 23:59:60.x, every later one one second behind the true (continuous) time."""
+        self._leap_midnight = midnight
+
+    def stamp_of(self, utc: datetime) -> tuple[datetime, bool, int]:
+        """(stamp sent, leap second?, GPS−UTC count) for an epoch truly at ``utc``; counts
+        down a temporary shift (call once per epoch)."""
+        leap, count = False, GPS_UTC_LEAP_S
+        midnight = self._leap_midnight
+        if midnight is not None and utc >= midnight:
+            leap = utc < midnight + timedelta(seconds=1)
+            count += 0 if leap else 1
+            utc -= timedelta(seconds=1)
+        if self._shift_epochs is None or self._shift_epochs > 0:
+            utc += self._stamp_shift
+            if self._shift_epochs is not None:
+                self._shift_epochs -= 1
+        if self._rollover:
+            utc -= timedelta(weeks=1024)
+        return utc, leap, count
+
     def unplug(self) -> None:
         """The port vanishes: both pty ends close, the reader sees EIO, the path disappears."""
         if self._pair is not None:
@@ -327,10 +371,11 @@ class Um982Emulator(StartClose):
         if baseline_pitch:
             baseline_pitch += self._rng.gauss(0.0, 2 * self.heading_sigma_deg)
         speed = max(0.0, pose.speed_kmh + self._rng.gauss(0.0, SPEED_SIGMA_KMH))
+        stamp, leap, count = self.stamp_of(utc)
         lines = um982_sentences(
-            utc, float(lat), float(lon), float(h) - GEOID_SEP_M, speed, pose.heading_deg,
+            stamp, float(lat), float(lon), float(h) - GEOID_SEP_M, speed, pose.heading_deg,
             heading, self.fix, heading_ok=True, hdg_std=max(self.heading_sigma_deg, 0.01),
-            pitch_deg=baseline_pitch,
+            pitch_deg=baseline_pitch, leap_second=leap, gps_utc_leap_s=count,
         )
         if self._drop_heading:
             lines = lines[:2]

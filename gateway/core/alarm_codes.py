@@ -219,6 +219,34 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "check the second antenna",
     ),
     AlarmCode(
+        "gnss.time_outlier", ("warning",),
+        "GNSS epochs whose time stamp disagrees with the receiver's own time line and the "
+        "host's monotonic clock by more than 1 s (e.g. stamped hours ahead) were rejected: not "
+        "used for seed positions, which go on from the good epochs; cleared 60 s after the last",
+        "none if rare; if it recurs, check the receiver's firmware and its time output",
+    ),
+    AlarmCode(
+        "gnss.time_step", ("warning",),
+        "the receiver's time stepped (5 epochs in a row agreed on a new time line, e.g. 1 h "
+        "back after a restart): the time mapping was re-established on it, records are "
+        "stamped in the receiver's new time; cleared 60 s after",
+        "check the receiver's clock and time settings; records around the step may be "
+        "stamped in its new time",
+    ),
+    AlarmCode(
+        "gnss.week_rollover", ("warning",),
+        "the receiver reports dates 1024·k weeks early (GPS week rollover bug): corrected by "
+        "adding the weeks, records are stamped with the true date; cleared 60 s after the last "
+        "such epoch",
+        "update the receiver's firmware",
+    ),
+    AlarmCode(
+        "gnss.leap_second", ("info",),
+        "a UTC leap second (23:59:60) was received: positions go on; seeds that landed in it "
+        "are stamped 23:59:59.999999; cleared 60 s after",
+        "none",
+    ),
+    AlarmCode(
         "seed_sensors.unavailable", ("warning",),
         "the seed-tube sensors cannot be read: seeds are not being recorded",
         "check the sensor module's cable or the GPIO lines",

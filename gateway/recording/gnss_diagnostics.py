@@ -11,11 +11,12 @@ import dataclasses
 import json
 import sys
 from collections.abc import Iterable, Iterator
-from datetime import date, datetime, time
+from datetime import UTC, date, datetime, time
 from typing import Any, TextIO
 
+from gateway.recording.positioning.gnss_time import correct_week_rollover
 from protocol.gnss import GnssEvent, GnssLineDecoder, Rejected
-from protocol.nmea import Ths
+from protocol.nmea import Rmc, Ths
 from protocol.unicore import Heading
 
 EXIT_ALL_DECODED = 0
@@ -41,7 +42,23 @@ def event_fields(event: GnssEvent) -> dict[str, Any]:
         out["utc"] = event.utc().isoformat()
     elif isinstance(event, Ths):
         out["valid"] = event.valid
+    _flag_week_rollover(event, out)
     return out
+
+
+def _flag_week_rollover(event: GnssEvent, out: dict[str, Any]) -> None:
+    """A date 1024·k weeks early (the receiver's GPS week rollover bug) is shown with the
+    date the daemon corrects it to, so the tool tells the engineer what the alarm means."""
+    if isinstance(event, Heading):
+        stamp = event.utc()
+    elif isinstance(event, Rmc) and event.date is not None and event.utc is not None:
+        stamp = datetime.combine(event.date, event.utc, UTC)
+    else:
+        return
+    corrected, weeks = correct_week_rollover(stamp.timestamp())
+    if weeks:
+        out["week_rollover_weeks"] = weeks
+        out["corrected_utc"] = datetime.fromtimestamp(corrected, UTC).isoformat()
 
 
 def decode_stream(lines: Iterable[str]) -> Iterator[dict[str, Any]]:

@@ -14,6 +14,10 @@ max_seeds_per_s_per_row``, so a short burst is still seen).
 | ``gnss.unavailable`` | warning | no fresh epoch with a fix (port gone, receiver silent, no fix) |
 | ``gnss.not_rtk_fixed`` | warning | recording, and the fix is RTK float, DGPS or single |
 | ``gnss.heading_invalid`` | info | recording, and no ambiguity-fixed dual-antenna heading |
+| ``gnss.time_outlier`` | warning | epochs with implausible time stamps rejected (last 60 s) |
+| ``gnss.time_step`` | warning | the receiver's time stepped, mapping re-established (60 s) |
+| ``gnss.week_rollover`` | warning | dates 1024·k weeks early corrected (last 60 s) |
+| ``gnss.leap_second`` | info | a leap second (23:59:60) received (60 s) |
 | ``seed_sensors.unavailable`` | warning | the seed-tube sensor port/chip is not being read |
 | ``seed_sensors.implausible_rate`` | warning | edges beyond a row's plausible rate (not stored) |
 | ``records.store_failed`` | critical | seed records cannot be written or committed |
@@ -34,6 +38,8 @@ from gateway.core.alarms import AlarmBoard
 from gateway.core.records import AlarmSeverity
 
 HOLD_S = 1.0
+# the GNSS time alarms (gnss_time events) stay up this long after their last event
+TIME_EVENT_ALARM_S = 60.0
 # seed_sensors.implausible_rate stays up this long after the last implausible edge, so a
 # burst shorter than a flush interval is still seen on the screen and on MQTT
 IMPLAUSIBLE_CLEAR_AFTER_S = 5.0
@@ -80,9 +86,30 @@ class SensorsLike(Protocol):
     def stats(self) -> _SensorStats: ...
 
 
+class TimeEventsLike(Protocol):
+    """What is read from ``gateway.recording.positioning.gnss_time.TimeEvents``."""
+
+    @property
+    def outliers(self) -> int: ...
+    @property
+    def last_outlier_mono(self) -> float | None: ...
+    @property
+    def last_step_mono(self) -> float | None: ...
+    @property
+    def last_step_s(self) -> float: ...
+    @property
+    def last_rollover_mono(self) -> float | None: ...
+    @property
+    def rollover_weeks(self) -> int: ...
+    @property
+    def last_leap_mono(self) -> float | None: ...
+
+
 class RecorderLike(Protocol):
     """What is read from ``gateway.recording.recorder.SeedRecorder``."""
 
+    @property
+    def gnss_time(self) -> TimeEventsLike: ...
     @property
     def store_error(self) -> str | None: ...
     @property
@@ -142,6 +169,7 @@ class RecordingHealth:
     def check(self) -> None:
         now = self._clock()
         self._check_seed_rate(now)
+        self._check_gnss_time(now)
         recording = self.recorder is not None
         gnss = self.gnss
         if gnss is not None:
@@ -207,6 +235,37 @@ class RecordingHealth:
             "cannot write is full",
             "critical",
             now,
+        )
+
+    def _check_gnss_time(self, now: float) -> None:
+        """The receiver's time stamps judged by the position model (``positioning.
+        gnss_time``): each kind of bad time its own alarm, up ``TIME_EVENT_ALARM_S``."""
+        if self.recorder is None:
+            return
+        ev = self.recorder.gnss_time
+
+        def recent(t: float | None) -> bool:
+            return t is not None and now - t <= TIME_EVENT_ALARM_S
+
+        self._set(
+            "gnss.time_outlier", recent(ev.last_outlier_mono),
+            f"{ev.outliers} GNSS epoch(s) with an implausible time stamp rejected (not used "
+            "for seed positions)", "warning", now,
+        )
+        self._set(
+            "gnss.time_step", recent(ev.last_step_mono),
+            f"GNSS receiver time stepped by {ev.last_step_s:+.1f} s: seed records are stamped "
+            "in its new time", "warning", now,
+        )
+        self._set(
+            "gnss.week_rollover", recent(ev.last_rollover_mono),
+            f"GNSS receiver dates {ev.rollover_weeks} weeks early (GPS week rollover): "
+            "corrected; update its firmware", "warning", now,
+        )
+        self._set(
+            "gnss.leap_second", recent(ev.last_leap_mono),
+            "GNSS leap second (23:59:60) received: seeds in it stamped 23:59:59.999999",
+            "info", now,
         )
 
     def _check_seed_rate(self, now: float) -> None:

@@ -41,7 +41,13 @@ from drivers.ticks import sleep_to_next_tick
 from gateway.config import Settings
 from gateway.config.recording import PositioningSection
 from gateway.core.records import SeedDrop, SeedRecord, SeedRow
-from gateway.recording.positioning import AntennaEpoch, Landing, Method, SeedPositioner
+from gateway.recording.positioning import (
+    AntennaEpoch,
+    Landing,
+    Method,
+    SeedPositioner,
+    TimeEvents,
+)
 from gateway.recording.seed_plausibility import SeedRatePlausibility
 from gateway.recording.spacing_quality import RowQualityAccumulator, SpacingQuality
 
@@ -344,6 +350,11 @@ class SeedRecorder:
             self._store(want_records=False)
 
     # ------------------------------------------------------------ telemetry
+
+    @property
+    def gnss_time(self) -> TimeEvents:
+        """What the position model made of the receiver's time stamps (alarms read it)."""
+        return self.positioner.time.events
 
     def state(self) -> RecorderState:
         """A copy for the view and telemetry: per row count, last spacing, quality."""

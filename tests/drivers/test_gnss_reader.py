@@ -365,3 +365,58 @@ async def test_rejected_lines_are_warned_about_rate_limited_not_once_per_line(
         r for r in caplog.records if r.levelno == logging.WARNING and "checksum" in r.getMessage()
     ]
     assert len(checksum_warnings) == 1  # the first; the rest within the interval held back
+
+
+# -- time faults: the assembler groups, the position model judges ----------------------------
+
+
+def _epochs_at(asm: EpochAssembler, stamps: list[tuple[datetime, bool, int]]) -> list[GnssEpoch]:
+    """One epoch's three sentences per (stamp, leap second?, GPS−UTC count), 0.1 s apart."""
+    out: list[GnssEpoch] = []
+    for k, (utc, leap, count) in enumerate(stamps):
+        lines = um982_sentences(utc, 45.0, 7.0, 250.0, 8.0, 90.0, 91.0, leap_second=leap,
+                                gps_utc_leap_s=count)
+        for i, line in enumerate(lines):
+            out += asm.add(decode_line(line), 100.0 + 0.1 * k + 0.001 * i)
+    return out + asm.flush()
+
+
+def test_two_epochs_stamped_hours_ahead_do_not_make_the_correct_ones_late() -> None:
+    """Before: every later epoch was dropped as "late" until the clock passed the bad stamp."""
+    stamps = [T0 + timedelta(seconds=0.1 * k) for k in range(10)]
+    stamps[3] += timedelta(hours=2)
+    stamps[4] += timedelta(hours=2)
+    asm = EpochAssembler()
+    out = _epochs_at(asm, [(s, False, 18) for s in stamps])
+    assert [e.utc for e in out] == stamps  # all ten, bad ones included (judged downstream)
+    assert all(e.heading_valid for e in out)  # every heading found its epoch
+    assert asm.counts["late"] == 0
+
+
+def test_a_straggler_of_an_emitted_epoch_is_still_late() -> None:
+    asm = EpochAssembler()
+    _feed(asm, _events(T0))
+    _feed(asm, _events(T0 + timedelta(seconds=0.1)), t0=100.1)
+    assert asm.add(_events(T0)[0], 100.2) == []
+    assert asm.counts["late"] == 1
+
+
+def test_a_leap_second_is_an_epoch_of_its_own_with_its_heading() -> None:
+    """23:59:59.x, 23:59:60.x, 00:00:00.x: three seconds, three headings matched; the legacy
+    header carries no leap count, so after the leap the assembler counts one more."""
+    midnight = datetime(2027, 1, 1, tzinfo=UTC)
+    stamps = []
+    for k in range(30):  # true time 23:59:59.0 + 0.1 k, continuous
+        true = midnight - timedelta(seconds=1) + timedelta(seconds=0.1 * k)
+        if true < midnight:
+            stamps.append((true, False, 18))
+        elif true < midnight + timedelta(seconds=1):
+            stamps.append((true - timedelta(seconds=1), True, 18))
+        else:
+            stamps.append((true - timedelta(seconds=1), False, 19))
+    asm = EpochAssembler()
+    out = _epochs_at(asm, stamps)
+    assert len(out) == 30 and asm.counts["late"] == 0
+    assert [e.leap_second for e in out] == [False] * 10 + [True] * 10 + [False] * 10
+    assert [e.utc for e in out] == [s for s, _, _ in stamps]
+    assert all(e.heading_valid for e in out)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime, time, timedelta
 
 import pytest
 from hypothesis import assume, given
@@ -12,6 +12,7 @@ from protocol.errors import ChecksumError, FieldError, FrameError, ProtocolError
 from protocol.nmea import (
     KMH_PER_KNOT,
     MAX_NMEA_LINE_CHARS,
+    MS_PER_DAY,
     Gga,
     Hdt,
     MissingFieldError,
@@ -23,6 +24,7 @@ from protocol.nmea import (
     encode_nmea,
     nmea_checksum,
     parse_nmea,
+    utc_ms_of_day,
 )
 from simulator.um982 import um982_sentences
 
@@ -232,3 +234,26 @@ def test_speeds_and_angles_out_of_range_are_bad_fields_not_values(
 def test_every_heading_in_range_is_accepted(heading: float) -> None:
     hdt = parse_nmea(encode_nmea(f"GNHDT,{heading:.4f},T"))
     assert isinstance(hdt, Hdt) and hdt.heading_deg == pytest.approx(heading, abs=1e-4)
+
+
+@given(st.integers(0, 99))
+def test_a_leap_second_is_second_60_of_23_59_not_a_bad_field(centis: int) -> None:
+    """``235960.xx`` is UTC's leap second: 23:59:59 + the fraction, flagged, after 23:59:59.99
+    on the day's millisecond count and before the next day's 00:00:00."""
+    for kind in ("RMC", "GGA"):
+        body = (f"GNRMC,235960.{centis:02d},A,5327.03598945,N,00214.41467156,W,0.097,125.7,"
+                "311226,0.2,W,A,C") if kind == "RMC" else (
+                f"GNGGA,235960.{centis:02d},5327.03598945,N,00214.41467156,W,4,08,0.7,"
+                "36.3017,M,51.6775,M,1.0,0001")
+        msg = parse_nmea(encode_nmea(body))
+        assert isinstance(msg, Rmc | Gga)
+        assert msg.leap_second and msg.utc == time(23, 59, 59, centis * 10_000)
+        assert utc_ms_of_day(time(23, 59, 59, 990_000)) < utc_ms_of_day(msg.utc, True)
+        assert utc_ms_of_day(msg.utc, True) < MS_PER_DAY + 1000
+
+
+def test_second_60_outside_23_59_is_a_bad_field_naming_the_sentence() -> None:
+    line = encode_nmea("GNGGA,120060.00,5327.03598945,N,00214.41467156,W,1,08,7.5,36.3017,M,"
+                       "51.6775,M,,")
+    with pytest.raises(FieldError, match=r"GNGGA: field time '120060.00': second 60 exists only"):
+        parse_nmea(line)

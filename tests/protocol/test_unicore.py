@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import zlib
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 
 import pytest
 from hypothesis import given
@@ -19,6 +19,7 @@ from protocol.unicore import (
     encode_uniheadinga,
     gps_to_utc,
     parse_unicore,
+    place_in_leap_second,
     unicore_crc32,
     utc_to_gps,
 )
@@ -220,3 +221,19 @@ def test_unknown_time_reference_is_a_field_error_not_a_wrong_time() -> None:
     content = encode_uniheadinga(2300, 100.0, 91.0)[1:].split("*")[0].replace(",GPS,", ",GLO,")
     with pytest.raises(FieldError, match=r"time reference: 'GLO' not supported"):
         parse_unicore(_framed(content))
+
+
+@given(st.integers(0, 999))
+def test_a_heading_log_of_the_leap_second_is_placed_in_second_60(ms: int) -> None:
+    """GPS time runs through the leap second: with the old count the log reads 00:00:00.x;
+    while the NMEA says a leap second ends at that midnight it is 23:59:60.x."""
+    midnight = datetime(2027, 1, 1, tzinfo=UTC)
+    week, tow = utc_to_gps(midnight + timedelta(milliseconds=ms), GPS_UTC_LEAP_S)
+    heading = parse_unicore(encode_headinga(week, tow, 90.0))
+    utc = heading.utc(GPS_UTC_LEAP_S)
+    assert place_in_leap_second(utc, midnight) == (
+        midnight - timedelta(seconds=1) + timedelta(milliseconds=ms), True
+    )
+    assert place_in_leap_second(utc, None) == (utc, False)  # no leap second in progress
+    after = utc + timedelta(seconds=1)
+    assert place_in_leap_second(after, midnight) == (after, False)

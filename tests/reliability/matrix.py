@@ -13,6 +13,7 @@ from collections.abc import Awaitable, Callable, Iterable
 from pathlib import Path
 
 from tests.reliability.device_faults import group_modbus, group_serial
+from tests.reliability.gnss_time_faults import group_gnss_time
 from tests.reliability.harness import RowResult
 from tests.reliability.hopper_faults import group_hopper
 from tests.reliability.input_faults import group_commands, group_config
@@ -26,6 +27,7 @@ GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
     "modbus": group_modbus,
     "serial": group_serial,
     "hopper": group_hopper,
+    "gnss_time": group_gnss_time,
     "commands": group_commands,
     "config": group_config,
 }

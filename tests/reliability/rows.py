@@ -47,6 +47,13 @@ HOPPER_FAULT_S = 6.0  # longer than the 2 s after which a silent device is alarm
 HOPPER_JUMP_KG = 250.0
 # the correction may move only by what a window fitted on both sides of the fault adds
 HOPPER_FACTOR_TOLERANCE = 0.002
+# GNSS time rows (issue 20 item 4): each fault's window of seeds is judged
+GNSS_TIME_WINDOW_S = 6.0
+# a seed is where it landed to within this (RTK noise plus the seed line's arrival jitter on
+# a loaded host: up to ~0.2 m at 8 km/h; a stamp 1 s off or a cluster: metres)
+GNSS_TIME_POSITION_M = 0.5
+# a step is taken after gnss_time.STEP_CONFIRM_EPOCHS (0.5 s): its seeds may be extrapolated
+GNSS_STEP_EXTRAPOLATED_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -118,6 +125,28 @@ ROWS: tuple[Row, ...] = (
             ("jump", f"the weight {HOPPER_JUMP_KG:g} kg lower (a load cell slipping), then back",
              "`hopper_scale.jump` on MQTT (no meter empties that in seconds: not seed); the "
              "fit restarts its line"),
+        )
+    ),
+    *(
+        Row(f"gnss_{fault}", "gnss_time",
+            f"{how}, while sowing at 8 km/h (the simulated UM982's sentences and heading log "
+            "alike)",
+            f"every seed of the {GNSS_TIME_WINDOW_S:g} s after it stored, stamped {stamped}, "
+            f"within {GNSS_TIME_POSITION_M:g} m of where it landed (no cluster), {extrap}; "
+            f"`gnss.{alarm}` on MQTT; daemon up, no traceback")
+        for fault, how, stamped, extrap, alarm in (
+            ("two_epochs_2h_ahead", "two epochs stamped 2 h ahead, then correct time",
+             "in true time (none in the future)", "none extrapolated", "time_outlier"),
+            ("time_step_back_1h", "the receiver's time steps back 1 h for good",
+             "in the receiver's new time",
+             f"none extrapolated but in the {GNSS_STEP_EXTRAPOLATED_S:g} s of the step",
+             "time_step"),
+            ("week_rollover", f"dates 1024 weeks early (GPS week rollover) for "
+             f"{GNSS_TIME_WINDOW_S:g} s", "with the true date (2026, not 2007)",
+             "none extrapolated", "week_rollover"),
+            ("leap_second", "a UTC leap second: 23:59:60.00–.90 (`235960.00`), then 00:00:00",
+             "in UTC (those in the leap second 23:59:59.999999)", "none extrapolated",
+             "leap_second"),
         )
     ),
     Row("serial_fuzz_hmi", "serial",

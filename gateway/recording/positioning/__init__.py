@@ -6,6 +6,10 @@ The package is split by what each part owns; the names callers use are re-export
 - :mod:`.geometry`: row lever arms, their rotation by the heading, heading arithmetic and the
   WGS84 <-> local ENU frame (no time, no GNSS);
 - :mod:`.clock`: :class:`ClockMap`, receiver UTC <-> host monotonic time;
+- :mod:`.gnss_time`: :class:`GnssTimeGuard`, which receiver time stamps to believe (outliers,
+  time steps, GPS week rollover, leap seconds);
+- :mod:`.attitude`: :class:`EpochAttitude`, the machine's roll and pitch and a trailed
+  implement's heading at each epoch;
 - :mod:`.methods`: paper C's model, the fall time, and the antenna interpolated or
   extrapolated between epochs (the model in plain per-seed form);
 - :mod:`.landing`: :class:`Landing`, a positioned seed and the record it becomes;
@@ -49,7 +53,7 @@ short pending queue; only when the next epoch does not come in time is it extrap
 one epoch period ahead, and flagged.
 """
 
-from gateway.recording.positioning.clock import CLOCK_STEP_S, CLOCK_WINDOW_EPOCHS, ClockMap
+from gateway.recording.positioning.clock import CLOCK_WINDOW_EPOCHS, ClockMap
 from gateway.recording.positioning.geometry import (
     LocalFrame,
     RowOffset,
@@ -59,6 +63,7 @@ from gateway.recording.positioning.geometry import (
     row_offset,
     wrap_deg,
 )
+from gateway.recording.positioning.gnss_time import GnssTimeGuard, TimeCheck, TimeEvents
 from gateway.recording.positioning.landing import Landing, utc_us_of
 from gateway.recording.positioning.methods import (
     FIX_RANK,
@@ -91,7 +96,6 @@ from gateway.recording.positioning.positioner import (
 )
 
 __all__ = [
-    "CLOCK_STEP_S",
     "CLOCK_WINDOW_EPOCHS",
     "DEFAULT_EPOCH_PERIOD_S",
     "EPOCH_HISTORY",
@@ -108,12 +112,15 @@ __all__ = [
     "AntennaSample",
     "AntennaState",
     "ClockMap",
+    "GnssTimeGuard",
     "Landing",
     "LocalFrame",
     "Method",
     "PositionerStats",
     "RowOffset",
     "SeedPositioner",
+    "TimeCheck",
+    "TimeEvents",
     "choose_heading",
     "extrapolate_state",
     "fall_time_s",

@@ -4,8 +4,9 @@ Owns :class:`ClockMap`, the estimate of the offset between the receiver's UTC st
 host's monotonic clock from the (one-sided, jittery) arrival times of the epochs.
 
 Separate because it is the one piece of timing the interpolated method rests on (paper C
-absorbs the same uncertainty as a constant), it has its own statistics (a windowed minimum,
-time-step detection) and it needs no geometry at all.
+absorbs the same uncertainty as a constant), it has its own statistics (a windowed minimum)
+and it needs no geometry at all. Which stamps it is given is decided before, by
+:mod:`.gnss_time` (outliers rejected, a time step re-establishes it through :meth:`reset`).
 """
 
 from __future__ import annotations
@@ -15,9 +16,6 @@ from collections import deque
 
 # Epochs over which the UTC↔monotonic offset is estimated (10 s at 10 Hz; drift ≪ 1 ms).
 CLOCK_WINDOW_EPOCHS = 100
-# A change of (arrival − UTC) this large is not jitter but a time step (receiver restart, a
-# wrong date): the clock mapping and the epoch history start again.
-CLOCK_STEP_S = 2.0
 
 
 class ClockMap:
@@ -47,28 +45,27 @@ class ClockMap:
         self._min_raw = 0.0
 
     def observe(self, t_mono: float, utc_s: float) -> None:
-        raw = t_mono - utc_s
-        if self._samples and abs(raw - self._min_raw) > CLOCK_STEP_S:
-            self._samples.clear()  # a time step: the old offsets describe another clock
-        self._samples.append(raw)
+        """An epoch the time guard accepted (``gnss_time.GnssTimeGuard``)."""
+        self._samples.append(t_mono - utc_s)
         self._min_raw = min(self._samples)
 
+    def reset(self) -> None:
+        """The receiver's time stepped: the old offsets describe another clock."""
+        self._samples.clear()
+        self._min_raw = 0.0
+
     def would_change(self, t_mono: float, utc_s: float) -> bool:
-        """Would ``observe(t_mono, utc_s)`` move the offset (a new minimum, the minimum
-        leaving the window, or a step)?"""
+        """Would ``observe(t_mono, utc_s)`` move the offset (a new minimum, or the minimum
+        leaving the window)?"""
         samples = self._samples
         if not samples:
             return True
         raw = t_mono - utc_s
-        if raw < self._min_raw or abs(raw - self._min_raw) > CLOCK_STEP_S:
+        if raw < self._min_raw:
             return True
         if len(samples) == samples.maxlen and samples[0] == self._min_raw:
             return min(min(itertools.islice(samples, 1, None)), raw) != self._min_raw
         return False
-
-    def is_step(self, t_mono: float, utc_s: float) -> bool:
-        """Would this epoch be a time step rather than jitter?"""
-        return bool(self._samples) and abs(t_mono - utc_s - self._min_raw) > CLOCK_STEP_S
 
     @property
     def ready(self) -> bool:

@@ -29,23 +29,26 @@ import numpy.typing as npt
 
 from gateway.config.recording import PositioningSection
 from gateway.core.records import AttitudeSource, FixQuality, HeadingSource
+from gateway.recording.positioning.attitude import (
+    EpochAttitude,
+    attitude_pair,
+    lerp_nan,
+    nan_of,
+)
 from gateway.recording.positioning.clock import ClockMap
 from gateway.recording.positioning.geometry import (
     FloatArray,
     LocalFrame,
     RowOffset,
     antenna_ground_shift,
-    baseline_attitude,
-    follow_hitch,
     heading_diff,
-    hitch_point,
-    implement_heading,
     rotate_offset,
     row_offset,
     terrain_offset,
     trailed_offset,
     wrap_deg,
 )
+from gateway.recording.positioning.gnss_time import GnssTimeGuard
 from gateway.recording.positioning.landing import (
     _DROP_MAX_ROW,
     _FIX_NAMES,
@@ -60,7 +63,6 @@ from gateway.recording.positioning.methods import (
     extrapolate_state,
     fall_time_s,
     interpolate_state,
-    lerp_optional,
     paper_landing,
     worst_fix,
     worst_heading_source,
@@ -121,7 +123,7 @@ class AntennaEpoch(Protocol):
 @dataclass
 class PositionerStats:
     epochs: int = 0
-    epochs_ignored: int = 0  # repeated or out-of-order UTC
+    epochs_ignored: int = 0  # repeated UTC (outliers: time.events.outliers)
     seeds: int = 0
     interpolated: int = 0
     extrapolated: int = 0
@@ -134,20 +136,6 @@ class PositionerStats:
 # A seed waiting for its bracketing epoch: (row, t_land, delay_s), delay_s = t_land − the
 # host's edge stamp. A plain tuple: one is made per seed.
 _Pending = tuple[int, float, float]
-# An inclinometer roll older than this (s) at an epoch is not used (the bus polls at ~3 Hz).
-ATTITUDE_STALE_S = 1.0
-# A trailed implement's axle is pulled after its hitch in steps of at most this (m): the
-# discrete tractrix is then within ~0.01 % of the continuous one on any field curve.
-HITCH_STEP_M = 0.02
-# The hitch point jumping further than this between epochs (a fix jump, an outage) restarts
-# the implement straight behind the tractor instead of dragging it across.
-HITCH_RESET_M = 5.0
-# Pitch from the track (positioning.pitch_from_track_m): a jump between epochs longer than
-# this restarts the climb's window (a dropout, a time step), as does a fix that is not RTK
-# fixed (a float solution's height wanders by decimetres).
-TRACK_RESET_M = 5.0
-
-
 class _Pair(NamedTuple):
     """What interpolating between epochs i−1 and i needs, computed once per pair."""
 
@@ -172,7 +160,6 @@ class _Pair(NamedTuple):
     d_roll: float
     pitch: float | None
     d_pitch: float
-
 
 
 # (east, north, t) of "no previous seed in this row": infinitely long ago
@@ -200,19 +187,10 @@ class SeedPositioner:
         # terrain compensation (geometry.terrain_offset); "none": records say not corrected
         self.attitude_source: AttitudeSource = settings.attitude_source
         self.antenna_height_m = settings.antenna_height_m
-        self._attitude_sign = -1.0 if settings.attitude_invert else 1.0
-        # gnss.heading_offset_deg: where the dual-antenna baseline points (baseline_attitude)
-        self.baseline_offset_deg = baseline_offset_deg
-        self._incl_roll: tuple[float, float] | None = None  # (t_mono, roll) from add_attitude
-        # pitch from the antenna's climb: (distance along the track, up) of recent epochs
-        self.pitch_track_m = settings.pitch_from_track_m
-        self._track: deque[tuple[float, float]] = deque()
-        self._track_at: tuple[float, float] | None = None  # (east, north) of the newest
-        self._track_dist = 0.0
-        # a trailed implement: its axle line's position, and the hitch point it was pulled to
+        self._attitude = EpochAttitude(settings, baseline_offset_deg)
         self.hitch = settings.hitch
-        self._axle: tuple[float, float] | None = None
-        self._hitch_at: tuple[float, float] | None = None
+        # which receiver time stamps to believe, on a scale that has no leap-second step
+        self.time = GnssTimeGuard()
         self.method: Method = method or settings.method
         rows = len(settings.lateral_offsets())
         self.offsets = [row_offset(settings, r) for r in range(1, rows + 1)]
@@ -244,8 +222,7 @@ class SeedPositioner:
         rows = len(settings.lateral_offsets())
         if rows != self.rows:
             raise ValueError(f"the new calibration has {rows} rows, the positioner {self.rows}")
-        if settings.hitch != self.hitch:
-            self._axle = self._hitch_at = None
+        self._attitude.set_hitch(settings.hitch)
         self.settings = settings
         self.hitch = settings.hitch
         self.offsets = [row_offset(settings, r) for r in range(1, rows + 1)]
@@ -265,18 +242,21 @@ class SeedPositioner:
     # ------------------------------------------------------------ inputs
 
     def add_epoch(self, epoch: AntennaEpoch) -> list[Landing]:
-        utc_s = _utc_seconds(epoch.utc)
+        check = self.time.judge(epoch.t_mono, _utc_seconds(epoch.utc),
+                                getattr(epoch, "leap_second", False))
+        if check.message is not None:
+            log.warning("%s", check.message)
         out: list[Landing] = []
-        if self.clock.is_step(epoch.t_mono, utc_s):
-            # receiver time jumped: finish pending seeds on the old time line, then restart it
+        if check.verdict == "step":
+            # receiver time stepped: finish pending seeds on the old time line, then restart it
             self.stats.time_steps += 1
-            log.warning("GNSS time stepped by %.1f s: restarting the epoch history",
-                        epoch.t_mono - utc_s - self.clock.offset_s - self.clock.latency_s)
             out = self.flush()
             self._samples.clear()
-        elif self._samples and utc_s <= self._samples[-1].utc_s:
-            self.stats.epochs_ignored += 1
+            self.clock.reset()
+        elif not check.usable:  # an outlier (counted by the guard) or a repeated epoch
+            self.stats.epochs_ignored += check.verdict == "repeat"
             return self._expire(epoch.t_mono)
+        utc_s = check.gnss_s
         if self.frame is None:
             alt0 = epoch.alt_m if epoch.alt_m is not None else 0.0
             self.frame = LocalFrame(epoch.lat, epoch.lon, alt0)
@@ -293,11 +273,12 @@ class SeedPositioner:
                 course = wrap_deg(math.degrees(math.atan2(de, dn)))
         speed = max(0.0, speed or 0.0)
         heading, source = choose_heading(epoch.heading_valid, epoch.heading_deg, course, speed)
-        roll, pitch = self._attitude_of(epoch)
-        climb = self._track_pitch(east, north, up, epoch)
+        attitude = self._attitude
+        roll, pitch = attitude.roll_pitch(epoch)
+        climb = attitude.track_pitch(east, north, up, epoch)
         if pitch is None and climb is not None and self.attitude_source != "none":
             pitch = climb
-        implement = self._follow_hitch(east, north, heading)
+        implement = attitude.follow_hitch(east, north, heading)
         if self._defer and self._would_move_held(epoch.t_mono, utc_s):
             out += self._resolve_ready(force=True)
         self._samples.append(
@@ -330,84 +311,7 @@ class SeedPositioner:
         """An inclinometer roll reading (degrees, as the sensor reads it) taken at ``t_mono``;
         used by the epochs that follow while fresh (positioning.attitude_source =
         "inclinometer")."""
-        if math.isfinite(roll_deg):
-            self._incl_roll = (t_mono, roll_deg)
-
-    def _attitude_of(self, epoch: AntennaEpoch) -> tuple[float | None, float | None]:
-        """(roll, pitch) of the machine at this epoch from the configured source, signs per
-        the convention (right side down, nose up positive), or None where not measured."""
-        source = self.attitude_source
-        sign = self._attitude_sign
-        if source == "dual_antenna":
-            baseline = getattr(epoch, "baseline_pitch_deg", None)
-            if baseline is None or not epoch.heading_valid or not math.isfinite(baseline):
-                return None, None
-            roll, pitch = baseline_attitude(baseline, self.baseline_offset_deg)
-        elif source == "inclinometer":
-            incl = self._incl_roll
-            if incl is None or abs(epoch.t_mono - incl[0]) > ATTITUDE_STALE_S:
-                return None, None
-            roll, pitch = incl[1], None
-        else:
-            return None, None
-        roll = None if roll is None else max(-90.0, min(90.0, sign * roll))
-        pitch = None if pitch is None else max(-90.0, min(90.0, sign * pitch))
-        return roll, pitch
-
-    def _track_pitch(self, east: float, north: float, up: float, epoch: AntennaEpoch
-                     ) -> float | None:
-        """The machine's pitch from the antenna's climb over the last ``pitch_from_track_m``
-        of its track (degrees, nose up positive), or None (off, too little track yet, or
-        not RTK fixed).
-
-        Side-by-side antennas measure only roll, and the inclinometer's pitch axis tells
-        raised from lowered; yet 0.5° of slope along the pass leans a 2.5 m antenna 22 mm
-        back (climbing) or forward. The ground's slope under the track is the climb of the
-        antenna per metre driven: the height difference across the window, so the RTK
-        height's slow wander cancels and only its change over a few seconds remains. It is
-        the slope of the last few metres, lagging the antenna by half the window."""
-        if self.pitch_track_m <= 0.0 or epoch.alt_m is None or epoch.fix != "rtk_fixed":
-            self._track.clear()
-            self._track_at = None
-            return None
-        last = self._track_at
-        step = 0.0 if last is None else math.hypot(east - last[0], north - last[1])
-        if last is None or step > TRACK_RESET_M:
-            self._track.clear()
-            self._track_dist = 0.0
-        else:
-            self._track_dist += step
-        self._track_at = (east, north)
-        track, dist = self._track, self._track_dist
-        track.append((dist, up))
-        while len(track) >= 2 and dist - track[1][0] >= self.pitch_track_m:
-            track.popleft()
-        run = dist - track[0][0]
-        if run < self.pitch_track_m:
-            return None
-        return math.degrees(math.atan2(up - track[0][1], run))
-
-    def _follow_hitch(self, east: float, north: float, heading: float | None) -> float | None:
-        """Pull the trailed implement after the hitch to this epoch; its heading (None
-        without a hitch or a tractor heading)."""
-        hitch = self.hitch
-        if hitch is None or heading is None:
-            return None
-        at = hitch_point(east, north, heading, hitch.behind_antenna_m)
-        length = hitch.outlets_behind_hitch_m
-        last, axle = self._hitch_at, self._axle
-        if last is None or axle is None or math.dist(last, at) > HITCH_RESET_M:
-            axle = hitch_point(at[0], at[1], heading, length)  # straight behind
-        else:
-            steps = max(1, math.ceil(math.dist(last, at) / HITCH_STEP_M))
-            for k in range(1, steps + 1):
-                f = k / steps
-                axle = follow_hitch(
-                    axle, (last[0] + f * (at[0] - last[0]), last[1] + f * (at[1] - last[1])),
-                    length,
-                )
-        self._axle, self._hitch_at = axle, at
-        return implement_heading(axle, at)
+        self._attitude.add_roll(t_mono, roll_deg)
 
     def _fall_for_newest(self, newest: AntennaSample) -> float:
         if newest is not self._fall_for:
@@ -613,6 +517,7 @@ class SeedPositioner:
         stats = self.stats
         sin, cos, radians, hypot = math.sin, math.cos, math.radians, math.hypot
         fromtimestamp = datetime.fromtimestamp
+        posix = self.time.posix_of
         out: list[Landing] = []
         terrain = self.attitude_source != "none"
         lever_of = self._lever_arm
@@ -643,7 +548,7 @@ class SeedPositioner:
                     t0, t1 - t0, t1 <= t0, s0.east, s1.east - s0.east, s0.north,
                     s1.north - s0.north, s0.up, s1.up - s0.up, s0.speed_kmh,
                     s1.speed_kmh - s0.speed_kmh, both, 0.0 if h0 is None else h0, dh, h_const,
-                    source, worst_fix(s0.fix, s1.fix), *_attitude_pair(s0, s1),
+                    source, worst_fix(s0.fix, s1.fix), *attitude_pair(s0, s1),
                 )
             (t0, dt, degenerate, e0, d_e, n0, d_n, u0, d_u, v0, d_v, both, h0, dh, h_const,
              source, fix, roll0, d_roll, pitch0, d_pitch) = pair
@@ -677,7 +582,7 @@ class SeedPositioner:
             stats.interpolated += 1
             speed = v0 + a * d_v
             drop = _new_drop(
-                row, fromtimestamp(t - off, tz=UTC), lat, lon, fix,
+                row, fromtimestamp(posix(t - off), tz=UTC), lat, lon, fix,
                 max(0.0, speed), None if heading is None else wrap_deg(heading),
                 source, False, method, spacing,
                 *self._attitude_fields(roll, pitch), delay * 1000.0, de, dn,
@@ -801,8 +706,8 @@ class SeedPositioner:
         nb, r = self._lever_nb[lever], self._lever_r[lever]
         roll = pitch = None
         if self.attitude_source != "none":
-            roll = _lerp_nan(np.array([_nan(s.roll_deg) for s in samples]), i0, i1, a)
-            pitch = _lerp_nan(np.array([_nan(s.pitch_deg) for s in samples]), i0, i1, a)
+            roll = lerp_nan(np.array([nan_of(s.roll_deg) for s in samples]), i0, i1, a)
+            pitch = lerp_nan(np.array([nan_of(s.pitch_deg) for s in samples]), i0, i1, a)
             rr = np.radians(np.nan_to_num(roll))
             pr = np.radians(np.nan_to_num(pitch))
             height = self.antenna_height_m
@@ -813,7 +718,10 @@ class SeedPositioner:
         east = east + off_e
         north = north + off_n
         lat, lon, geo_ok = frame.to_geodetic_many(east, north, up)
-        frac, whole = np.modf(t - off)  # utc_us_of, vectorised
+        stamps = t - off
+        if self.time.has_leaps:  # a leap second seen: back from the continuous scale
+            stamps = np.array([self.time.posix_of(x) for x in stamps.tolist()])
+        frac, whole = np.modf(stamps)  # utc_us_of, vectorised
         utc_us = whole.astype(np.int64) * 1_000_000 + np.rint(frac * 1e6).astype(np.int64)
         with np.errstate(invalid="ignore"):
             good &= (
@@ -1071,45 +979,13 @@ class SeedPositioner:
             spacing = math.hypot(east - prev[0], north - prev[1])
         self._previous[row] = (east, north, t_land)
         self.stats.seeds += 1
-        utc = datetime.fromtimestamp(self.clock.utc_of_mono(t_land), tz=UTC)
+        utc = datetime.fromtimestamp(self.time.posix_of(self.clock.utc_of_mono(t_land)), tz=UTC)
         drop = _new_drop(
             row, utc, lat, lon, fix, max(0.0, speed_kmh),
             None if heading is None else wrap_deg(heading), source, extrapolated, self.method,
             spacing, *extra,
         )
         return Landing(drop, east, north, t_land)
-
-
-def _nan(x: float | None) -> float:
-    return math.nan if x is None else x
-
-
-def _lerp_nan(values: FloatArray, i0: IntArray, i1: IntArray, a: FloatArray) -> FloatArray:
-    """``lerp_optional`` over arrays: NaN = not measured; one side NaN → the other."""
-    v0, v1 = values[i0], values[i1]
-    v0f = np.where(np.isnan(v0), v1, v0)
-    v1f = np.where(np.isnan(v1), v0, v1)
-    out: FloatArray = v0f + a * (v1f - v0f)
-    return out
-
-
-def _attitude_pair(
-    s0: AntennaSample, s1: AntennaSample
-) -> tuple[float | None, float, float | None, float]:
-    """(roll, d_roll, pitch, d_pitch) between two epochs: linear where both measured, the
-    one measured held where only one did (methods.lerp_optional)."""
-    r0, r1, p0, p1 = s0.roll_deg, s1.roll_deg, s0.pitch_deg, s1.pitch_deg
-    roll: float | None
-    pitch: float | None
-    if r0 is not None and r1 is not None:
-        roll, d_roll = r0, r1 - r0
-    else:
-        roll, d_roll = lerp_optional(r0, r1, 0.0), 0.0
-    if p0 is not None and p1 is not None:
-        pitch, d_pitch = p0, p1 - p0
-    else:
-        pitch, d_pitch = lerp_optional(p0, p1, 0.0), 0.0
-    return roll, d_roll, pitch, d_pitch
 
 
 def _utc_seconds(utc: datetime) -> float:

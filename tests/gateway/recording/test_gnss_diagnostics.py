@@ -5,7 +5,7 @@ from __future__ import annotations
 import io
 import json
 import sys
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
@@ -101,3 +101,21 @@ def test_two_sentences_on_one_line_are_both_shown_with_a_warning() -> None:
     assert record["ok"] is True and record["type"] == "RMC"
     assert "2 sentences on one line" in record["warning"]
     assert [m["type"] for m in record["more"]] == ["GGA"]
+
+
+def test_a_date_1024_weeks_early_is_shown_with_the_date_it_is_corrected_to() -> None:
+    rolled = T0 - timedelta(weeks=1024)
+    rmc, _gga, hdg = decode_stream(um982_sentences(rolled, 48.0, 11.0, 500.0, 8.0, 90.0, 91.5))
+    for record in (rmc, hdg):
+        assert record["week_rollover_weeks"] == 1024
+        assert record["corrected_utc"] == T0.isoformat()
+    assert "week_rollover_weeks" not in next(decode_stream([RMC]))  # a plausible date
+
+
+def test_a_leap_second_decodes_as_second_60() -> None:
+    midnight = datetime(2027, 1, 1, tzinfo=UTC)
+    lines = um982_sentences(midnight - timedelta(seconds=0.5), 48.0, 11.0, 500.0, 8.0, 90.0,
+                            91.5, leap_second=True)
+    rmc, gga, _hdg = decode_stream(lines)
+    assert rmc["ok"] and gga["ok"]
+    assert rmc["leap_second"] is True and rmc["utc"] == "23:59:59.500000"

@@ -37,6 +37,7 @@ from gateway.recording.positioning import (
     rotate_offset,
     row_offset,
 )
+from gateway.recording.positioning.gnss_time import STEP_CONFIRM_EPOCHS
 from gateway.recording.positioning.landing import _new_drop
 from simulator.plant import Drive, Leg, Pose
 
@@ -474,7 +475,8 @@ def test_paper_method_moves_the_outlet_forward_by_the_constant_lag() -> None:
 
 
 def test_a_receiver_time_step_restarts_the_history_instead_of_ignoring_every_epoch() -> None:
-    """A receiver restart that sets UTC back an hour must not make all later epochs 'old'."""
+    """A receiver restart that sets UTC back an hour must not make all later epochs 'old':
+    once STEP_CONFIRM_EPOCHS epochs in a row agree on the new time line it is taken."""
     drive = straight(0.0)
     s = settings()
     pos = SeedPositioner(s)
@@ -488,10 +490,13 @@ def test_a_receiver_time_step_restarts_the_history_instead_of_ignoring_every_epo
         )
         for k in range(10, 30)
     ]
-    first = pos.add_epoch(stepped[0])
+    first: list[Landing] = []
+    for e in stepped[:STEP_CONFIRM_EPOCHS]:
+        first += pos.add_epoch(e)
     assert [la.drop.row for la in first] == [1]  # the waiting seed was finished, not lost
     assert pos.stats.time_steps == 1
-    for e in stepped[1:15]:
+    assert pos.time.events.outliers == 0  # the confirming epochs were the new time line
+    for e in stepped[STEP_CONFIRM_EPOCHS:15]:
         pos.add_epoch(e)
     assert pos.stats.epochs_ignored == 0
     out = pos.add_edge(2, MONO0 + 2.0)
@@ -500,6 +505,9 @@ def test_a_receiver_time_step_restarts_the_history_instead_of_ignoring_every_epo
     assert len(out) == 1 and not out[0].drop.extrapolated
     te, tn = truth_landing(drive, s, 2, 2.0)
     assert math.hypot(out[0].east - te, out[0].north - tn) < 0.002
+    # stamped on the receiver's new time line, not the old one
+    assert out[0].drop.utc == pytest.approx(UTC0 - timedelta(hours=1) + timedelta(seconds=2.0),
+                                            abs=timedelta(seconds=0.3))
 
 
 @given(

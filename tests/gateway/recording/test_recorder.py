@@ -170,10 +170,12 @@ def test_clock_offset_follows_the_window_minimum_as_old_epochs_leave_it() -> Non
         assert clock.offset_s == pytest.approx(min(window))
 
 
-def test_a_clock_step_restarts_the_offset_window() -> None:
+def test_a_reset_clock_maps_by_the_epochs_after_it_alone() -> None:
+    """A time step (judged by gnss_time.GnssTimeGuard) restarts the offset window."""
     clock = ClockMap(latency_s=0.0)
     clock.observe(105.0, 100.0)
-    assert clock.is_step(110.0, 101.0) and not clock.is_step(106.5, 101.0)
+    clock.reset()
+    assert not clock.ready
     clock.observe(110.0, 101.0)
     assert clock.offset_s == pytest.approx(9.0)
 
