@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from gateway.core.errors import ConfigError
+from gateway.core.files import regular_file_problem
 
 if TYPE_CHECKING:
     from gateway.config import ChannelSection, Settings
@@ -89,17 +90,8 @@ def file_problem(path: str | os.PathLike[str]) -> str | None:
 
     Opened for real: as root (the tests, many field boxes) ``os.access`` says yes to anything.
     """
-    p = Path(path)
-    if p.is_dir():
-        return "a directory, not a file"
-    try:
-        with p.open("rb"):
-            pass
-    except FileNotFoundError:
-        return "file not found"
-    except OSError as exc:
-        return f"cannot read the file: {exc.strerror or exc}"
-    return None
+    # without blocking: a FIFO's open waits for a writer (check-config hung on one)
+    return regular_file_problem(path)
 
 
 def input_file_problems(settings: Settings) -> list[str]:

@@ -14,7 +14,8 @@ change reaches the ground, so the rate is looked up where the outlets *will be* 
 ``lookahead_s`` at the current speed along the current heading.
 
 Bad maps fail at load with ``PrescriptionError`` naming the feature and the problem: missing
-rate attribute, non-numeric or negative rate, invalid or non-polygon geometry, a CRS other
+rate attribute, non-numeric, negative or absurd rate (above 2 000 kg/ha), a file that is not a
+regular file or is huge, JSON nested too deep, invalid or non-polygon geometry, a CRS other
 than WGS84, or coordinates that look projected (metres instead of degrees).
 """
 
@@ -38,7 +39,9 @@ from shapely.geometry import MultiPolygon, Point, Polygon, shape
 from shapely.strtree import STRtree
 from shapely.validation import explain_validity
 
+from gateway.config.metering import MAX_RATE_KG_HA
 from gateway.core.errors import GatewayError
+from gateway.core.files import UnreadableFile, read_regular_file, regular_file_problem
 
 if TYPE_CHECKING:
     from gateway.config import Settings
@@ -47,6 +50,7 @@ log = logging.getLogger(__name__)
 
 METRES_PER_DEG_LAT = 111_320.0
 MAX_FEATURES = 100_000
+MAX_MAP_BYTES = 256_000_000  # a whole farm's map is a few MB; more is not a map
 AS_APPLIED_MAX_ROWS = 100_000  # in-memory as-applied rows before the oldest are dropped
 WGS84_NAMES = (
     "EPSG:4326",
@@ -124,9 +128,10 @@ def _rate(value: Any, attr: str, source: str, index: int) -> float:
         raise PrescriptionError(
             f"{source}: feature {index}: rate attribute {attr!r} is not a number ({value!r})"
         ) from None
-    if not math.isfinite(rate) or rate < 0:
+    if not math.isfinite(rate) or not 0 <= rate <= MAX_RATE_KG_HA:
         raise PrescriptionError(
-            f"{source}: feature {index}: rate attribute {attr!r} must be >= 0 (got {value!r})"
+            f"{source}: feature {index}: rate attribute {attr!r} must be 0..{MAX_RATE_KG_HA:g} "
+            f"kg/ha (the range of a [[channel]] target_rate_kg_ha; got {value!r})"
         )
     return rate
 
@@ -208,13 +213,29 @@ class PrescriptionMap:
         p = Path(path)
         if not p.exists():
             raise PrescriptionError(f"{p}: prescription map not found")
+        # a FIFO would block the start for ever, /dev/zero would fill the memory
+        problem = regular_file_problem(p, MAX_MAP_BYTES)
+        if problem is not None:
+            raise PrescriptionError(f"{p}: not a usable map file: {problem}")
         suffix = p.suffix.lower()
         if suffix in (".geojson", ".json"):
             try:
-                doc = json.loads(p.read_text(encoding="utf-8"))
+                doc = json.loads(read_regular_file(p, MAX_MAP_BYTES).decode("utf-8"))
+            except UnreadableFile as exc:
+                raise PrescriptionError(f"{p}: not a usable map file: {exc}") from None
             except (UnicodeDecodeError, json.JSONDecodeError) as exc:
                 raise PrescriptionError(f"{p}: not valid GeoJSON: {exc}") from None
-            return cls.from_geojson(doc, attributes, str(p))
+            except RecursionError:
+                # JSON nested 200 000 deep: not a map (GeoJSON nests 4 levels at most)
+                raise PrescriptionError(
+                    f"{p}: not valid GeoJSON: nested too deep (a map nests a few levels)"
+                ) from None
+            try:
+                return cls.from_geojson(doc, attributes, str(p))
+            except RecursionError:
+                raise PrescriptionError(
+                    f"{p}: not valid GeoJSON: a geometry nested too deep"
+                ) from None
         if suffix == ".shp":
             return cls._load_shapefile(p, attributes)
         raise PrescriptionError(f"{p}: unsupported map format {suffix!r} (use .geojson or .shp)")

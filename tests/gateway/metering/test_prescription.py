@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -121,7 +122,8 @@ def test_unknown_attribute_at_lookup_is_an_error(field_map: PrescriptionMap) -> 
     [
         (fc(feature([square(0, 0, 1, 1)], other=1)), r"feature 0: no rate attribute 'seed'"),
         (fc(feature([square(0, 0, 1, 1)], seed="lots")), "not a number"),
-        (fc(feature([square(0, 0, 1, 1)], seed=-5)), ">= 0"),
+        (fc(feature([square(0, 0, 1, 1)], seed=-5)), r"must be 0\.\.2000 kg/ha"),
+        (fc(feature([square(0, 0, 1, 1)], seed=1e308)), r"must be 0\.\.2000 kg/ha.*1e\+308"),
         (fc(feature([square(0, 0, 1, 1)], seed=None)), "empty"),
         (fc(feature([[[0, 0], [1, 1], [1, 0], [0, 1], [0, 0]]], seed=1)), "invalid geometry"),
         (fc({"type": "Feature", "geometry": {"type": "Point", "coordinates": [0, 0]},
@@ -159,6 +161,30 @@ def test_load_geojson_file_and_file_errors(tmp_path: Path) -> None:
     (tmp_path / "rx.kml").write_text("<kml/>")
     with pytest.raises(PrescriptionError, match="unsupported"):
         PrescriptionMap.load(tmp_path / "rx.kml", ["seed"])
+
+
+def test_a_map_nested_deeper_than_any_geojson_is_a_clear_error(tmp_path: Path) -> None:
+    """200 000 levels of JSON crashed ``run`` and ``check-config`` with a RecursionError."""
+    p = tmp_path / "deep.geojson"
+    p.write_text('{"type": "FeatureCollection", "features": ' + "[" * 200_000 + "]" * 200_000
+                 + "}")
+    with pytest.raises(PrescriptionError, match=r"deep\.geojson: not valid GeoJSON: nested too"):
+        PrescriptionMap.load(p, ["seed"])
+
+
+def test_a_map_that_is_not_a_regular_file_is_refused_without_waiting(tmp_path: Path) -> None:
+    fifo = tmp_path / "rx.geojson"
+    os.mkfifo(fifo)  # opened for reading, a FIFO blocks until a writer comes
+    with pytest.raises(PrescriptionError, match=r"rx\.geojson: not a usable map file: a FIFO"):
+        PrescriptionMap.load(fifo, ["seed"])
+    with pytest.raises(PrescriptionError, match="a device, not a file"):
+        PrescriptionMap.load(_zero(tmp_path), ["seed"])
+
+
+def _zero(tmp_path: Path) -> Path:
+    link = tmp_path / "zero.geojson"
+    link.symlink_to("/dev/zero")
+    return link
 
 
 def _configured(path: str | None, *attrs: str | None) -> Settings:
