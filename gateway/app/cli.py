@@ -18,6 +18,7 @@ from gateway.config import (
     dashboard_problems,
     input_file_problems,
     load_config,
+    lock_state_dir,
     output_location_problems,
     parts_summary,
     prepare_state_dir,
@@ -125,8 +126,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         settings = load_config(args.config)
         state = prepare_state_dir()
+        # held until this process ends: a second daemon on this directory stops here (78)
+        state_lock = lock_state_dir(state)
     except ConfigError as exc:
         return config_problems(exc.problems)
+    try:
+        return _run_daemon(args, settings, state)
+    finally:
+        state_lock.close()
+
+
+def _run_daemon(args: argparse.Namespace, settings: Settings, state: Path) -> int:
     setup_logging(args.verbose)
     from gateway.app.daemon import Daemon, settle_gc
     from gateway.ui.terminal import run_with_live_view

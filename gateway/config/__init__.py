@@ -49,6 +49,7 @@ from gateway.config.recording import (
 from gateway.config.startup import (
     dashboard_problems,
     input_file_problems,
+    lock_state_dir,
     output_location_problems,
     parts_summary,
     prepare_state_dir,
@@ -96,6 +97,7 @@ __all__ = [
     "dashboard_problems",
     "format_validation_error",
     "input_file_problems",
+    "lock_state_dir",
     "load_config",
     "optional_parts",
     "output_location_problems",
