@@ -89,8 +89,17 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
             except PrescriptionError as exc:
                 problems.append(str(exc))
             else:
-                zones = len(rx.zones) if rx is not None else 0
-                warnings.append(f"prescription map {p.path}: {zones} zones, rates {attrs} ok")
+                if rx is not None:
+                    from gateway.metering.prescription import WIDE_MAP_KM
+
+                    # where the map lies, so a fitter sees a map of another field now; the
+                    # daemon compares it with the machine's position (far_from_field)
+                    warnings.append(f"prescription map {p.path}: {len(rx.zones)} zones, rates "
+                                    f"{attrs} ok; {rx.extent_note()}")
+                    if max(rx.size_km()) > WIDE_MAP_KM:
+                        warnings.append(
+                            f"prescription map {p.path} spans {max(rx.size_km()):.0f} km: more "
+                            "than a field (several farms' zones, or a stray polygon?)")
     elif attrs:
         warnings.append("channel: prescription_attribute set but prescription.enabled = false")
     return problems, warnings

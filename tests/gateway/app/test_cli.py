@@ -178,6 +178,24 @@ def test_check_config_accepts_a_good_prescription_map(
     assert main(["check-config", str(_map_config(tmp_path, "EPSG:4326"))]) == 0
     captured = capsys.readouterr()
     assert "ok (machine" in captured.out and "1 zones" in captured.err
+    # where the map lies, so a map of another field is seen before the daemon alarms it
+    assert "extent 0.09 x 0.11 km around lat 40.00050, lon 116.00050" in captured.err
+
+
+def test_check_config_notes_a_map_wider_than_a_field(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = _map_config(tmp_path, "EPSG:4326")
+    doc = json.loads((tmp_path / "rx.geojson").read_text())
+    stray = json.loads(json.dumps(doc["features"][0]))  # a second zone 60 km east
+    stray["geometry"]["coordinates"][0] = [[lon + 0.7, lat] for lon, lat
+                                           in stray["geometry"]["coordinates"][0]]
+    doc["features"].append(stray)
+    (tmp_path / "rx.geojson").write_text(json.dumps(doc))
+    assert main(["check-config", str(cfg)]) == 0
+    err = capsys.readouterr().err
+    assert f"note: prescription map {tmp_path / 'rx.geojson'} spans 60 km: more than a field" \
+        in err, err
 
 
 @pytest.mark.parametrize(
