@@ -360,8 +360,6 @@ class FarFromFieldWatch:
     farmyard to the field is well inside ``FAR_FROM_FIELD_M``).
     """
 
-    CODE = "prescription.far_from_field"
-
     def __init__(self, prescription: PrescriptionMap, alarms: Any,
                  far_m: float = FAR_FROM_FIELD_M, every_s: float = 1.0) -> None:
         self.map = prescription
@@ -380,13 +378,13 @@ class FarFromFieldWatch:
         self._checked_at = epoch.t_mono
         d = self.map.distance_m(epoch.lon, epoch.lat)
         far = d > self.far_m
-        if far and not self.alarms.is_active(self.CODE):
+        if far and not self.alarms.is_active("prescription.far_from_field"):
             log.warning("prescription map %s is %.1f km from the machine (lat %.5f, lon %.5f): "
                         "a map of another field?", self.map.source, d / 1e3, epoch.lat,
                         epoch.lon)
         self.distance_m = d
         self.alarms.set(
-            self.CODE, far,
+            "prescription.far_from_field", far,
             f"prescription map {self.map.source} is {d / 1e3:.1f} km from the machine: a map "
             "of another field? Outside its zones every channel sows its default rate",
             "warning",
