@@ -191,3 +191,20 @@ async def test_a_map_100_km_from_the_field_alarms_far_from_field(tmp_path: Path)
             assert rig.daemon.parts.metering.prescription is not None  # the map is loaded
             status = rig.daemon.parts.metering.status()
             assert status.channels["seed"].target_rate_kg_ha == 225.0  # its default rate
+
+
+async def test_a_map_nested_200_000_deep_alarms_and_the_drill_sows_its_default_rate(
+    tmp_path: Path,
+) -> None:
+    """It crashed ``run`` with a RecursionError; now it is a bad map like any other."""
+    fmap = tmp_path / "deep.geojson"
+    fmap.write_text('{"type": "FeatureCollection", "features": ' + "[" * 200_000
+                    + "]" * 200_000 + "}")
+    can_channel = f"rx-{uuid.uuid4().hex[:8]}"
+    async with CanBus("virtual", can_channel):
+        machine = SimulatedMachine(drive=Drive(legs=[Leg(1.0, 0.0), Leg(60.0, 5.0)], dt=0.02))
+        async with running(tmp_path, machine, **_config(can_channel, fmap)) as rig:
+            await rig.until(lambda: rig.daemon.outputs is not None)
+            (alarm,) = [a for a in rig.daemon.alarms.active if a.code == "prescription.invalid"]
+            assert f"{fmap}: not valid GeoJSON: nested too deep" in alarm.message
+            assert rig.daemon.parts.metering.status().channels["seed"].target_rate_kg_ha == 225.0
