@@ -262,3 +262,15 @@ def test_a_fifo_or_a_device_as_the_config_is_refused_at_once_with_78(
         assert proc.stderr.startswith(f"{path}: the config must be a regular file of at most "
                                       f"1000000 bytes: {problem}"), proc.stderr
         assert "Traceback" not in proc.stderr
+
+
+def test_check_config_refuses_a_map_rate_of_1e308_naming_the_range(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = _map_config(tmp_path, "EPSG:4326")
+    doc = json.loads((tmp_path / "rx.geojson").read_text())
+    doc["features"][0]["properties"]["seed_rate"] = 1e308
+    (tmp_path / "rx.geojson").write_text(json.dumps(doc))
+    assert main(["check-config", str(cfg)]) == 78
+    err = capsys.readouterr().err
+    assert "feature 0: rate attribute 'seed_rate' must be 0..2000 kg/ha" in err, err
