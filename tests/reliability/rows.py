@@ -134,11 +134,13 @@ ROWS: tuple[Row, ...] = (
         f"{FUZZ_S:g} s of {BINARY_LOG_BYTES} B of binary output (no line end) before every "
         "sentence on the GNSS line",
         "daemon up, no traceback; the valid sentences after the binary are kept: every seed "
-        f"of the window RTK-fixed, none extrapolated; ≤ {LOG_LINES_PER_FUZZ_MAX} log lines"),
+        f"of the window RTK-fixed, none extrapolated; ≤ {LOG_LINES_PER_FUZZ_MAX} log lines of "
+        "the daemon's own"),
     Row("serial_fuzz_seed_line", "serial",
         f"{FUZZ_S:g} s of random junk lines (1–200 B + CRLF every 50 ms) between the seed lines",
         "daemon up, no traceback; every valid seed line becomes a record; "
-        f"≤ {LOG_LINES_PER_FUZZ_MAX} log lines; RSS growth ≤ {RSS_GROWTH_MAX_MB:g} MB"),
+        f"≤ {LOG_LINES_PER_FUZZ_MAX} log lines of the daemon's own; RSS growth ≤ "
+        f"{RSS_GROWTH_MAX_MB:g} MB"),
     Row("command_fuzz", "commands",
         "hostile payloads on every `cmd/<name>` (nesting 2000 deep, wrong types, numbers as "
         "strings, NaN, invalid UTF-8, random bytes, unknown names) plus random JSON",
