@@ -66,6 +66,8 @@ _PYMODBUS_DUPLICATES = (
     "Failed to connect",
     "Not connected, trying to connect",
     "Cancel send, because not connected",
+    # its own marker for a message it just logged again (dropped above): noise under load
+    "Repeating....",
 )
 
 

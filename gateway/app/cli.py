@@ -18,6 +18,7 @@ from gateway.config import (
     dashboard_problems,
     input_file_problems,
     load_config,
+    lock_state_dir,
     output_location_problems,
     parts_summary,
     prepare_state_dir,
@@ -88,8 +89,17 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
             except PrescriptionError as exc:
                 problems.append(str(exc))
             else:
-                zones = len(rx.zones) if rx is not None else 0
-                warnings.append(f"prescription map {p.path}: {zones} zones, rates {attrs} ok")
+                if rx is not None:
+                    from gateway.metering.prescription import WIDE_MAP_KM
+
+                    # where the map lies, so a fitter sees a map of another field now; the
+                    # daemon compares it with the machine's position (far_from_field)
+                    warnings.append(f"prescription map {p.path}: {len(rx.zones)} zones, rates "
+                                    f"{attrs} ok; {rx.extent_note()}")
+                    if max(rx.size_km()) > WIDE_MAP_KM:
+                        warnings.append(
+                            f"prescription map {p.path} spans {max(rx.size_km()):.0f} km: more "
+                            "than a field (several farms' zones, or a stray polygon?)")
     elif attrs:
         warnings.append("channel: prescription_attribute set but prescription.enabled = false")
     return problems, warnings
@@ -125,8 +135,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         settings = load_config(args.config)
         state = prepare_state_dir()
+        # held until this process ends: a second daemon on this directory stops here (78)
+        state_lock = lock_state_dir(state)
     except ConfigError as exc:
         return config_problems(exc.problems)
+    try:
+        return _run_daemon(args, settings, state)
+    finally:
+        state_lock.close()
+
+
+def _run_daemon(args: argparse.Namespace, settings: Settings, state: Path) -> int:
     setup_logging(args.verbose)
     from gateway.app.daemon import Daemon, settle_gc
     from gateway.ui.terminal import run_with_live_view

@@ -381,6 +381,11 @@ def _attach_channels(daemon: Daemon) -> None:
         on_error=on_write_error,
     )
     prescription = _load_prescription(daemon)
+    if prescription is not None and s.gnss.enabled:
+        from gateway.metering.prescription import FarFromFieldWatch
+
+        # a map of another field: alarmed from the machine's first fixed positions on
+        daemon.epoch_listeners.append(FarFromFieldWatch(prescription, daemon.alarms).on_epoch)
     if can_pid:
         _attach_metering(daemon, prescription, as_applied)
     if pwm is not None:

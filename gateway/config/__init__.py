@@ -50,6 +50,7 @@ from gateway.config.recording import (
 from gateway.config.startup import (
     dashboard_problems,
     input_file_problems,
+    lock_state_dir,
     output_location_problems,
     parts_summary,
     prepare_state_dir,
@@ -58,7 +59,9 @@ from gateway.config.startup import (
     undriven_channels,
 )
 from gateway.core.errors import ConfigError
+from gateway.core.files import UnreadableFile, read_regular_file
 
+CONFIG_MAX_BYTES = 1_000_000  # a config is a few kB; a cap keeps /dev/zero from filling memory
 EXIT_CONFIG = 78  # EX_CONFIG from sysexits.h; systemd's RestartPreventExitStatus uses it
 
 __all__ = [
@@ -97,6 +100,7 @@ __all__ = [
     "format_validation_error",
     "input_file_problems",
     "load_config",
+    "lock_state_dir",
     "optional_parts",
     "output_location_problems",
     "parse_config",
@@ -408,11 +412,18 @@ def load_config(path: str | os.PathLike[str]) -> Settings:
     """Read and validate a config file; a missing or unreadable file is a ConfigError too."""
     p = Path(path)
     try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError([f"{p}: config file not found"]) from None
-    except OSError as exc:
-        raise ConfigError([f"{p}: cannot read config file ({exc.strerror})"]) from None
+        # a FIFO would block for ever, /dev/zero would fill the memory: a regular file only
+        raw = read_regular_file(p, CONFIG_MAX_BYTES)
+    except UnreadableFile as exc:
+        problem = str(exc)
+        if problem == "file not found":
+            problem = "config file not found"
+        elif problem.startswith("cannot read the file"):
+            problem = problem.replace("cannot read the file", "cannot read config file")
+        else:
+            problem = f"the config must be a regular file of at most {CONFIG_MAX_BYTES} bytes: " \
+                      f"{problem}"
+        raise ConfigError([f"{p}: {problem}"]) from None
     try:
         data = tomllib.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import socket
 from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
@@ -87,6 +88,36 @@ class DashboardSection(Section):
     client_id: str = Field("sowgate-dashboard", min_length=1, max_length=128)
     # seeds kept per machine for the map (the oldest go first); the page draws all of them
     max_seeds: int = Field(300_000, ge=1000, le=5_000_000)
+    # The names the page may be reached under (the ``Host`` a browser sends); every other is
+    # refused, so a web page elsewhere cannot reach the machine through the farmer's browser
+    # by pointing its own name at this box (DNS rebinding). None: the listen address and
+    # localhost, 127.0.0.1, ::1, plus this machine's host name (and NAME.local) when listening
+    # beyond loopback. "*.farm.lan" takes every name under farm.lan. See gateway/dashboard/guard.py.
+    allowed_hosts: list[str] | None = None
+    # machines shown: topics from further machine ids are counted, logged and dropped (each
+    # machine holds up to max_seeds seeds; 20 000 stray ids must not grow the process)
+    max_machines: int = Field(64, ge=1, le=10_000)
+    # pages open at once (each holds a queue and gets every update); more are refused
+    max_clients: int = Field(16, ge=1, le=1000)
+
+    @field_validator("allowed_hosts")
+    @classmethod
+    def _allowed_hosts(cls, value: list[str] | None) -> list[str] | None:
+        if value is None:
+            return None
+        out = []
+        for raw in value:
+            name = raw.strip().lower().strip("[]")
+            if not re.fullmatch(r"(\*\.)?[a-z0-9_.-]+|[0-9a-f.]*:[0-9a-f.]*:[0-9a-f:.]*", name):
+                raise ValueError(
+                    f"{raw!r} is not a host name: give names or addresses without scheme or "
+                    'port, e.g. ["cab-box.local", "192.168.1.20", "*.farm.lan"]'
+                )
+            out.append(name)
+        if not out:
+            raise ValueError("an empty list would refuse every request; leave it out for "
+                             "the default (the listen address and localhost names)")
+        return out
 
     @field_validator("listen")
     @classmethod
@@ -112,3 +143,16 @@ class DashboardSection(Section):
     @property
     def local_only(self) -> bool:
         return self.host in LOCAL_HOSTS or self.host.startswith("127.")
+
+    def trusted_hosts(self) -> frozenset[str]:
+        """The host names requests may name: ``allowed_hosts``, or the default."""
+        if self.allowed_hosts is not None:
+            return frozenset(self.allowed_hosts)
+        names = {"localhost", "127.0.0.1", "::1"}
+        if self.host not in ("0.0.0.0", "::"):
+            names.add(self.host.lower())
+        if not self.local_only:
+            hostname = socket.gethostname().lower()
+            if hostname:
+                names.update((hostname, hostname.split(".")[0] + ".local"))
+        return frozenset(names)

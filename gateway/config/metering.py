@@ -9,6 +9,10 @@ from pydantic_settings import NoDecode
 
 from gateway.config._base import FieldProblem, OptionalPart, Section, check_unique, source_chain
 
+# the most any product is sown or spread at (a channel's target, a prescription's rate): a
+# map's 1e308 kg/ha is a broken export, not a rate
+MAX_RATE_KG_HA = 2000.0
+
 
 class CanSection(OptionalPart):
     enabled: bool = False
@@ -25,7 +29,7 @@ class CanSection(OptionalPart):
 class ChannelSection(Section):
     name: str = Field(min_length=1, max_length=32, pattern=r"^[A-Za-z0-9_-]+$")
     product: str = "seed"
-    target_rate_kg_ha: float = Field(gt=0, le=2000)
+    target_rate_kg_ha: float = Field(gt=0, le=MAX_RATE_KG_HA)
     drive: Literal["pwm_modbus", "can_pid"] = "can_pid"
     node_id: int = Field(1, ge=0, le=15)  # CAN controller address
     grams_per_rev: float = Field(10.0, gt=0, le=10000)  # paper B per-revolution displacement

@@ -170,6 +170,16 @@ class PositioningSection(Section):
             raise FieldProblem(
                 "fall_time_table", "must be non-empty and sorted by speed", self.fall_time_table
             )
+        if self.antenna_height_m > 0 and self.attitude_source == "none":
+            # it alone corrects nothing: on a 3 deg slope every seed stayed 13 cm off while the
+            # config looked complete (issue 20); a config error, not a note nobody reads
+            raise FieldProblem(
+                "antenna_height_m",
+                "corrects nothing without positioning.attitude_source (it is \"none\"): set "
+                "attitude_source = \"dual_antenna\" or \"inclinometer\" for terrain "
+                "compensation, or leave antenna_height_m out (0)",
+                self.antenna_height_m,
+            )
         return self
 
     def lateral_offsets(self) -> list[float]:

@@ -22,6 +22,8 @@ The estimate
       fitted alone, by least squares iterated with outliers (beyond 3.5 robust σ of the
       residuals, σ from the median absolute deviation) dropped: a knock on the load cells
       does not pull the line. Its inliers then join the evidence.
+    * A silence of the scale (no usable reading for ``SILENCE_END_LINE_S``) ends the line:
+      nothing learnt across it, the factor frozen until a full window after it.
     * A refill (the weight jumping up, or any jump: the median of the last readings against
       the median of the ones before, beyond ``max(REFILL_MIN_KG, 5 σ)``) ends the line: the
       window in progress is dropped and a new line (own intercept ``a``) starts. A jump down
@@ -90,6 +92,12 @@ JUMP_MEDIAN_N = 10  # readings in each median of the jump (refill) detector: a k
 REFILL_MIN_KG = 10.0  # no jump below this counts as a refill, whatever the noise
 JUMP_SIGMAS = 5.0  # ... nor below this many σ of the difference of the two medians
 DEFAULT_SIGMA_KG = 2.0  # the noise assumed until the residuals give it
+# No usable reading for this long (the scale silent, or every reading rejected: the device is
+# alarmed after 2 s) ends the line like a refill: the factor stays frozen through the silence
+# and until a whole window of steady seeding after it. A window fitted across the gap joined
+# readings from before and after a transmitter that may have restarted (re-tared) or drifted
+# unseen, and moved the correction 0.0045 in the fault matrix's hopper_scale_silent row.
+SILENCE_END_LINE_S = 2.0
 STEADY_AFTER_S = 5.0  # seeding this long before samples count (start-up, speed filter)
 STEADY_SPEED_SPAN = 0.10  # filtered speed within ±10 % over STEADY_SPEED_S
 STEADY_SPEED_S = 3.0
@@ -329,6 +337,8 @@ class HopperCorrection:
         self.windows = 0
         self.refills = 0
         self.jumps = 0  # downward jumps: implausible (a load cell, not seed)
+        self.silences = 0  # lines ended by the scale going silent (SILENCE_END_LINE_S)
+        self._last_reading_t: float | None = None
         self.last_jump_kg = 0.0
         self.last_window: WindowFit | None = None
         self._update_factor()
@@ -348,6 +358,11 @@ class HopperCorrection:
         if weight_kg is None or not math.isfinite(weight_kg):
             self._last_steady = False
             return False
+        silent_s = None if self._last_reading_t is None else t - self._last_reading_t
+        self._last_reading_t = t
+        if silent_s is not None and silent_s > SILENCE_END_LINE_S:
+            self.silences += 1
+            self._end_line()  # frozen: the window across the silence is not fitted
         jump = self._jump(weight_kg)
         if jump is not None:
             if jump > 0:

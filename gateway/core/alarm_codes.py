@@ -189,6 +189,14 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "fix the map file named in the message",
     ),
     AlarmCode(
+        "prescription.far_from_field", ("warning",),
+        "the prescription map lies farther than 20 km from the machine's GNSS position (checked "
+        "from the first fixed positions on; clears within 20 km): a map of another field, and "
+        "outside its zones every channel sows its default rate",
+        "load the map of this field (`[prescription] path`); `sowgate check-config` shows "
+        "where a map lies",
+    ),
+    AlarmCode(
         "prescription.unused", ("warning",),
         "a prescription map is enabled but no metering channel uses it",
         "configure a channel, or set `[prescription] enabled = false`",

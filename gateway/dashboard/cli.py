@@ -53,6 +53,9 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     config = uvicorn.Config(
         app, host=d.host, port=d.port, ws="websockets-sansio", lifespan="on",
         log_level="debug" if args.verbose else "warning", access_log=False,
+        # no proxy in front: X-Forwarded-For must not choose the client address the password
+        # throttle counts failures by (gateway/dashboard/guard.py)
+        proxy_headers=False,
     )
     server = uvicorn.Server(config)
     shown = f"[{d.host}]" if ":" in d.host else d.host

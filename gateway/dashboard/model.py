@@ -8,7 +8,9 @@ pages a few times a second, so 2 000 seeds a second are a few messages, not 2 00
 Delivery is at-least-once: seeds and alarm events are deduplicated by ``(machine_id, id)``
 (docs/mqtt.md). Per machine the dashboard keeps the newest ``max_seeds`` seeds; ids below the
 oldest one kept are taken as seen (a redelivery is of records the broker never acknowledged,
-which are recent), so memory stays bounded on a 70 M-records-a-day planter.
+which are recent), so memory stays bounded on a 70 M-records-a-day planter. At most
+``max_machines`` machines are kept: messages of further machine ids are counted
+(``machines_refused``) and dropped.
 
 Positions become local metres east/north of the first seed the dashboard saw (of any
 machine, so several seeders on one field share a frame). An equirectangular projection: over a
@@ -184,11 +186,15 @@ class Fleet:
         topic_prefix: str = "sowgate",
         *,
         max_seeds: int = 300_000,
+        max_machines: int = 64,
         target_spacing: Callable[[str], float | None] = lambda machine_id: None,
         clock: Callable[[], float] = time.time,
     ) -> None:
         self.prefix = topic_prefix.rstrip("/") + "/"
         self.max_seeds = max_seeds
+        self.max_machines = max_machines
+        self.machines_refused = 0  # messages of machine ids beyond max_machines, dropped
+        self.last_refused_id = ""
         self.target_spacing = target_spacing
         self.clock = clock
         self.machines: dict[str, MachineView] = {}
@@ -228,6 +234,11 @@ class Fleet:
             self.rejected += 1
             return False
         machine_id, kind = parts[0], parts[1:]
+        if machine_id not in self.machines and len(self.machines) >= self.max_machines:
+            # 20 000 stray ids on the broker must not grow the process: counted, not kept
+            self.machines_refused += 1
+            self.last_refused_id = machine_id[:64]
+            return False
         try:
             if kind == ["status"]:
                 return self._status(machine_id, payload)

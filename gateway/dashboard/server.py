@@ -8,22 +8,19 @@ allowed to hold memory: its queue is dropped and it gets a fresh snapshot instea
 
 With ``[dashboard] password_file`` every request, the WebSocket included, needs HTTP basic
 auth with that password (any user name): required when the page offers commands and listens
-beyond localhost (``sowgate dashboard`` refuses to start otherwise).
+beyond localhost (``sowgate dashboard`` refuses to start otherwise). Every request must name an
+allowed host, and POSTs and WebSockets come from the page itself (``guard``: the trust model).
 """
 
 from __future__ import annotations
 
 import asyncio
-import base64
-import binascii
 import contextlib
 import logging
 import math
-import secrets
-from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, MutableMapping
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 import orjson
 from starlette.applications import Starlette
@@ -35,23 +32,19 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from gateway.config import Settings
 from gateway.config.farm import DASHBOARD_COMMANDS
+from gateway.dashboard.guard import BasicAuth, RequestGuard, TrustedHosts, check_password
 from gateway.dashboard.model import Fleet, encode
 from gateway.dashboard.subscriber import CommandRefused, DashboardSubscriber
 
 log = logging.getLogger(__name__)
+
+__all__ = ["Hub", "check_password", "create_app", "page_config"]
 
 STATIC = Path(__file__).parent / "static"
 PUSH_PERIOD_S = 0.25
 CLIENT_QUEUE = 64  # messages a page may lag behind before it is resynchronised
 # the commands the page can send, of those [commands] enabled allows
 PAGE_COMMANDS = DASHBOARD_COMMANDS
-REALM = 'Basic realm="sowgate dashboard", charset="UTF-8"'
-
-Scope = MutableMapping[str, Any]
-Message = MutableMapping[str, Any]
-Receive = Callable[[], Awaitable[Message]]
-Send = Callable[[Message], Awaitable[None]]
-ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 
 def page_config(settings: Settings) -> dict[str, Any]:
@@ -65,57 +58,13 @@ def page_config(settings: Settings) -> dict[str, Any]:
     }
 
 
-def check_password(header: str | None, password: str) -> bool:
-    """Whether an ``Authorization`` header carries ``password`` (HTTP basic, any user)."""
-    if not header or not header.startswith("Basic "):
-        return False
-    try:
-        decoded = base64.b64decode(header[6:].strip(), validate=True).decode("utf-8")
-    except (binascii.Error, UnicodeDecodeError):
-        return False
-    _, sep, given = decoded.partition(":")
-    return bool(sep) and secrets.compare_digest(given.encode(), password.encode())
-
-
-class BasicAuth:
-    """ASGI middleware: every HTTP request and WebSocket needs the password."""
-
-    def __init__(self, app: ASGIApp, password: str) -> None:
-        self.app = app
-        self.password = password
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket"):
-            await self.app(scope, receive, send)
-            return
-        headers = {k.decode("latin-1").lower(): v.decode("latin-1")
-                   for k, v in scope.get("headers", [])}
-        if check_password(headers.get("authorization"), self.password):
-            await self.app(scope, receive, send)
-            return
-        if scope["type"] == "websocket":
-            await send({"type": "websocket.close", "code": 1008})
-            return
-        response = Response("password needed", status_code=401,
-                            headers={"WWW-Authenticate": REALM})
-        await response(scope, receive, send)
-
-
-def same_origin(headers: Mapping[str, str]) -> bool:
-    """No ``Origin`` (not a browser), or one naming the host the request was sent to."""
-    origin = headers.get("origin")
-    if origin is None:
-        return True
-    host = headers.get("host", "")
-    return urlsplit(origin).netloc == host
-
-
 class Hub:
     """The open pages and what is pushed to them."""
 
     def __init__(self, fleet: Fleet) -> None:
         self.fleet = fleet
         self.clients: set[asyncio.Queue[str]] = set()
+        self.refused = 0  # pages turned away by [dashboard] max_clients
         self.wake = asyncio.Event()
 
     def changed(self) -> None:
@@ -166,10 +115,13 @@ def create_app(
     fleet = fleet or Fleet(
         settings.mqtt.topic_prefix,
         max_seeds=settings.dashboard.max_seeds,
+        max_machines=settings.dashboard.max_machines,
         # the config's target spacing is this machine's; others are rated against a median
         target_spacing=lambda mid: own_target if mid == own_id else None,
     )
     hub = Hub(fleet)
+    d = settings.dashboard
+    trusted = TrustedHosts(d.trusted_hosts(), any_ip=not d.local_only)
     subscriber = DashboardSubscriber(settings, fleet, on_change=hub.changed)
     config = page_config(settings)
 
@@ -189,8 +141,13 @@ def create_app(
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 
     async def live(websocket: WebSocket) -> None:
-        if not same_origin(websocket.headers):
-            await websocket.close(code=1008)
+        # the host and the Origin were checked by RequestGuard before this runs
+        if len(hub.clients) >= settings.dashboard.max_clients:
+            hub.refused += 1
+            log.warning("dashboard: page from %s refused: %d pages open ([dashboard] "
+                        "max_clients)", websocket.client and websocket.client.host,
+                        len(hub.clients))
+            await websocket.close(code=1013, reason="too many pages open")
             return
         await websocket.accept()
         queue, snapshot = hub.join()
@@ -216,12 +173,10 @@ def create_app(
 
     async def command(request: Request) -> Response:
         # a JSON content type forces a browser's CORS preflight (which is never answered), and
-        # the origin must be this page's: another web site cannot move the machine through a
-        # browser that has the password cached
+        # RequestGuard took only this page's origin under an allowed host: another web site
+        # cannot move the machine through a browser that has the password cached
         if not request.headers.get("content-type", "").startswith("application/json"):
             return JSONResponse({"ok": False, "error": "send application/json"}, 415)
-        if not same_origin(request.headers):
-            return JSONResponse({"ok": False, "error": "cross-origin request refused"}, 403)
         try:
             body = orjson.loads(await request.body())
         except (orjson.JSONDecodeError, RecursionError):
@@ -251,6 +206,11 @@ def create_app(
         return JSONResponse({
             "broker_connected": fleet.broker_connected,
             "machines": {mid: v.seed_count for mid, v in fleet.machines.items()},
+            # topics of machine ids beyond [dashboard] max_machines, dropped
+            "machines_refused": fleet.machines_refused,
+            "pages": len(hub.clients),
+            "pages_refused": hub.refused,
+            "requests_refused": trusted.refused,
         })
 
     app = Starlette(
@@ -268,5 +228,7 @@ def create_app(
     app.state.subscriber = subscriber
     if password is not None:
         app.add_middleware(BasicAuth, password=password)
+    # outermost: a stranger's request is refused before it can even try a password
+    app.add_middleware(RequestGuard, hosts=trusted)
     return app
 

@@ -22,6 +22,7 @@ import aiomqtt
 
 from drivers.backoff import Backoff
 from gateway.config import Settings
+from gateway.dashboard.guard import LogLimiter
 from gateway.dashboard.model import Fleet
 from gateway.link.mqtt import mqtt_client
 
@@ -52,6 +53,7 @@ class DashboardSubscriber:
         self.backoff = backoff or Backoff(initial_s=0.5, cap_s=min(5.0, self.cfg.reconnect_max_s))
         self._client: aiomqtt.Client | None = None
         self.connects = 0
+        self._refused_log = LogLimiter(logger=log)
 
     def _make_client(self) -> aiomqtt.Client:
         return mqtt_client(self.cfg, self.client_id, clean_session=False)
@@ -72,8 +74,15 @@ class DashboardSubscriber:
                     async for message in client.messages:
                         raw = message.payload
                         payload = raw if isinstance(raw, bytes) else str(raw or "").encode()
+                        refused = self.fleet.machines_refused
                         if self.fleet.handle(message.topic.value, payload, message.retain):
                             self.on_change()
+                        elif self.fleet.machines_refused != refused:
+                            self._refused_log.warning(
+                                "dashboard: message of machine %r dropped: %d machines shown "
+                                "already ([dashboard] max_machines); %d dropped so far",
+                                self.fleet.last_refused_id, len(self.fleet.machines),
+                                self.fleet.machines_refused)
             except asyncio.CancelledError:
                 raise
             except Exception as exc:  # every failure means: reconnect later

@@ -14,7 +14,8 @@ change reaches the ground, so the rate is looked up where the outlets *will be* 
 ``lookahead_s`` at the current speed along the current heading.
 
 Bad maps fail at load with ``PrescriptionError`` naming the feature and the problem: missing
-rate attribute, non-numeric or negative rate, invalid or non-polygon geometry, a CRS other
+rate attribute, non-numeric, negative or absurd rate (above 2 000 kg/ha), a file that is not a
+regular file or is huge, JSON nested too deep, invalid or non-polygon geometry, a CRS other
 than WGS84, or coordinates that look projected (metres instead of degrees).
 """
 
@@ -38,7 +39,9 @@ from shapely.geometry import MultiPolygon, Point, Polygon, shape
 from shapely.strtree import STRtree
 from shapely.validation import explain_validity
 
+from gateway.config.metering import MAX_RATE_KG_HA
 from gateway.core.errors import GatewayError
+from gateway.core.files import UnreadableFile, read_regular_file, regular_file_problem
 
 if TYPE_CHECKING:
     from gateway.config import Settings
@@ -47,6 +50,12 @@ log = logging.getLogger(__name__)
 
 METRES_PER_DEG_LAT = 111_320.0
 MAX_FEATURES = 100_000
+# a map farther than this from the machine's fixed positions is another field's (alarm); the
+# drive from the farmyard to a field stays well inside it
+FAR_FROM_FIELD_M = 20_000.0
+# check-config notes a map wider than this: zones of several farms, or a stray polygon
+WIDE_MAP_KM = 20.0
+MAX_MAP_BYTES = 256_000_000  # a whole farm's map is a few MB; more is not a map
 AS_APPLIED_MAX_ROWS = 100_000  # in-memory as-applied rows before the oldest are dropped
 WGS84_NAMES = (
     "EPSG:4326",
@@ -124,9 +133,10 @@ def _rate(value: Any, attr: str, source: str, index: int) -> float:
         raise PrescriptionError(
             f"{source}: feature {index}: rate attribute {attr!r} is not a number ({value!r})"
         ) from None
-    if not math.isfinite(rate) or rate < 0:
+    if not math.isfinite(rate) or not 0 <= rate <= MAX_RATE_KG_HA:
         raise PrescriptionError(
-            f"{source}: feature {index}: rate attribute {attr!r} must be >= 0 (got {value!r})"
+            f"{source}: feature {index}: rate attribute {attr!r} must be 0..{MAX_RATE_KG_HA:g} "
+            f"kg/ha (the range of a [[channel]] target_rate_kg_ha; got {value!r})"
         )
     return rate
 
@@ -219,13 +229,29 @@ class PrescriptionMap:
             raise PrescriptionError(f"{p}: prescription map not found")
         if is_taskdata(p):
             return cls._load_taskdata(p, attributes)
+        # a FIFO would block the start for ever, /dev/zero would fill the memory
+        problem = regular_file_problem(p, MAX_MAP_BYTES)
+        if problem is not None:
+            raise PrescriptionError(f"{p}: not a usable map file: {problem}")
         suffix = p.suffix.lower()
         if suffix in (".geojson", ".json"):
             try:
-                doc = json.loads(p.read_text(encoding="utf-8"))
+                doc = json.loads(read_regular_file(p, MAX_MAP_BYTES).decode("utf-8"))
+            except UnreadableFile as exc:
+                raise PrescriptionError(f"{p}: not a usable map file: {exc}") from None
             except (UnicodeDecodeError, json.JSONDecodeError) as exc:
                 raise PrescriptionError(f"{p}: not valid GeoJSON: {exc}") from None
-            return cls.from_geojson(doc, attributes, str(p))
+            except RecursionError:
+                # JSON nested 200 000 deep: not a map (GeoJSON nests 4 levels at most)
+                raise PrescriptionError(
+                    f"{p}: not valid GeoJSON: nested too deep (a map nests a few levels)"
+                ) from None
+            try:
+                return cls.from_geojson(doc, attributes, str(p))
+            except RecursionError:
+                raise PrescriptionError(
+                    f"{p}: not valid GeoJSON: a geometry nested too deep"
+                ) from None
         if suffix == ".shp":
             return cls._load_shapefile(p, attributes)
         raise PrescriptionError(f"{p}: unsupported map format {suffix!r} (use .geojson or .shp)")
@@ -284,6 +310,35 @@ class PrescriptionMap:
             ]
         return cls.from_features(pairs, attributes, str(p))
 
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(min lon, min lat, max lon, max lat) of every zone."""
+        boxes = [z.polygon.bounds for z in self.zones]
+        return (min(b[0] for b in boxes), min(b[1] for b in boxes),
+                max(b[2] for b in boxes), max(b[3] for b in boxes))
+
+    def distance_m(self, lon: float, lat: float) -> float:
+        """Metres from (lon, lat) to the map's extent (its bounding box; 0 inside it).
+        Flat earth: a field-sized answer is exact enough, a wrong field's 100 km is 100 km."""
+        min_lon, min_lat, max_lon, max_lat = self.bounds()
+        d_lon = max(min_lon - lon, 0.0, lon - max_lon)
+        d_lat = max(min_lat - lat, 0.0, lat - max_lat)
+        east = d_lon * METRES_PER_DEG_LAT * max(math.cos(math.radians(lat)), 1e-6)
+        return math.hypot(east, d_lat * METRES_PER_DEG_LAT)
+
+    def size_km(self) -> tuple[float, float]:
+        """(width east-west, height north-south) of the map's extent, km."""
+        min_lon, min_lat, max_lon, max_lat = self.bounds()
+        mid_lat = (min_lat + max_lat) / 2.0
+        width = (max_lon - min_lon) * METRES_PER_DEG_LAT * math.cos(math.radians(mid_lat))
+        return width / 1e3, (max_lat - min_lat) * METRES_PER_DEG_LAT / 1e3
+
+    def extent_note(self) -> str:
+        """Where the map lies and how big it is, for check-config's note."""
+        min_lon, min_lat, max_lon, max_lat = self.bounds()
+        width_km, height_km = self.size_km()
+        return (f"extent {width_km:.2f} x {height_km:.2f} km around lat "
+                f"{(min_lat + max_lat) / 2.0:.5f}, lon {(min_lon + max_lon) / 2.0:.5f}")
+
     def zone_at(self, lon: float, lat: float) -> Zone | None:
         pt = Point(lon, lat)
         hits = self._tree.query(pt, predicate="covered_by")  # pt covered_by polygon
@@ -340,6 +395,47 @@ def load_prescription(settings: Settings) -> PrescriptionMap | None:
         return PrescriptionMap.load(section.path, attributes)
     except PrescriptionError as exc:
         raise PrescriptionError(f"prescription.path: {exc}") from None
+
+
+class FarFromFieldWatch:
+    """``prescription.far_from_field``: the map lies far from where the machine is.
+
+    A map 100 km from the machine was taken without a word, and outside its zones every
+    channel sows its default rate: the field's map was not the one loaded. Each GNSS epoch with
+    a fix (at most one a second) is compared with the map's extent; beyond ``far_m`` the alarm
+    is raised (from the first fixed positions on), within it cleared (the drive from the
+    farmyard to the field is well inside ``FAR_FROM_FIELD_M``).
+    """
+
+    def __init__(self, prescription: PrescriptionMap, alarms: Any,
+                 far_m: float = FAR_FROM_FIELD_M, every_s: float = 1.0) -> None:
+        self.map = prescription
+        self.alarms = alarms
+        self.far_m = far_m
+        self.every_s = every_s
+        self._checked_at = -math.inf
+        self.distance_m: float | None = None
+
+    def on_epoch(self, epoch: Any) -> None:
+        """A GNSS epoch (``drivers.gnss_reader.GnssEpoch``: lon, lat, fix, t_mono)."""
+        if epoch.fix == "none" or epoch.lat is None or epoch.lon is None:
+            return
+        if epoch.t_mono - self._checked_at < self.every_s:
+            return
+        self._checked_at = epoch.t_mono
+        d = self.map.distance_m(epoch.lon, epoch.lat)
+        far = d > self.far_m
+        if far and not self.alarms.is_active("prescription.far_from_field"):
+            log.warning("prescription map %s is %.1f km from the machine (lat %.5f, lon %.5f): "
+                        "a map of another field?", self.map.source, d / 1e3, epoch.lat,
+                        epoch.lon)
+        self.distance_m = d
+        self.alarms.set(
+            "prescription.far_from_field", far,
+            f"prescription map {self.map.source} is {d / 1e3:.1f} km from the machine: a map "
+            "of another field? Outside its zones every channel sows its default rate",
+            "warning",
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import re
 import uuid
 from pathlib import Path
 
@@ -166,3 +167,44 @@ async def test_paper_a_pwm_channel_follows_the_map_and_logs_as_applied(tmp_path:
     assert rows[0].startswith("time,lon,lat,channel")
     logged = {float(r.split(",")[5]) for r in rows[1:] if r.split(",")[3] == "seed"}
     assert {5.0, 7.0} <= logged
+
+
+async def test_a_map_100_km_from_the_field_alarms_far_from_field(tmp_path: Path) -> None:
+    """The map of another field (here the same zones 100 km north) was taken without a word
+    and every channel sowed its default rate; now the first fixed positions raise
+    ``prescription.far_from_field`` and the channel sows on at its default rate."""
+    fmap = tmp_path / "rx.geojson"
+    fmap.write_text(json.dumps({"type": "FeatureCollection",
+                                "features": [_zone(100_000.0, 100_200.0, 150.0)]}))
+    can_channel = f"rx-{uuid.uuid4().hex[:8]}"
+    async with CanBus("virtual", can_channel):
+        machine = SimulatedMachine(drive=Drive(legs=[Leg(1.0, 0.0), Leg(60.0, 5.0)], dt=0.02),
+                                   with_gnss=True)
+        async with running(tmp_path, machine, **_config(can_channel, fmap)) as rig:
+            def far() -> list[str]:
+                return [a.message for a in rig.daemon.alarms.active
+                        if a.code == "prescription.far_from_field"]
+
+            await rig.until(lambda: bool(far()), timeout=20.0, what="far_from_field")
+            assert re.search(rf"prescription map {re.escape(str(fmap))} is 100\.\d km from "
+                             "the machine", far()[0]), far()
+            assert rig.daemon.parts.metering.prescription is not None  # the map is loaded
+            status = rig.daemon.parts.metering.status()
+            assert status.channels["seed"].target_rate_kg_ha == 225.0  # its default rate
+
+
+async def test_a_map_nested_200_000_deep_alarms_and_the_drill_sows_its_default_rate(
+    tmp_path: Path,
+) -> None:
+    """It crashed ``run`` with a RecursionError; now it is a bad map like any other."""
+    fmap = tmp_path / "deep.geojson"
+    fmap.write_text('{"type": "FeatureCollection", "features": ' + "[" * 200_000
+                    + "]" * 200_000 + "}")
+    can_channel = f"rx-{uuid.uuid4().hex[:8]}"
+    async with CanBus("virtual", can_channel):
+        machine = SimulatedMachine(drive=Drive(legs=[Leg(1.0, 0.0), Leg(60.0, 5.0)], dt=0.02))
+        async with running(tmp_path, machine, **_config(can_channel, fmap)) as rig:
+            await rig.until(lambda: rig.daemon.outputs is not None)
+            (alarm,) = [a for a in rig.daemon.alarms.active if a.code == "prescription.invalid"]
+            assert f"{fmap}: not valid GeoJSON: nested too deep" in alarm.message
+            assert rig.daemon.parts.metering.status().channels["seed"].target_rate_kg_ha == 225.0

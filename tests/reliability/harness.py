@@ -53,6 +53,10 @@ def dashboard(port: int) -> contextlib.AbstractAsyncContextManager[Subscriber]:
     return subscriber(port, BASE, "reliability-dashboard")
 
 
+# "2026-04-20 08:00:00,123 WARNING pymodbus.logging: Repeating...." (cli.setup_logging's form)
+PYMODBUS_LINE = re.compile(r"^\S+ \S+ [A-Z]+ pymodbus[.\w]*: ")
+
+
 class DaemonProcess:
     """``sowgate run`` in its own process, its log in ``log_path`` (appended across restarts)."""
 
@@ -126,6 +130,13 @@ class DaemonProcess:
 
     def log_lines(self) -> int:
         return len(self.log_text().splitlines())
+
+    def own_log_lines(self) -> list[str]:
+        """The log's lines but pymodbus's own (its "Repeating...." markers and frame notes,
+        which come and go with the machine's load): a row's limits read what the daemon
+        says, not what the library under it does."""
+        return [line for line in self.log_text().splitlines()
+                if not PYMODBUS_LINE.match(line)]
 
     def has_open(self, device_path: str) -> bool:
         """Whether the daemon holds ``device_path`` open (read from /proc, not from its log)."""

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
 
 from gateway.app.cli import main
-from tests.helpers import run_sowgate
+from tests.helpers import run_sowgate, sowgate_env
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -177,6 +178,24 @@ def test_check_config_accepts_a_good_prescription_map(
     assert main(["check-config", str(_map_config(tmp_path, "EPSG:4326"))]) == 0
     captured = capsys.readouterr()
     assert "ok (machine" in captured.out and "1 zones" in captured.err
+    # where the map lies, so a map of another field is seen before the daemon alarms it
+    assert "extent 0.09 x 0.11 km around lat 40.00050, lon 116.00050" in captured.err
+
+
+def test_check_config_notes_a_map_wider_than_a_field(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = _map_config(tmp_path, "EPSG:4326")
+    doc = json.loads((tmp_path / "rx.geojson").read_text())
+    stray = json.loads(json.dumps(doc["features"][0]))  # a second zone 60 km east
+    stray["geometry"]["coordinates"][0] = [[lon + 0.7, lat] for lon, lat
+                                           in stray["geometry"]["coordinates"][0]]
+    doc["features"].append(stray)
+    (tmp_path / "rx.geojson").write_text(json.dumps(doc))
+    assert main(["check-config", str(cfg)]) == 0
+    err = capsys.readouterr().err
+    assert f"note: prescription map {tmp_path / 'rx.geojson'} spans 60 km: more than a field" \
+        in err, err
 
 
 @pytest.mark.parametrize(
@@ -209,3 +228,49 @@ def test_check_config_notes_an_ignored_loop_hz_and_passes(
     err = capsys.readouterr().err
     assert "note: control.loop_hz = 10 is deprecated and ignored" in err
     assert "rs485.poll_hz" in err
+
+
+def test_check_config_names_a_map_nested_200_000_deep_and_exits_78(tmp_path: Path) -> None:
+    cfg = _map_config(tmp_path, "EPSG:4326")
+    (tmp_path / "rx.geojson").write_text(
+        '{"type": "FeatureCollection", "features": ' + "[" * 200_000 + "]" * 200_000 + "}")
+    proc = run_sowgate("check-config", str(cfg))
+    assert proc.returncode == 78, proc.stderr
+    assert f"prescription.path: {tmp_path / 'rx.geojson'}: not valid GeoJSON: nested too deep" \
+        in proc.stderr
+    assert "Traceback" not in proc.stderr and "RecursionError" not in proc.stderr
+
+
+@pytest.mark.parametrize("command", ["check-config", "run"])
+def test_a_fifo_or_a_device_as_the_config_is_refused_at_once_with_78(
+    tmp_path: Path, command: str
+) -> None:
+    """A FIFO hung check-config and run (waiting for a writer); /dev/zero ran out of memory."""
+    fifo = tmp_path / "sowgate.toml"
+    os.mkfifo(fifo)
+    zero = tmp_path / "zero.toml"
+    zero.symlink_to("/dev/zero")
+    big = tmp_path / "big.toml"
+    big.write_text("# padding\n" * 200_000)
+    for path, problem in ((fifo, "a FIFO (named pipe), not a file"),
+                          (zero, "a device, not a file"),
+                          (big, "2000000 bytes, more than the 1000000")):
+        args = [command, str(path)] if command == "check-config" else [command, "--config",
+                                                                       str(path)]
+        proc = run_sowgate(*args, env=sowgate_env(tmp_path / "state", clean=True), timeout=60)
+        assert proc.returncode == 78, proc.stderr
+        assert proc.stderr.startswith(f"{path}: the config must be a regular file of at most "
+                                      f"1000000 bytes: {problem}"), proc.stderr
+        assert "Traceback" not in proc.stderr
+
+
+def test_check_config_refuses_a_map_rate_of_1e308_naming_the_range(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = _map_config(tmp_path, "EPSG:4326")
+    doc = json.loads((tmp_path / "rx.geojson").read_text())
+    doc["features"][0]["properties"]["seed_rate"] = 1e308
+    (tmp_path / "rx.geojson").write_text(json.dumps(doc))
+    assert main(["check-config", str(cfg)]) == 78
+    err = capsys.readouterr().err
+    assert "feature 0: rate attribute 'seed_rate' must be 0..2000 kg/ha" in err, err

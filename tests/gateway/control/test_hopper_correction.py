@@ -159,6 +159,40 @@ def test_the_correction_is_clamped_to_its_bound_and_says_so() -> None:
     assert st_.estimate == pytest.approx(1.35, abs=0.02)
 
 
+def test_a_silent_scale_freezes_the_correction_until_a_whole_window_after_it() -> None:
+    """Issue 21: the correction moved 0.0045 while the scale was silent. The window in
+    progress would have joined readings from before and after a transmitter that may have
+    restarted (here it comes back 2 kg off, a re-tare below any refill threshold: fitted
+    across the gap, that moved the factor by -0.044)."""
+    est = fresh()
+    t, x = simulate(est, k=1.08, sigma_kg=2.0, minutes=10.5, rng=random.Random(3))
+    frozen, windows = est.factor, est.windows
+    assert est.state().applied and est._window  # a window is in progress
+    silent_until = t + 6.0
+    while t < silent_until:  # seeding on, the scale silent (every poll: no reading)
+        est.add(t, None, x, steady=True)
+        x += WHEAT_KG_S * POLL_S
+        t += POLL_S
+    assert est.factor == frozen
+    t, x = simulate(est, k=1.08, sigma_kg=2.0, minutes=1.98, rng=random.Random(4), t0=t,
+                    x0=x, extra_kg=lambda _t: 2.0)
+    assert est.silences == 1
+    assert (est.factor, est.windows) == (frozen, windows)  # frozen for a whole window after
+    simulate(est, k=1.08, sigma_kg=2.0, minutes=5.0, rng=random.Random(5), t0=t, x0=x,
+             extra_kg=lambda _t: 2.0)
+    assert est.windows > windows  # then it learns again, on the new line
+    assert est.factor == pytest.approx(1.08, abs=0.015)
+
+
+def test_a_missed_poll_or_two_is_not_a_silence() -> None:
+    est = fresh()
+    t, x = simulate(est, k=1.08, sigma_kg=2.0, minutes=1.0, rng=random.Random(6))
+    est.add(t, None, x, steady=True)
+    est.add(t + 1.0, None, x, steady=True)
+    simulate(est, k=1.08, sigma_kg=2.0, minutes=1.5, rng=random.Random(7), t0=t + 1.5, x0=x)
+    assert est.silences == 0 and est.windows == 1
+
+
 def test_unmodelled_discharge_ends_the_line() -> None:
     """Emptying runs the motor outside the rate model: what it takes out is not read as
     seed the model failed to predict."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import socket
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -152,3 +153,25 @@ def get(url: str, authorization: str | None = None) -> tuple[int, Any, bytes]:
             return resp.status, resp.headers, resp.read()
     except urllib.error.HTTPError as exc:
         return exc.code, exc.headers, b""
+
+
+def test_the_allowed_hosts_default_to_the_listen_address_and_localhost_names() -> None:
+    local = parse_config({}).dashboard
+    assert local.trusted_hosts() == {"localhost", "127.0.0.1", "::1"}
+    named = parse_config({"dashboard": {"listen": "cab-box.lan:8080"}}).dashboard
+    assert "cab-box.lan" in named.trusted_hosts()
+    wide = parse_config({"dashboard": {"listen": "0.0.0.0:8080"}}).dashboard
+    own = socket.gethostname().lower()
+    assert {"localhost", own, own.split(".")[0] + ".local"} <= wide.trusted_hosts()
+    assert "0.0.0.0" not in wide.trusted_hosts()
+    chosen = parse_config({"dashboard": {"allowed_hosts": ["Cab-Box.local", "[fd00::1]",
+                                                           "*.farm.lan"]}}).dashboard
+    assert chosen.trusted_hosts() == {"cab-box.local", "fd00::1", "*.farm.lan"}
+
+
+@pytest.mark.parametrize("hosts", [[], ["http://cab-box.local"], ["cab-box.local:8080"],
+                                   ["cab box"]])
+def test_allowed_hosts_must_be_bare_names(hosts: list[str]) -> None:
+    with pytest.raises(ConfigError) as err:
+        parse_config({"dashboard": {"allowed_hosts": hosts}})
+    assert any(p.startswith("dashboard.allowed_hosts") for p in err.value.problems)

@@ -228,3 +228,15 @@ def test_broker_changes_reach_the_page() -> None:
         {"type": "broker", "connected": False, "error": "127.0.0.1:1883: connection refused"}
     ]
     assert fleet.snapshot()["broker"]["connected"] is False
+
+
+def test_machines_beyond_the_cap_are_counted_and_dropped_not_kept() -> None:
+    fleet = Fleet(max_machines=3)
+    for i in range(10):
+        fleet.handle(f"sowgate/m{i}/status", b"online", True)
+        fleet.handle(f"sowgate/m{i}/seeds", batch([record(1, machine=f"m{i}")], f"m{i}"))
+    assert sorted(fleet.machines) == ["m0", "m1", "m2"]
+    assert fleet.machines_refused == 14 and fleet.last_refused_id == "m9"
+    # a machine already shown goes on being updated
+    assert fleet.handle("sowgate/m1/seeds", batch([record(2, machine="m1")], "m1"))
+    assert fleet.machines["m1"].seed_count == 2

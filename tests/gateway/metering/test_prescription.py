@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from gateway.core.errors import GatewayError
 from gateway.metering.prescription import (
     AsAppliedLog,
     AsAppliedRow,
+    FarFromFieldWatch,
     Pose,
     PrescriptionError,
     PrescriptionMap,
@@ -121,7 +123,8 @@ def test_unknown_attribute_at_lookup_is_an_error(field_map: PrescriptionMap) -> 
     [
         (fc(feature([square(0, 0, 1, 1)], other=1)), r"feature 0: no rate attribute 'seed'"),
         (fc(feature([square(0, 0, 1, 1)], seed="lots")), "not a number"),
-        (fc(feature([square(0, 0, 1, 1)], seed=-5)), ">= 0"),
+        (fc(feature([square(0, 0, 1, 1)], seed=-5)), r"must be 0\.\.2000 kg/ha"),
+        (fc(feature([square(0, 0, 1, 1)], seed=1e308)), r"must be 0\.\.2000 kg/ha.*1e\+308"),
         (fc(feature([square(0, 0, 1, 1)], seed=None)), "empty"),
         (fc(feature([[[0, 0], [1, 1], [1, 0], [0, 1], [0, 0]]], seed=1)), "invalid geometry"),
         (fc({"type": "Feature", "geometry": {"type": "Point", "coordinates": [0, 0]},
@@ -159,6 +162,30 @@ def test_load_geojson_file_and_file_errors(tmp_path: Path) -> None:
     (tmp_path / "rx.kml").write_text("<kml/>")
     with pytest.raises(PrescriptionError, match="unsupported"):
         PrescriptionMap.load(tmp_path / "rx.kml", ["seed"])
+
+
+def test_a_map_nested_deeper_than_any_geojson_is_a_clear_error(tmp_path: Path) -> None:
+    """200 000 levels of JSON crashed ``run`` and ``check-config`` with a RecursionError."""
+    p = tmp_path / "deep.geojson"
+    p.write_text('{"type": "FeatureCollection", "features": ' + "[" * 200_000 + "]" * 200_000
+                 + "}")
+    with pytest.raises(PrescriptionError, match=r"deep\.geojson: not valid GeoJSON: nested too"):
+        PrescriptionMap.load(p, ["seed"])
+
+
+def test_a_map_that_is_not_a_regular_file_is_refused_without_waiting(tmp_path: Path) -> None:
+    fifo = tmp_path / "rx.geojson"
+    os.mkfifo(fifo)  # opened for reading, a FIFO blocks until a writer comes
+    with pytest.raises(PrescriptionError, match=r"rx\.geojson: not a usable map file: a FIFO"):
+        PrescriptionMap.load(fifo, ["seed"])
+    with pytest.raises(PrescriptionError, match="a device, not a file"):
+        PrescriptionMap.load(_zero(tmp_path), ["seed"])
+
+
+def _zero(tmp_path: Path) -> Path:
+    link = tmp_path / "zero.geojson"
+    link.symlink_to("/dev/zero")
+    return link
 
 
 def _configured(path: str | None, *attrs: str | None) -> Settings:
@@ -282,3 +309,37 @@ def test_as_applied_position_is_the_outlets_not_the_antenna() -> None:
     row = log.record_channel(pose, ch, 225.0, 224.0)
     assert row.lat == pytest.approx(40.0 - 3.0 / 111_320.0)
     assert row.lon == pytest.approx(116.0 + 1.0 / (111_320.0 * math.cos(math.radians(40.0))))
+
+
+class _Epoch:
+    def __init__(self, lon: float, lat: float, t: float, fix: str = "rtk_fixed") -> None:
+        self.lon, self.lat, self.t_mono, self.fix = lon, lat, t, fix
+
+
+def test_a_map_far_from_the_machine_raises_far_from_field_and_near_clears_it() -> None:
+    """A map 100 km from the field was taken without a word (default rates everywhere)."""
+    from gateway.core.alarms import AlarmBoard
+
+    rx = PrescriptionMap.from_geojson(fc(feature([square(10.0, 50.0, 10.01, 50.01)], seed=7)),
+                                      ["seed"], source="rx.geojson")
+    assert rx.distance_m(10.005, 50.005) == 0.0
+    assert rx.distance_m(10.005, 50.01 + 100_000 / 111_320) == pytest.approx(100_000, rel=1e-3)
+    alarms = AlarmBoard("m")
+    watch = FarFromFieldWatch(rx, alarms)
+    watch.on_epoch(_Epoch(10.005, 50.9, 0.0, fix="none"))  # no fix: no judgement
+    assert not alarms.is_active("prescription.far_from_field")
+    watch.on_epoch(_Epoch(10.005, 50.91, 1.0))  # the first fixed position: ~100 km north
+    (alarm,) = [a for a in alarms.active if a.code == "prescription.far_from_field"]
+    assert "rx.geojson is 100.2 km from the machine" in alarm.message, alarm.message
+    watch.on_epoch(_Epoch(10.005, 50.02, 1.5))  # within a second: not checked again
+    assert alarms.is_active("prescription.far_from_field")
+    watch.on_epoch(_Epoch(10.005, 50.02, 2.5))  # 1 km from the map: the farmyard, fine
+    assert not alarms.is_active("prescription.far_from_field")
+
+
+def test_the_extent_is_described_for_check_config() -> None:
+    rx = PrescriptionMap.from_geojson(fc(feature([square(10.0, 50.0, 10.01, 50.01)], seed=7)),
+                                      ["seed"])
+    width, height = rx.size_km()
+    assert width == pytest.approx(0.716, abs=0.01) and height == pytest.approx(1.113, abs=0.01)
+    assert rx.extent_note() == "extent 0.72 x 1.11 km around lat 50.00500, lon 10.00500"

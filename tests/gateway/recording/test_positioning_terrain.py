@@ -162,7 +162,9 @@ def test_the_dual_antenna_roll_puts_seeds_back_on_the_rolled_ground() -> None:
 
 def test_without_an_attitude_source_seeds_are_off_by_the_lean_and_say_so() -> None:
     drive = straight(37.0)
-    s = settings(antenna_height_m=H)  # attitude_source = "none"
+    # attitude_source = "none": a config refuses the height alone (it corrects nothing, as
+    # this shows), so the section is built past the check
+    s = settings().model_copy(update={"antenna_height_m": H})
     out = rolled_run(SeedPositioner(s, baseline_offset_deg=90.0), drive, EDGES, 3.0)
     assert min(errors(out, drive, s, 3.0)) > 0.12  # the 13 cm of the antenna's lean
     assert {(la.drop.attitude, la.drop.roll_deg) for la in out} == {("none", None)}
