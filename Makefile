@@ -35,15 +35,15 @@ chromium:
 	  { (apt-get update -qq && apt-get install -y -qq chromium) || \
 	    { echo "chromium is needed for the dashboard's browser tests: apt-get install -y chromium" >&2; exit 1; }; }
 
-# isoxml-js (npm `isoxml`, locked in tools/isoxml-js/package-lock.json) reads the ISO-XML
+# isoxml-js (npm `isoxml`, locked in tests/isoxml_js/package-lock.json) reads the ISO-XML
 # export in the tests, as a second reader independent of ours; node_modules stays untracked
-ISOXML_JS := tools/isoxml-js/node_modules/.package-lock.json
+ISOXML_JS := tests/isoxml_js/node_modules/.package-lock.json
 isoxml-js: $(ISOXML_JS)
-$(ISOXML_JS): tools/isoxml-js/package.json tools/isoxml-js/package-lock.json
+$(ISOXML_JS): tests/isoxml_js/package.json tests/isoxml_js/package-lock.json
 	@command -v npm >/dev/null 2>&1 || \
 	  { (apt-get update -qq && apt-get install -y -qq nodejs npm) || \
 	    { echo "node and npm are needed for the ISO-XML export tests: apt-get install -y nodejs npm" >&2; exit 1; }; }
-	cd tools/isoxml-js && npm ci --no-audit --no-fund --silent
+	cd tests/isoxml_js && npm ci --no-audit --no-fund --silent
 	touch $@
 
 demo: $(STAMP)

@@ -41,7 +41,7 @@ SEEDS = 400
 CHANNEL = {"name": "seed", "product": "rapeseed", "drive": "pwm_modbus",
            "target_rate_kg_ha": 6.0}
 FARM = {"customer": "Jane Doe", "farm": "Hill farm", "field": "North 12", "field_area_ha": 12.5}
-NODE_READER = Path(__file__).parents[2] / "tools" / "isoxml-js" / "read_taskdata.js"
+NODE_READER = Path(__file__).parents[1] / "isoxml_js" / "read_taskdata.js"
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from protocol.isoxml_grid import (
 )
 
 INT32 = st.integers(-(2**31), 2**31 - 1)
-TOOLS = Path(__file__).parents[2] / "tools" / "isoxml-js"
+TOOLS = Path(__file__).parents[1] / "isoxml_js"
 
 
 @st.composite

@@ -13,7 +13,7 @@ import pytest
 
 from gateway.metering.prescription import PrescriptionError, PrescriptionMap
 
-TOOLS = Path(__file__).parents[3] / "tools" / "isoxml-js"
+TOOLS = Path(__file__).parents[2] / "isoxml_js"
 
 
 def isoxml_js_grid(tmp_path: Path, ddi: str) -> Path:
