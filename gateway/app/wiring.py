@@ -417,7 +417,9 @@ def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None
 
     def on_alarm(alarm: ChannelAlarm) -> None:
         severity: AlarmSeverity = (
-            "critical" if alarm.kind in ("feedback_lost", "controller_fault") else "warning"
+            "critical"
+            if alarm.kind in ("feedback_lost", "controller_fault", "impossible_speed")
+            else "warning"
         )
         daemon.alarms.set(
             f"channel.{alarm.channel}.{alarm.kind}", alarm.active, alarm.message, severity
