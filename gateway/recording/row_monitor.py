@@ -117,6 +117,7 @@ class RowMonitor:
     _window_s: float | None = field(default=None, init=False)
     _chattering: set[int] = field(default_factory=set, init=False)
     _meter_since: float | None = field(default=None, init=False)  # turning, working, since
+    _chattered_at: dict[int, float] = field(default_factory=dict, init=False)  # row -> last
 
     def __post_init__(self) -> None:
         if self.rows < 1:
@@ -140,6 +141,8 @@ class RowMonitor:
         judging = working and speed >= self.limits.min_speed_kmh
         self._judging, self._speed_kmh = judging, speed_kmh
         self._chattering = {r for r in chattering if 1 <= r <= self.rows}
+        for row in self._chattering:
+            self._chattered_at[row] = t
         if not judging:
             self._samples.clear()  # headland, standing, slow: the window starts again
             self._last_t = self._meter_since = None
@@ -192,13 +195,16 @@ class RowMonitor:
             if span < limits.delay_s:
                 continue
             counts, expected = self._window(start)
-            reference = reference_count(counts, expected, self._chattering)
+            # a row that chattered within the window had its edges (real seeds among them)
+            # dropped: its count says nothing, so no verdict and no part in the reference
+            unjudged = {r for r, at in self._chattered_at.items() if at >= start.t}
+            reference = reference_count(counts, expected, unjudged)
             if reference is None or reference < limits.min_expected_seeds:
                 continue  # not enough evidence yet: look further back
             self._window_s = span
             for row, n in counts.items():
-                if row in self._chattering:
-                    continue  # its edges are not seeds: no verdict on their count
+                if row in unjudged:
+                    continue
                 self._verdicts[row] = RowReport(
                     verdict(n, reference, limits), n / span, 100.0 * n / reference
                 )
