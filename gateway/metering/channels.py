@@ -74,6 +74,11 @@ class ChannelAlarm:
 # never ran out, and a shaft held at half its target for minutes raised nothing. Integrated,
 # the radar's noise averages out and a PID's lag after a change costs only its lag over the
 # window (0.3 s behind a 20 % step over 3 s: 2 %).
+# The shaft follows its target this much later (the command frame's trip, the controller's
+# PID and valve, the status frame's trip back): the revolutions delivered over the window are
+# compared with those asked over the window this much earlier, so an acceleration (the target
+# ramping for seconds after a headland turn) is not read as a shortfall of lag x slope.
+RESPONSE_LAG_S = 0.3
 # After a start (target from 0), the window opens this long after the shaft was told to turn,
 # so the spin-up is not counted as a shortfall.
 SETTLE_AFTER_START_S = 1.0
@@ -108,14 +113,29 @@ class _Watch:
     active: dict[str, ChannelAlarm] = field(default_factory=dict)
 
 
+def _at(window: deque[tuple[float, float, float]], t: float, column: int) -> float:
+    """A running integral of ``window`` (samples ``(t, asked, delivered)`` in time order)
+    at ``t``, linear between the samples around it."""
+    prev = window[0]
+    for sample in window:
+        if sample[0] >= t:
+            if sample[0] == prev[0]:
+                return sample[column]
+            f = (t - prev[0]) / (sample[0] - prev[0])
+            return prev[column] + f * (sample[column] - prev[column])
+        prev = sample
+    return prev[column]
+
+
 class ChannelSupervisor:
     """Alarm logic for every channel, fed timestamps (pure: no clock, no I/O).
 
     - feedback lost: no status for more than ``feedback_timeout_s`` (since start or last frame)
     - off target: over the last ``off_target_s`` the shaft delivered more or fewer
-      revolutions than it was asked for by more than ``off_target_pct`` % (targets and
-      feedback integrated over time, so a target that moves on every poll is judged like a
-      steady one), held ``OFF_TARGET_HOLD_S``; or it turns (above ``min_target_rpm``) for
+      revolutions than it was asked for (over the same span ``RESPONSE_LAG_S`` earlier) by
+      more than ``off_target_pct`` % (targets and feedback integrated over time, so a target
+      that moves on every poll is judged like a steady one), held ``OFF_TARGET_HOLD_S``; or
+      it turns (above ``min_target_rpm``) for
       ``off_target_s`` while told to stop
     - impossible speed: the reported shaft speed exceeds ``IMPOSSIBLE_SPEED_FACTOR`` x the
       channel's maximum (``max_rpm``), which no motor sized for it can do
@@ -177,12 +197,14 @@ class ChannelSupervisor:
             return None
         window = w.window
         window.append((t, w.asked_revs, w.delivered_revs))
-        while len(window) > 1 and window[1][0] <= t - self.off_target_s:
+        span = self.off_target_s + RESPONSE_LAG_S
+        while len(window) > 1 and window[1][0] <= t - span:
             window.popleft()
-        t0, asked0, delivered0 = window[0]
-        if t - t0 < self.off_target_s - 1e-9:
+        if t - window[0][0] < span - 1e-9:
             return None
-        return w.asked_revs - asked0, w.delivered_revs - delivered0
+        asked = _at(window, t - RESPONSE_LAG_S, 1) - _at(window, t - span, 1)
+        delivered = w.delivered_revs - _at(window, t - self.off_target_s, 2)
+        return asked, delivered
 
     def _conditions(self, name: str, w: _Watch, t: float) -> dict[AlarmKind, str]:
         out: dict[AlarmKind, str] = {}
