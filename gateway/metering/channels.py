@@ -425,9 +425,12 @@ class MeteringComponent:
             self.supervisor.too_fast(ch.name, too_fast)
             self.supervisor.command(ch.name, rpm, now)
             st.target_rpm = rpm
+            # a speed no motor can turn is not a rate: unknown (null) rather than a wild figure
+            trusted = not any(a.kind == "impossible_speed"
+                              for a in self.supervisor.active(ch.name))
             st.applied_rate_kg_ha = (
                 rate_from_shaft(st.measured_rpm, speed, width, m_total)
-                if st.measured_rpm is not None and speed is not None else None
+                if st.measured_rpm is not None and speed is not None and trusted else None
             )
             if self._link is not None:
                 self._link.set_target(ch.node_id, rpm, enable=rpm > 0)

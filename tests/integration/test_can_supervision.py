@@ -99,4 +99,8 @@ async def test_a_node_reporting_ten_times_its_shaft_speed_alarms_impossible_spee
         impossible = next(a for a in rig.daemon.alarms.active
                           if a.code == "channel.seed.impossible_speed")
         assert impossible.severity == "critical"
+        metering = rig.daemon.parts.metering
+        assert metering is not None
+        await rig.until(lambda: metering.status().channels["seed"].applied_rate_kg_ha is None,
+                        what="the applied rate unknown, not ten times the target")
         assert "channel.seed.impossible_speed" in {a.code for a in rig.daemon.alarms.unacknowledged}
