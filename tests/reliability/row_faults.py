@@ -77,6 +77,7 @@ def _judge_alarm(res: RowResult, dash: Subscriber, code: str, t0: float, t1: flo
 async def group_rows(tmp: Path) -> dict[str, RowResult]:
     one, every, chatter = RowResult(), RowResult(), RowResult()
     counted = 0
+    n_open = 0
     chatter_window = (0.0, 0.0)
     machine = TracedMachine(drive=sowing_drive(ROWS_SOW_S), with_gnss=True, with_seed_tubes=True)
     with Mosquitto() as broker:
@@ -89,6 +90,7 @@ async def group_rows(tmp: Path) -> dict[str, RowResult]:
             try:
                 await daemon.start()
                 await eventually(lambda: daemon.has_open(tubes.device_path), 30.0, "seed port")
+                n_open = len(tubes.truth)  # seeds sent before the port was open were not read
                 await eventually(lambda: machine.motor_pct() > 0.0, 30.0, "metering")
                 await asyncio.sleep(SETTLE_S)
                 t_start = time.monotonic()
@@ -167,13 +169,13 @@ async def group_rows(tmp: Path) -> dict[str, RowResult]:
                 chatter.check(code_stop == 0, f"graceful stop exited {code_stop}")
             finally:
                 await daemon.close()
-            sent = Counter(s.row for s in tubes.truth)
+            sent = Counter(s.row for s in tubes.truth[n_open:])
             stored = _stored_per_row(db)
             lost = {r: sent[r] - stored[r] for r in range(1, rows + 1) if stored[r] < sent[r]}
             # real seeds of the row sent while it surely chattered (from 0.5 s in): none of
             # them can be stored, so more stored than the rest is chatter stored as seeds
             c0, c1 = chatter_window
-            during = sum(1 for s in tubes.truth if s.row == CHATTER_ROW
+            during = sum(1 for s in tubes.truth[n_open:] if s.row == CHATTER_ROW
                          and c0 + 0.5 <= edge_mono(tubes, s.t_edge) <= c1)
             phantom = stored[CHATTER_ROW] - (sent[CHATTER_ROW] - during)
             chatter.lost = (f"{max(0, phantom)} chatter edges stored as seeds; "
