@@ -170,6 +170,7 @@ async def group_rows(tmp: Path) -> dict[str, RowResult]:
             finally:
                 await daemon.close()
             sent = Counter(s.row for s in tubes.truth[n_open:])
+            sent_all = Counter(s.row for s in tubes.truth)  # at most this many real seeds
             stored = _stored_per_row(db)
             lost = {r: sent[r] - stored[r] for r in range(1, rows + 1) if stored[r] < sent[r]}
             # real seeds of the row sent while it surely chattered (from 0.5 s in): none of
@@ -177,7 +178,7 @@ async def group_rows(tmp: Path) -> dict[str, RowResult]:
             c0, c1 = chatter_window
             during = sum(1 for s in tubes.truth[n_open:] if s.row == CHATTER_ROW
                          and c0 + 0.5 <= edge_mono(tubes, s.t_edge) <= c1)
-            phantom = stored[CHATTER_ROW] - (sent[CHATTER_ROW] - during)
+            phantom = stored[CHATTER_ROW] - (sent_all[CHATTER_ROW] - during)
             chatter.lost = (f"{max(0, phantom)} chatter edges stored as seeds; "
                             f"{sent[CHATTER_ROW] - stored[CHATTER_ROW]} real seeds of row "
                             f"{CHATTER_ROW} dropped with the chatter ({during} sent during it)")
