@@ -24,6 +24,7 @@ from gateway.core.records import AlarmSeverity, FixQuality
 from gateway.metering.channels import ChannelStatus, MeteringStatus
 from gateway.metering.pwm_channel import PwmChannelState
 from gateway.recording.recorder import RecorderState, RowState
+from gateway.recording.row_monitor import RowMonitorReport
 from gateway.recording.spacing_quality import SpacingQuality
 from gateway.recording.store import StoreState
 
@@ -98,3 +99,4 @@ class MachineState:
     unacknowledged: tuple[tuple[str, str], ...] = ()
     seed_lot: str = "default"  # the active seed lot of ``crop`` (gateway.calibration.lots)
     seed_lots: Mapping[str, str] = field(default_factory=dict)  # crop -> lot, when not default
+    row_monitor: RowMonitorReport | None = None  # None without seed recording or [row_monitor]

@@ -70,6 +70,12 @@ class MeterPlant:
     silent: bool = False
     stall: bool = False
     fault_code: FaultCode = FaultCode.NONE
+    # the shaft cannot turn faster than this fraction of its target (a binding meter, too
+    # little oil flow): the PID opens the valve and the shaft still lags; None: no limit
+    held_fraction: float | None = None
+    # the controller reports this multiple of the true shaft speed (a wrong pulses-per-rev
+    # setting on its encoder input); its PID still regulates the true speed
+    report_scale: float = 1.0
     _integral: float = 0.0
     _deriv: float = 0.0
     _prev_meas: float = 0.0
@@ -142,6 +148,8 @@ class MeterPlant:
                 self.rpm = 0.0
             else:
                 self.rpm += (drive - self.rpm) * INNER_DT_S / self.tau_s
+                if self.held_fraction is not None:
+                    self.rpm = min(self.rpm, self.held_fraction * setpoint)
             # valve well open but the shaft hardly turning: a jam (what a real RC detects)
             stalled_now = (
                 setpoint > 0
@@ -153,7 +161,7 @@ class MeterPlant:
                 self._deliver(self.rpm / 60.0 * INNER_DT_S)
 
     def measured_rpm(self) -> float:
-        noisy = self.rpm + self.rng.gauss(0, self.encoder_noise_rpm)
+        noisy = (self.rpm + self.rng.gauss(0, self.encoder_noise_rpm)) * self.report_scale
         return min(can_metering.SPEED_MAX_RPM, max(0.0, noisy))
 
     def status(self, node_id: int) -> MeterStatus:

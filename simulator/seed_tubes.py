@@ -197,6 +197,9 @@ class SeedTubeEmulator(StartClose):
     clock: Callable[[], float] = time.monotonic
     truth: list[SeedTruth] = field(default_factory=list, init=False)
     late_writes: int = field(default=0, init=False)
+    # rows whose seeds are not sent while listed (a blocked tube, a dead sensor): change it
+    # while running; their planned seeds are skipped, not delayed, and are not in ``truth``
+    silent_rows: set[int] = field(default_factory=set, init=False)
     _pair: PtyPair | None = field(default=None, init=False, repr=False)
     _task: asyncio.Task[None] | None = field(default=None, init=False, repr=False)
     _plan: list[SeedTruth] = field(default_factory=list, init=False, repr=False)
@@ -252,6 +255,8 @@ class SeedTubeEmulator(StartClose):
                 await asyncio.sleep(delay)
             elif delay < -0.005:
                 self.late_writes += 1  # starved box: the edge goes out late, still goes out
+            if s.row in self.silent_rows:
+                continue
             with contextlib.suppress(BlockingIOError, OSError):
                 os.write(self._pair.master_fd, encode_seed_line(s.row))
             self.truth.append(s)

@@ -622,6 +622,7 @@ class Daemon:
             unacknowledged=tuple((a.code, a.message) for a in self.alarms.unacknowledged),
             seed_lot=self.live_calibration.lot_of(c.crop),
             seed_lots=dict(self.live_calibration.lots),
+            row_monitor=parts.row_alarms.report() if parts.row_alarms is not None else None,
         )
 
 async def _stop_in_stages(

@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from gateway.metering.pwm_channel import PwmChannelPart
     from gateway.recording.health import RecordingHealth
     from gateway.recording.recorder import SeedRecorder
+    from gateway.recording.row_alarms import RowAlarms
     from gateway.recording.store import RecordStore
 
 
@@ -35,4 +36,5 @@ class Parts:
     metering: MeteringComponent | None = None
     isobus: IsobusListener | None = None
     rejected: RejectedInputs | None = None
+    row_alarms: RowAlarms | None = None
 

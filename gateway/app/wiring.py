@@ -26,7 +26,7 @@ from gateway.ui.touchscreen import HmiAdapter
 
 if TYPE_CHECKING:
     from drivers.gnss_reader import GnssEpoch
-    from gateway.link.payloads import HopperInfo, StatePayload
+    from gateway.link.payloads import HopperInfo, RowMonitorInfo, StatePayload
     from gateway.metering.isobus import TractorInputs
     from gateway.state import HopperState, MachineState
 
@@ -125,8 +125,36 @@ def state_payload(daemon: Daemon) -> StatePayload:
             seed_sensors=dict(rejected.seed_sensors),
         ),
         hopper=None if state.hopper is None else _hopper_info(state.hopper),
+        row_monitor=None if state.row_monitor is None else _row_monitor_info(state),
         seed_lot=state.seed_lot,
         seed_lots=dict(state.seed_lots),
+    )
+
+
+def _row_monitor_info(state: MachineState) -> RowMonitorInfo:
+    """``RowMonitorInfo`` at the published resolution, with each row's implausible edges."""
+    from gateway.link.payloads import RowMonitorInfo, RowStatusInfo
+
+    report = state.row_monitor
+    assert report is not None
+    recorded = state.seeds.rows if state.seeds is not None else {}
+
+    def r(value: float | None, digits: int) -> float | None:
+        return None if value is None else round(value, digits)
+
+    return RowMonitorInfo(
+        judging=report.judging,
+        all_rows_silent=report.all_rows_silent,
+        expected_seeds_per_s=r(report.expected_seeds_per_s, 2),
+        rows={
+            str(row): RowStatusInfo(
+                state=rr.verdict,
+                seeds_per_s=r(rr.seeds_per_s, 2),
+                pct_of_reference=r(rr.pct_of_reference, 1),
+                implausible_edges=recorded[row].implausible_edges if row in recorded else 0,
+            )
+            for row, rr in report.rows.items()
+        },
     )
 
 
@@ -175,6 +203,8 @@ def attach(daemon: Daemon) -> None:
         _attach_seed_recording(daemon, store)
     if s.gnss.enabled:
         _attach_recording_health(daemon, store if recording else None)
+    if recording and s.row_monitor.enabled:
+        _attach_row_monitor(daemon)
     if s.mqtt.enabled and store is not None:
         _attach_mqtt(daemon, store)
     _attach_channels(daemon)
@@ -288,6 +318,33 @@ def _attach_recording_health(daemon: Daemon, store: Any) -> None:
     )
     daemon.parts.recording_health = health
     daemon.tick_hooks.append(lambda _: health.check())
+
+
+def _attach_row_monitor(daemon: Daemon) -> None:
+    """Blocked, skipping and chattering rows, and all rows silent while the meter turns
+    (``gateway.recording.row_alarms``), judged on every control tick."""
+    from gateway.recording.row_alarms import RowAlarms
+
+    recorder = daemon.parts.seeds
+    assert recorder is not None
+    rows = RowAlarms(daemon.settings, daemon.alarms, recorder, daemon.clock)
+    daemon.parts.row_alarms = rows
+
+    def meter_turning(out: ControlOutputs) -> bool:
+        """The seed meter is being driven: the PWM motor, or a CAN channel given a target."""
+        if out.motor_pct > 0:
+            return True
+        metering = daemon.parts.metering
+        return metering is not None and any(
+            st.target_rpm > 0 for st in metering.state.values()
+        )
+
+    daemon.tick_hooks.append(
+        lambda out: rows.check(
+            working=out.state.value == "seeding", speed_kmh=out.speed_kmh,
+            meter_turning=meter_turning(out),
+        )
+    )
 
 
 def _seed_sensor_source(daemon: Daemon, on_edge: Any) -> Any:
@@ -422,7 +479,9 @@ def _attach_metering(daemon: Daemon, prescription: Any, as_applied: Any) -> None
 
     def on_alarm(alarm: ChannelAlarm) -> None:
         severity: AlarmSeverity = (
-            "critical" if alarm.kind in ("feedback_lost", "controller_fault") else "warning"
+            "critical"
+            if alarm.kind in ("feedback_lost", "controller_fault", "impossible_speed")
+            else "warning"
         )
         daemon.alarms.set(
             f"channel.{alarm.channel}.{alarm.kind}", alarm.active, alarm.message, severity

@@ -43,6 +43,7 @@ from gateway.config.recording import (
     GnssSection,
     HitchSection,
     PositioningSection,
+    RowMonitorSection,
     SeedSensorsSection,
     StoreSection,
     row_lateral_from_width,
@@ -89,6 +90,7 @@ __all__ = [
     "PositioningSection",
     "PrescriptionSection",
     "RadarSection",
+    "RowMonitorSection",
     "Rs485Section",
     "SeedSensorsSection",
     "Settings",
@@ -134,6 +136,7 @@ class Settings(BaseSettings):
     gnss: GnssSection = Field(default_factory=GnssSection)
     seed_sensors: SeedSensorsSection = Field(default_factory=SeedSensorsSection)
     positioning: PositioningSection = Field(default_factory=PositioningSection)
+    row_monitor: RowMonitorSection = Field(default_factory=RowMonitorSection)
     store: StoreSection = Field(default_factory=StoreSection)
     mqtt: MqttSection = Field(default_factory=MqttSection)
     commands: CommandsSection = Field(default_factory=CommandsSection)

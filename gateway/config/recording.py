@@ -56,6 +56,32 @@ class SeedSensorsSection(OptionalPart):
     max_seeds_per_s_per_row: float = Field(DEFAULT_MAX_SEEDS_PER_S_PER_ROW, ge=10, le=5000)
 
 
+class RowMonitorSection(OptionalPart):
+    """Per-row blockage and skip alarms (``gateway.recording.row_monitor``): on by default
+    wherever seeds are recorded; ``enabled = false`` turns them off."""
+
+    enabled: bool = True
+    # a row is judged over at least this much working time (and the window grows until the
+    # reference reaches min_expected_seeds): headland turns and short stops never alarm
+    delay_s: float = Field(5.0, ge=1, le=120)
+    # below this speed (and whenever not seeding) nothing is judged and the window restarts
+    min_speed_kmh: float = Field(2.0, ge=0, le=30)
+    min_expected_seeds: int = Field(20, ge=3, le=10_000)
+    # a row with at most this % of the reference (the median row) is blocked ...
+    blocked_pct: float = Field(10.0, ge=0, le=90)
+    # ... and below this % it is skipping
+    skip_pct: float = Field(70.0, gt=0, le=100)
+
+    @model_validator(mode="after")
+    def _thresholds_ordered(self) -> RowMonitorSection:
+        if self.skip_pct <= self.blocked_pct:
+            raise FieldProblem(
+                "skip_pct", f"must be above blocked_pct ({self.blocked_pct:g}), in "
+                f"{self.blocked_pct:g}..100", self.skip_pct,
+            )
+        return self
+
+
 # Paper C, Table 1: seed fall time from sensor to furrow (ms) against speed (km/h).
 DEFAULT_FALL_TIME_TABLE: list[tuple[float, float]] = [
     (4.0, 114.2),

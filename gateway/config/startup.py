@@ -55,7 +55,11 @@ def parts_summary(settings: Settings) -> str:
     details = _part_details(settings)
     words = []
     for name in optional_parts():
-        if getattr(settings, name).enabled:
+        if name == "row_monitor" and settings.row_monitor.enabled and not (
+            settings.seed_sensors.enabled
+        ):
+            words.append("row_monitor off (no seed_sensors)")
+        elif getattr(settings, name).enabled:
             detail = details.get(name)
             words.append(f"{name} on ({detail})" if detail else f"{name} on")
         else:

@@ -151,8 +151,18 @@ REGISTRY: tuple[AlarmCode, ...] = (
     ),
     AlarmCode(
         "channel.<name>.off_target", ("warning",),
-        "a CAN metering channel is off its target rate",
+        "a CAN metering channel delivered more or fewer shaft revolutions than it was asked for "
+        "over the last `can.off_target_s` by more than `can.off_target_pct` % (held 1 s; the "
+        "target may move on every poll), or it turns while told to stop; the message gives "
+        "delivered against asked",
         "check the meter for blockage or an empty hopper",
+    ),
+    AlarmCode(
+        "channel.<name>.impossible_speed", ("critical",),
+        "a CAN metering channel's controller reports a shaft speed beyond 1.5 x the channel's "
+        "`max_shaft_rpm`, which its motor cannot do (a wrong encoder setting, a corrupt frame, "
+        "another node's id): the rate it applies is not known",
+        "check the controller's speed sensor settings (pulses per revolution) and node id",
     ),
     AlarmCode(
         "channel.<name>.too_fast", ("warning",),
@@ -262,9 +272,42 @@ REGISTRY: tuple[AlarmCode, ...] = (
     AlarmCode(
         "seed_sensors.implausible_rate", ("warning",),
         "a row's seed edges come faster than `seed_sensors.max_seeds_per_s_per_row` (a sensor "
-        "or module fault): the excess is counted in `state.rejected.seed_sensors."
-        "implausible_rate`, not stored; the message names the rows; cleared 5 s after the last one",
+        "or module fault): that row's edges, until 2 s after the chatter stops, are counted in "
+        "`state.rejected.seed_sensors.implausible_rate` (per row: `state.row_monitor.rows`), "
+        "never stored or published as seeds; the message names the rows; cleared 5 s after the "
+        "last one",
         "check that row's sensor and wiring",
+    ),
+    AlarmCode(
+        "seed_sensors.all_rows_silent", ("critical",),
+        "no seed on any row for `row_monitor.delay_s` while working above "
+        "`row_monitor.min_speed_kmh` with the meter turning (PWM motor or a CAN channel "
+        "driven): blocked tubes, an empty hopper, a meter not delivering or a dead sensor "
+        "module; clears when seeds come again",
+        "stop and check the hopper, the meter and the seed sensor module",
+    ),
+    AlarmCode(
+        "row.<n>.blocked", ("critical",),
+        "row n delivered at most `row_monitor.blocked_pct` % of the median row (of the seeds "
+        "`positioning.target_spacing_m` asks for on 1-2 row planters) over at least "
+        "`row_monitor.delay_s` of working above `row_monitor.min_speed_kmh` with "
+        "`row_monitor.min_expected_seeds` expected; holds through headland turns until a pass "
+        "shows its seeds",
+        "stop and clear that row's seed tube; check its sensor",
+    ),
+    AlarmCode(
+        "row.<n>.skipping", ("warning",),
+        "row n delivered less than `row_monitor.skip_pct` % of the median row, judged as for "
+        "`row.<n>.blocked`",
+        "check that row's metering disc, vacuum and tube",
+    ),
+    AlarmCode(
+        "row.<n>.chattering", ("warning",),
+        "row n's sensor sends edges faster than a row can drop seeds "
+        "(`seed_sensors.max_seeds_per_s_per_row`): its edges are counted "
+        "(`state.row_monitor.rows.<n>.implausible_edges`), never stored as seeds; clears 2 s "
+        "after the chatter stops",
+        "check that row's sensor, its cable and the module's grounding",
     ),
     AlarmCode(
         "records.store_failed", ("critical",),

@@ -100,6 +100,39 @@ class RejectedInput(_Payload):
     )
 
 
+class RowStatusInfo(_Payload):
+    """One seed row as the row monitor last judged it (``gateway.recording.row_monitor``)."""
+
+    state: Literal["ok", "blocked", "skipping", "chattering", "unknown"] = Field(
+        description="ok | blocked (at most row_monitor.blocked_pct % of the median row) | "
+        "skipping (below row_monitor.skip_pct %) | chattering (its sensor sends edges faster "
+        "than a row can drop seeds: not stored) | unknown (not judged yet)",
+    )
+    seeds_per_s: float | None = Field(
+        None, ge=0, description="seeds a second over the window last judged (0.01)")
+    pct_of_reference: float | None = Field(
+        None, ge=0, description="its seeds as % of the median row (or of the spacing's count "
+        "on 1-2 row planters) over that window (0.1)")
+    implausible_edges: int = Field(
+        0, ge=0, description="edges of this row dropped as implausible since start (counted, "
+        "never stored or published as seeds)")
+
+
+class RowMonitorInfo(_Payload):
+    """The row monitor (``[row_monitor]``, on wherever seeds are recorded)."""
+
+    judging: bool = Field(
+        description="working above row_monitor.min_speed_kmh: rows are being judged now")
+    all_rows_silent: bool = Field(
+        description="no seed on any row while the meter turns (alarm "
+        "seed_sensors.all_rows_silent)")
+    expected_seeds_per_s: float | None = Field(
+        None, ge=0, description="seeds a second one row should drop at the current speed "
+        "(positioning.target_spacing_m); null without a spacing or while not judging")
+    rows: dict[str, RowStatusInfo] = Field(
+        default_factory=dict, description="row number (1-based) -> its state")
+
+
 class HopperInfo(_Payload):
     """The hopper scale and the discharge correction it found (only with ``[hopper_scale]``).
 
@@ -198,6 +231,10 @@ class StatePayload(_Payload):
     )
     hopper: HopperInfo | None = Field(
         None, description="hopper scale and discharge correction; null without [hopper_scale]"
+    )
+    row_monitor: RowMonitorInfo | None = Field(
+        None, description="per-row blocked / skipping / chattering states; null without seed "
+        "recording or with [row_monitor] enabled = false",
     )
 
     seed_lot: str = Field(

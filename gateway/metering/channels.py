@@ -17,6 +17,7 @@ import contextlib
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -35,7 +36,9 @@ HA_FACTOR = 0.6  # kg/ha = 0.6 * g/min / (m * km/h)
 AS_APPLIED_PERIOD_S = 1.0
 MAX_RATE_KG_HA = 2000.0  # as [[channel]] target_rate_kg_ha
 STOP_SEND_TIMEOUT_S = 0.2
-AlarmKind = Literal["feedback_lost", "off_target", "controller_fault", "too_fast"]
+AlarmKind = Literal[
+    "feedback_lost", "off_target", "controller_fault", "too_fast", "impossible_speed"
+]
 
 
 def target_shaft_rpm(rate_kg_ha: float, speed_kmh: float, width_m: float,
@@ -65,50 +68,143 @@ class ChannelAlarm:
     since: float
 
 
+# Off target is judged on revolutions asked against revolutions delivered over the last
+# ``off_target_s`` (a sliding window), not on the instantaneous speed: the target moves on
+# every poll with the radar's noise (every ~0.3 s), so a timer restarted on each target change
+# never ran out, and a shaft held at half its target for minutes raised nothing. Integrated,
+# the radar's noise averages out and a PID's lag after a change costs only its lag over the
+# window (0.3 s behind a 20 % step over 3 s: 2 %).
+# The shaft follows its target this much later (the command frame's trip, the controller's
+# PID and valve, the status frame's trip back): the revolutions delivered over the window are
+# compared with those asked over the window this much earlier, so an acceleration (the target
+# ramping for seconds after a headland turn) is not read as a shortfall of lag x slope.
+RESPONSE_LAG_S = 0.3
+# After a start (target from 0), the window opens this long after the shaft was told to turn,
+# so the spin-up is not counted as a shortfall.
+SETTLE_AFTER_START_S = 1.0
+# The windowed error must stay beyond ``off_target_pct`` this long before it alarms (a single
+# evaluation over the limit after a hard stop of the tractor is not a fault).
+OFF_TARGET_HOLD_S = 1.0
+# A shaft reported faster than its ``max_shaft_rpm`` by this factor cannot be: the motor is
+# sized for that speed. A wrong encoder setting (pulses per revolution), a corrupt frame or
+# another node's id; its speed cannot be trusted. Held this long before it alarms.
+IMPOSSIBLE_SPEED_FACTOR = 1.5
+IMPOSSIBLE_SPEED_HOLD_S = 0.5
+
+
 @dataclass
 class _Watch:
+    """One channel's supervision state: the latest target and feedback, and the running
+    integrals of revolutions asked and delivered (``_integrate``) sampled into ``window``."""
+
     target_rpm: float = 0.0
-    target_since: float = 0.0
     measured_rpm: float | None = None
     feedback_at: float | None = None
     fault: str | None = None
+    max_rpm: float | None = None
+    asked_revs: float = 0.0
+    delivered_revs: float = 0.0
+    integrated_to: float | None = None
+    running_since: float | None = None  # target >= min_target_rpm, feedback fresh, since
+    window: deque[tuple[float, float, float]] = field(default_factory=deque)
     off_since: float | None = None
+    stopped_turning_since: float | None = None
+    impossible_since: float | None = None
     active: dict[str, ChannelAlarm] = field(default_factory=dict)
+
+
+def _at(window: deque[tuple[float, float, float]], t: float, column: int) -> float:
+    """A running integral of ``window`` (samples ``(t, asked, delivered)`` in time order)
+    at ``t``, linear between the samples around it."""
+    prev = window[0]
+    for sample in window:
+        if sample[0] >= t:
+            if sample[0] == prev[0]:
+                return sample[column]
+            f = (t - prev[0]) / (sample[0] - prev[0])
+            return prev[column] + f * (sample[column] - prev[column])
+        prev = sample
+    return prev[column]
 
 
 class ChannelSupervisor:
     """Alarm logic for every channel, fed timestamps (pure: no clock, no I/O).
 
     - feedback lost: no status for more than ``feedback_timeout_s`` (since start or last frame)
-    - off target: |measured - target| > ``off_target_pct`` % of target for > ``off_target_s``
-      (timer restarts on a target change, so a step is not blamed while the PID settles)
+    - off target: over the last ``off_target_s`` the shaft delivered more or fewer
+      revolutions than it was asked for (over the same span ``RESPONSE_LAG_S`` earlier) by
+      more than ``off_target_pct`` % (targets and feedback integrated over time, so a target
+      that moves on every poll is judged like a steady one), held ``OFF_TARGET_HOLD_S``; or
+      it turns (above ``min_target_rpm``) for
+      ``off_target_s`` while told to stop
+    - impossible speed: the reported shaft speed exceeds ``IMPOSSIBLE_SPEED_FACTOR`` x the
+      channel's maximum (``max_rpm``), which no motor sized for it can do
     - controller fault: the controller reports a fault code
     - too fast: the shaft speed needed exceeds the channel's maximum (set by the caller)
     """
 
     def __init__(self, channels: Sequence[str], *, feedback_timeout_s: float = 1.0,
                  off_target_pct: float = 5.0, off_target_s: float = 3.0,
-                 min_target_rpm: float = 1.0, start: float = 0.0) -> None:
+                 min_target_rpm: float = 1.0, start: float = 0.0,
+                 max_rpm: Mapping[str, float] | None = None) -> None:
         self.feedback_timeout_s = feedback_timeout_s
         self.off_target_pct = off_target_pct
         self.off_target_s = off_target_s
         self.min_target_rpm = min_target_rpm
-        self._w = {name: _Watch(target_since=start) for name in channels}
+        limits = max_rpm or {}
+        self._w = {name: _Watch(max_rpm=limits.get(name)) for name in channels}
         self._start = start
         self._too_fast: dict[str, str | None] = dict.fromkeys(channels)
 
+    def _integrate(self, w: _Watch, t: float) -> None:
+        """Advance the asked and delivered integrals to ``t`` with the values held since
+        the last call (targets and feedback are piecewise constant between frames)."""
+        last = w.integrated_to
+        if last is not None and t > last:
+            dt_min = (t - last) / 60.0
+            w.asked_revs += w.target_rpm * dt_min
+            if w.measured_rpm is not None:
+                w.delivered_revs += w.measured_rpm * dt_min
+        if last is None or t > last:
+            w.integrated_to = t
+
     def command(self, channel: str, target_rpm: float, t: float) -> None:
         w = self._w[channel]
-        if abs(target_rpm - w.target_rpm) > 1e-9:
-            w.target_rpm, w.target_since, w.off_since = target_rpm, t, None
+        self._integrate(w, t)
+        w.target_rpm = target_rpm
 
     def feedback(self, channel: str, measured_rpm: float, t: float,
                  fault: str | None = None) -> None:
         w = self._w[channel]
+        self._integrate(w, t)
         w.measured_rpm, w.feedback_at, w.fault = measured_rpm, t, fault
 
     def too_fast(self, channel: str, message: str | None) -> None:
         self._too_fast[channel] = message
+
+    def _windowed(self, w: _Watch, t: float, fresh: bool) -> tuple[float, float] | None:
+        """(revolutions asked, delivered) over the last ``off_target_s`` while running, or
+        None while the window is not yet full (stopped, just started, feedback missing)."""
+        self._integrate(w, t)
+        running = fresh and w.target_rpm >= self.min_target_rpm
+        if not running:
+            w.running_since = None
+            w.window.clear()
+            return None
+        if w.running_since is None:
+            w.running_since = t
+        if t - w.running_since < SETTLE_AFTER_START_S:
+            return None
+        window = w.window
+        window.append((t, w.asked_revs, w.delivered_revs))
+        span = self.off_target_s + RESPONSE_LAG_S
+        while len(window) > 1 and window[1][0] <= t - span:
+            window.popleft()
+        if t - window[0][0] < span - 1e-9:
+            return None
+        asked = _at(window, t - RESPONSE_LAG_S, 1) - _at(window, t - span, 1)
+        delivered = w.delivered_revs - _at(window, t - self.off_target_s, 2)
+        return asked, delivered
 
     def _conditions(self, name: str, w: _Watch, t: float) -> dict[AlarmKind, str]:
         out: dict[AlarmKind, str] = {}
@@ -118,23 +214,47 @@ class ChannelSupervisor:
         elif w.fault:
             out["controller_fault"] = f"{name}: controller fault {w.fault}"
         fresh = w.feedback_at is not None and t - w.feedback_at <= self.feedback_timeout_s
-        if fresh and w.measured_rpm is not None:
-            target = w.target_rpm
-            off = (
-                abs(w.measured_rpm - target) > self.off_target_pct / 100 * target
-                if target >= self.min_target_rpm
-                else w.measured_rpm > max(self.min_target_rpm, 1.0)  # turning when told to stop
-            )
-            if off:
-                w.off_since = t if w.off_since is None else w.off_since
-                since = max(w.off_since, w.target_since)
-                if t - since > self.off_target_s:
-                    out["off_target"] = (
-                        f"{name}: shaft {w.measured_rpm:.1f} r/min vs target {target:.1f} "
-                        f"for {t - since:.1f} s"
-                    )
-            else:
-                w.off_since = None
+        measured = w.measured_rpm if fresh else None
+        if measured is not None and w.max_rpm is not None and (
+            measured > IMPOSSIBLE_SPEED_FACTOR * w.max_rpm
+        ):
+            w.impossible_since = t if w.impossible_since is None else w.impossible_since
+            if t - w.impossible_since >= IMPOSSIBLE_SPEED_HOLD_S:
+                out["impossible_speed"] = (
+                    f"{name}: controller reports the shaft at {measured:.0f} r/min, beyond "
+                    f"what its motor can do (max_shaft_rpm {w.max_rpm:g}): its speed "
+                    "sensor or settings are wrong, the rate is not known"
+                )
+        else:
+            w.impossible_since = None
+        window = self._windowed(w, t, fresh)
+        off = None
+        if window is not None:
+            asked, delivered = window
+            if asked > 0 and abs(delivered - asked) > self.off_target_pct / 100 * asked:
+                off = (
+                    f"{name}: shaft delivered {delivered:.2f} rev against {asked:.2f} asked "
+                    f"over the last {self.off_target_s:g} s ({(delivered / asked - 1):+.0%})"
+                )
+        if off is not None:
+            w.off_since = t if w.off_since is None else w.off_since
+            if t - w.off_since >= OFF_TARGET_HOLD_S:
+                out["off_target"] = off
+        else:
+            w.off_since = None
+        # turning when told to stop
+        if measured is not None and w.target_rpm < self.min_target_rpm and (
+            measured > max(self.min_target_rpm, 1.0)
+        ):
+            since = w.stopped_turning_since
+            w.stopped_turning_since = t if since is None else since
+            if t - w.stopped_turning_since > self.off_target_s:
+                out["off_target"] = (
+                    f"{name}: shaft {measured:.1f} r/min while commanded to stop, for "
+                    f"{t - w.stopped_turning_since:.1f} s"
+                )
+        else:
+            w.stopped_turning_since = None
         msg = self._too_fast.get(name)
         if msg:
             out["too_fast"] = msg
@@ -239,6 +359,7 @@ class MeteringComponent:
             [c.name for c in self.channels],
             feedback_timeout_s=can.feedback_timeout_s, off_target_pct=can.off_target_pct,
             off_target_s=can.off_target_s, min_target_rpm=can.min_target_rpm, start=clock(),
+            max_rpm={c.name: c.max_shaft_rpm for c in self.channels},
         )
         self.prescription = prescription  # loaded once by the caller (load_prescription)
         self.as_applied = as_applied
@@ -306,9 +427,12 @@ class MeteringComponent:
             self.supervisor.too_fast(ch.name, too_fast)
             self.supervisor.command(ch.name, rpm, now)
             st.target_rpm = rpm
+            # a speed no motor can turn is not a rate: unknown (null) rather than a wild figure
+            trusted = not any(a.kind == "impossible_speed"
+                              for a in self.supervisor.active(ch.name))
             st.applied_rate_kg_ha = (
                 rate_from_shaft(st.measured_rpm, speed, width, m_total)
-                if st.measured_rpm is not None and speed is not None else None
+                if st.measured_rpm is not None and speed is not None and trusted else None
             )
             if self._link is not None:
                 self._link.set_target(ch.node_id, rpm, enable=rpm > 0)

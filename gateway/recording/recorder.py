@@ -147,6 +147,9 @@ class SeedRecorder:
         self.last_error: str | None = None
         # edges faster than a row can drop seeds are counted there, not stored
         self.plausibility = SeedRatePlausibility(settings.seed_sensors.max_seeds_per_s_per_row)
+        # row -> edges that passed the plausibility check (seeds), since start: what the row
+        # monitor counts (gateway.recording.row_monitor), as soon as they are positioned
+        self.edges_per_row: dict[int, int] = dict.fromkeys(range(1, rows + 1), 0)
 
     # ------------------------------------------------------------ driver callbacks
 
@@ -199,6 +202,10 @@ class SeedRecorder:
     def _edges(self, edges: list[SeedEdgeEvent]) -> None:
         dropped = self.plausibility.implausible_total
         rows, times = self.plausibility.filter([e.row for e in edges], [e.t_mono for e in edges])
+        per_row = self.edges_per_row
+        for row, count in Counter(rows).items():
+            if row in per_row:
+                per_row[row] += count
         if self.plausibility.implausible_total != dropped:
             self._log.warning(
                 "implausible", "seed edges beyond %g/s on row(s) %s not stored (%d in all)",

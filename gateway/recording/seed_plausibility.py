@@ -9,11 +9,17 @@ beyond it are counted per row and dropped; ``RecordingHealth`` raises
 ``seed_sensors.implausible_rate`` while it happens.
 
 The limit is a token bucket per row: it holds ``limit x WINDOW_S`` tokens, refills at the
-limit, and each stored edge takes one. So over any interval of T seconds a row stores at most
-``limit x (T + WINDOW_S)`` edges, while normal seeding (a fraction of the limit) never finds
-the bucket short, however irregular its spacing. All times are the edges' own stamps (host
-monotonic clock), so the check means the same whether the edges came over a UART or with
-kernel timestamps from GPIO, and however late the recorder gets to them.
+limit, and each edge takes one; normal seeding (a fraction of the limit) never finds the
+bucket short, however irregular its spacing. A row whose bucket runs dry is chattering, and
+then none of its edges can be told from the noise: every edge of the batch that ran it dry is
+dropped, and every later edge of that row until ``QUARANTINE_S`` after the last one that found
+the bucket dry (the bucket keeps being charged meanwhile, so a row still chattering stays
+quarantined). Keeping the bucket's worth of a chattering row, as this did before, stored about
+``limit`` phantom seeds a second for as long as the chatter lasted (issue 20: a row sending
+~2 300 lines a second put ~200 a second on the map). So over any interval of T seconds a row
+stores at most ``limit x (T + WINDOW_S)`` edges, and a chattering one none. All times are the
+edges' own stamps (host monotonic clock), so the check means the same whether the edges came
+over a UART or with kernel timestamps from GPIO, and however late the recorder gets to them.
 
 Cost: this runs on every batch of edges the recorder hands to the positioner (the edges
 between two GNSS epochs, ~200 at 2 100 seeds/s), not per seed: one ``Counter`` over the
@@ -26,7 +32,13 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Sequence
 
-WINDOW_S = 1.0  # the bucket holds this many seconds' worth of the limit
+# The bucket holds this many seconds' worth of the limit: 100 edges at the default 200/s, more
+# than any row drops in half a second (a 48-row planter at 16 km/h: 22), so a burst of chatter
+# shorter than that is all a row can store before it is seen.
+WINDOW_S = 0.5
+# A row that ran its bucket dry is quarantined (every edge dropped and counted) until this
+# long after the last edge that found it dry.
+QUARANTINE_S = 2.0
 
 
 class SeedRatePlausibility:
@@ -41,6 +53,7 @@ class SeedRatePlausibility:
         self._at: dict[int, float] = {}
         self.implausible: dict[int, int] = {}  # row -> edges dropped as implausible
         self.last_implausible_at: dict[int, float] = {}  # row -> stamp of the latest dropped
+        self._quarantined_until: dict[int, float] = {}  # row -> end of its quarantine
 
     @property
     def implausible_total(self) -> int:
@@ -60,14 +73,14 @@ class SeedRatePlausibility:
             return rows, times
         t_start, t_end = min(times), max(times)
         rate, capacity = self.max_per_s, self.capacity
-        tokens, at = self._tokens, self._at
+        tokens, at, quarantined = self._tokens, self._at, self._quarantined_until
         over: list[tuple[int, float]] = []
         for row, count in Counter(rows).items():
             last = at.get(row)
             available = capacity if last is None else min(
                 capacity, tokens[row] + rate * max(0.0, t_start - last)
             )
-            if count <= available:
+            if count <= available and quarantined.get(row, -1.0) <= t_start:
                 # refilled once to the batch's end and charged for all its edges: never more
                 # tokens than edge-by-edge accounting would leave
                 tokens[row] = min(capacity, available + rate * (t_end - t_start)) - count
@@ -85,31 +98,36 @@ class SeedRatePlausibility:
         over: list[tuple[int, float]],
         t_end: float,
     ) -> tuple[list[int], list[float]]:
-        """Walk the rows over their limit edge by edge: keep what fits, count the rest."""
+        """Walk the rows over their limit (or quarantined) edge by edge: a row whose bucket
+        runs dry in this batch loses all its edges of the batch, a quarantined row those
+        before its quarantine ends; every dropped edge is counted."""
         rate, capacity = self.max_per_s, self.capacity
         dropped: set[int] = set()
         t_start = min(times)
         for row, available in over:
             level, prev = available, t_start  # ``available`` is the row's level at t_start
-            dropped_here = 0
-            last_dropped_at = t_start
-            for i, (r, t) in enumerate(zip(rows, times, strict=True)):
-                if r != row:
-                    continue
+            until = self._quarantined_until.get(row, -1.0)
+            mine = [i for i, r in enumerate(rows) if r == row]
+            dried = False
+            for i in mine:
+                t = times[i]
                 if t > prev:
                     level = min(capacity, level + rate * (t - prev))
                     prev = t
                 if level >= 1.0:
                     level -= 1.0
                 else:
-                    dropped.add(i)
-                    dropped_here += 1
-                    last_dropped_at = max(last_dropped_at, t)
+                    dried = True
+                    until = max(until, t + QUARANTINE_S)
             self._tokens[row] = min(capacity, level + rate * (t_end - prev))
             self._at[row] = t_end
-            if dropped_here:
-                self.implausible[row] = self.implausible.get(row, 0) + dropped_here
-                previous = self.last_implausible_at.get(row, last_dropped_at)
-                self.last_implausible_at[row] = max(previous, last_dropped_at)
+            self._quarantined_until[row] = until
+            lost = mine if dried else [i for i in mine if times[i] < until]
+            if lost:
+                dropped.update(lost)
+                self.implausible[row] = self.implausible.get(row, 0) + len(lost)
+                latest = max(times[i] for i in lost)
+                self.last_implausible_at[row] = max(self.last_implausible_at.get(row, latest),
+                                                    latest)
         kept = [i for i in range(len(rows)) if i not in dropped]
         return [rows[i] for i in kept], [times[i] for i in kept]

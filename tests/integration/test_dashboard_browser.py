@@ -76,7 +76,8 @@ def sowing(seconds: float, kmh: float = 8.0) -> Drive:
 
 @contextlib.asynccontextmanager
 async def scene(
-    tmp_path: Path, drive: Drive, commands: list[str] | None = None, crop: str = "rapeseed"
+    tmp_path: Path, drive: Drive, commands: list[str] | None = None, crop: str = "rapeseed",
+    standing_s: float = STANDING_S,
 ) -> AsyncIterator[Scene]:
     """Broker, a subscriber that records what the daemon published, the daemon on the
     simulated planter, the dashboard process (same config file) and a browser on its page."""
@@ -98,7 +99,7 @@ async def scene(
                 ):
                     await eventually(lambda: _health(dash.url).get("broker_connected") is True,
                                      WAIT_S, "the dashboard subscribed")
-                    assert machine.pose().t < STANDING_S, "the dashboard subscribed too late"
+                    assert machine.pose().t < standing_s, "the dashboard subscribed too late"
                     yield Scene(broker, sub, rig, dash, page)
 
 
@@ -181,6 +182,25 @@ async def test_a_critical_alarm_appears_clears_and_stays_until_acknowledged_from
         assert s.rig.daemon.alarms.unacknowledged == []
         await _expect(row, "not_to_have_class", re.compile(r"\bunacked\b"))
         await _expect(row.locator("button.ack-alarm"), "to_have_count", 0)
+
+
+async def test_a_blocked_row_is_marked_in_the_rows_table_and_listed_as_an_alarm(
+    tmp_path: Path,
+) -> None:
+    """Issue 20 item 2: row 4's tube sends nothing while the others sow; the page marks it
+    blocked beside its singulation bars and lists ``row.4.blocked`` (critical)."""
+    # it reads the retained state, not the seeds: it may subscribe late on a busy machine
+    drive = Drive(legs=[Leg(2.0, 0.0), Leg(60.0, 8.0), Leg(600.0, 0.0)], dt=0.02)
+    async with scene(tmp_path, drive, standing_s=60.0) as s:
+        s.rig.machine.seed_tubes.silent_rows.add(4)
+        from playwright.async_api import expect
+
+        row4 = s.page.locator('#rows tbody tr[data-row="4"]')
+        await expect(row4).to_have_class(re.compile(r"\brow-blocked\b"), timeout=40_000)
+        assert (await row4.locator(".row-state").inner_text()).lower() == "blocked"
+        assert await s.page.locator("#rows tbody tr.row-blocked").count() == 1
+        await s.until_text("alarms", "row.4.blocked", timeout=WAIT_S)
+        assert "row 4 blocked" in await s.text("alarms")
 
 
 async def test_the_page_says_the_broker_is_lost_and_refills_the_map_after_it_returns(

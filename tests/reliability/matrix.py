@@ -18,6 +18,7 @@ from tests.reliability.harness import RowResult
 from tests.reliability.hopper_faults import group_hopper
 from tests.reliability.input_faults import group_commands, group_config
 from tests.reliability.recording_faults import group_broker, group_disk, group_kills
+from tests.reliability.row_faults import group_rows
 from tests.reliability.rows import ROWS, ROWS_BY_NAME
 
 GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
@@ -28,6 +29,7 @@ GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
     "serial": group_serial,
     "hopper": group_hopper,
     "gnss_time": group_gnss_time,
+    "rows": group_rows,
     "commands": group_commands,
     "config": group_config,
 }

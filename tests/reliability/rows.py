@@ -59,6 +59,16 @@ GNSS_STEP_EXTRAPOLATED_S = 1.0
 HOPPER_FROZEN_FAULTS = ("silent", "nan", "out_of_range")
 
 
+# the seed-row rows (issue 20 items 2 and 3), on the simulated 6-row planter at 8 km/h
+ROW_SILENT_S = 15.0
+SILENT_ROW = 3
+# [row_monitor] delay_s (5 s) + a flush and a state message, with room for a busy machine
+ROW_ALARM_WITHIN_S = 10.0
+CHATTER_ROW = 2
+CHATTER_LINES_PER_S = 2300
+CHATTER_S = 10.0
+
+
 @dataclass(frozen=True)
 class Row:
     name: str
@@ -154,6 +164,22 @@ ROWS: tuple[Row, ...] = (
              "leap_second"),
         )
     ),
+    Row("seed_row_silent_15s", "rows",
+        f"row {SILENT_ROW}'s seed tube sends nothing for {ROW_SILENT_S:g} s while sowing at "
+        "8 km/h (a blocked tube), then sows again",
+        f"`row.{SILENT_ROW}.blocked` on MQTT within {ROW_ALARM_WITHIN_S:g} s, no other row "
+        "alarmed, cleared once it sows again; every seed sent stored; daemon up, no traceback"),
+    Row("seed_rows_all_silent_15s", "rows",
+        f"every row silent for {ROW_SILENT_S:g} s while sowing at 8 km/h with the meter "
+        "turning (~1 000 seeds not sent)",
+        f"`seed_sensors.all_rows_silent` (critical) on MQTT within {ROW_ALARM_WITHIN_S:g} s, "
+        "no row blamed on its own, cleared once seeds come; daemon up, no traceback"),
+    Row("seed_row_chatter", "rows",
+        f"row {CHATTER_ROW}'s sensor sends {CHATTER_LINES_PER_S} valid lines a second for "
+        f"{CHATTER_S:g} s while sowing (a chattering sensor)",
+        f"`row.{CHATTER_ROW}.chattering` and `seed_sensors.implausible_rate` on MQTT; none of "
+        "the chatter stored as seeds; its edges counted in `state.row_monitor.rows."
+        f"{CHATTER_ROW}.implausible_edges`; the other rows' seeds all stored; no traceback"),
     Row("serial_fuzz_hmi", "serial",
         f"{FUZZ_S:g} s of random bytes (64 B every 50 ms) on the touchscreen line",
         f"daemon up, no traceback; duty unchanged (≤ steady max + {DUTY_TOLERANCE_PCT:g}); "

@@ -195,7 +195,7 @@ function renderAll() {
   if (!devices.length) dev.textContent = "–";
   $("seed-count").textContent = String(m.n);
   renderAlarms(s);
-  renderRows(s.quality || {});
+  renderRows(s.quality || {}, (st.row_monitor && st.row_monitor.rows) || {});
   renderChart(m.rate || []);
 }
 
@@ -247,15 +247,23 @@ function bar(cls, v) {
   return `<div class="bar ${cls}"><span style="width:${w}%"></span><b>${fmt(v, 1, "%")}</b></div>`;
 }
 
-function renderRows(quality) {
+// Each row's spacing quality (from the seeds received) beside the row monitor's verdict (from
+// the state message): a blocked, skipping or chattering row is marked, even one with no seeds.
+function renderRows(quality, monitor) {
   const body = $("rows").querySelector("tbody");
-  const rows = Object.keys(quality).map(Number).sort((a, b) => a - b);
+  const rows = [...new Set([...Object.keys(quality), ...Object.keys(monitor)].map(Number))]
+    .sort((a, b) => a - b);
+  const empty = { quality_of_feed_index: null, multiples_index: null, miss_index: null, precision: null, n: 0 };
   body.innerHTML = rows.length ? rows.map((r) => {
-    const q = quality[r];
-    return `<tr data-row="${r}"><td>${r}</td><td>${bar("q", q.quality_of_feed_index)}</td>` +
+    const q = quality[r] || empty;
+    const st = (monitor[r] && monitor[r].state) || "";
+    const marked = ["blocked", "skipping", "chattering"].includes(st);
+    const label = marked ? st : (st === "ok" ? "ok" : "–");
+    return `<tr data-row="${r}"${marked ? ` class="row-${st}"` : ""} data-state="${st}">` +
+      `<td>${r}</td><td class="row-state">${label}</td><td>${bar("q", q.quality_of_feed_index)}</td>` +
       `<td>${bar("m", q.multiples_index)}</td><td>${bar("s", q.miss_index)}</td>` +
       `<td>${fmt(q.precision, 1, "%")}</td><td>${q.n}</td></tr>`;
-  }).join("") : `<tr><td colspan="6" class="muted">no seed spacings yet</td></tr>`;
+  }).join("") : `<tr><td colspan="7" class="muted">no seed spacings yet</td></tr>`;
 }
 
 function renderChart(rate) {

@@ -121,9 +121,11 @@ def test_state_carries_rejected_input_per_device_and_reason(tmp_path: Path) -> N
         assert rejected.gnss == {"overlong": 1, "checksum": 1, "garbage": 1}
         assert rejected.gnss_discarded_bytes == 2000
         assert rejected.hmi == {"garbage": 1}
-        assert rejected.seed_sensors == {"bad_row": 2, "malformed": 1, "implausible_rate": 800}
+        assert rejected.seed_sensors == {"bad_row": 2, "malformed": 1, "implausible_rate": 1000}
+        rows = state_payload(daemon).row_monitor
+        assert rows is not None and rows.rows["2"].implausible_edges == 1000  # per row too
         summary = daemon.parts.rejected.summary()
-        assert summary is not None and "seed_sensors: bad_row 2, implausible_rate 800" in summary
+        assert summary is not None and "seed_sensors: bad_row 2, implausible_rate 1000" in summary
         assert daemon.parts.rejected.summary() is None  # nothing new since
     finally:
         for close in daemon.closers:

@@ -397,3 +397,28 @@ def test_the_seed_plausibility_limit_defaults_to_a_fast_precision_planter_with_m
     assert parse_config(
         {"gnss": {}, "seed_sensors": {"max_seeds_per_s_per_row": 450}}
     ).seed_sensors.max_seeds_per_s_per_row == 450.0
+
+
+# ---- [row_monitor] ----------------------------------------------------------------------------
+
+
+def test_the_row_monitor_is_on_by_default_and_a_table_can_turn_it_off() -> None:
+    assert parse_config({}).row_monitor.enabled
+    assert parse_config({"row_monitor": {"delay_s": 8}}).row_monitor.enabled
+    assert not parse_config({"row_monitor": {"enabled": False}}).row_monitor.enabled
+
+
+@pytest.mark.parametrize(("table", "problem"), [
+    ({"delay_s": 0.5}, "row_monitor.delay_s: Input should be greater than or equal to 1"),
+    ({"min_speed_kmh": 40}, "row_monitor.min_speed_kmh: Input should be less than or equal to 30"),
+    ({"blocked_pct": 95}, "row_monitor.blocked_pct: Input should be less than or equal to 90"),
+    ({"skip_pct": 8}, "row_monitor.skip_pct: must be above blocked_pct (10), in 10..100"),
+    ({"min_expected_seeds": 1}, "row_monitor.min_expected_seeds: Input should be greater"),
+    ({"delay": 5}, "row_monitor.delay: Extra inputs are not permitted; did you mean delay_s?"),
+])
+def test_row_monitor_keys_out_of_range_are_named_with_their_range(
+    table: dict[str, object], problem: str
+) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"row_monitor": table})
+    assert info.value.problems[0].startswith(problem), info.value.problems

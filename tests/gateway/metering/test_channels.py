@@ -86,34 +86,124 @@ def test_missing_feedback_for_more_than_1_s_raises_a_channel_alarm() -> None:
     assert ("a", "feedback_lost", False) in kinds(s.evaluate(1.8))
 
 
-def test_off_target_by_more_than_5_percent_for_3_s_raises_a_rate_alarm() -> None:
+def test_a_steady_shortfall_beyond_5_percent_alarms_once_a_full_window_shows_it() -> None:
+    """6 % low against a steady target: the window opens 1 s after the start
+    (SETTLE_AFTER_START_S), is full 3.3 s later (off_target_s + RESPONSE_LAG_S) and the error
+    is held 1 s (OFF_TARGET_HOLD_S) before it alarms; back on target, the window clears it."""
     s = ChannelSupervisor(["a"], start=0.0)
     s.command("a", 20.0, 0.0)
-    t = 0.0
     alarms: list[ChannelAlarm] = []
-    while t < 3.0:  # 6 % low for just under 3 s: nothing yet
+    t = 0.0
+    while t < 5.2:
         t = round(t + 0.1, 1)
         s.feedback("a", 18.8, t)
         alarms += s.evaluate(t)
     assert alarms == []
-    for t in (3.1, 3.2, 3.3):
+    for _ in range(4):
+        t = round(t + 0.1, 1)
         s.feedback("a", 18.8, t)
         alarms += s.evaluate(t)
     assert kinds(alarms) == {("a", "off_target", True)}
-    s.feedback("a", 19.5, 3.4)  # within 5 %
-    assert kinds(s.evaluate(3.4)) == {("a", "off_target", False)}
+    assert "-6%" in alarms[0].message
+    cleared: list[ChannelAlarm] = []
+    for _ in range(40):  # on target: the shortfall leaves the 3 s window
+        t = round(t + 0.1, 1)
+        s.feedback("a", 20.0, t)
+        cleared += s.evaluate(t)
+    assert kinds(cleared) == {("a", "off_target", False)}
 
 
-def test_within_5_percent_never_alarms_and_target_steps_restart_the_timer() -> None:
+def test_within_5_percent_never_alarms_and_a_step_followed_within_its_lag_costs_nothing(
+) -> None:
     s = ChannelSupervisor(["a"], start=0.0)
     s.command("a", 20.0, 0.0)
     for i in range(1, 60):
         s.feedback("a", 19.1, i * 0.1)  # 4.5 % low
         assert s.evaluate(i * 0.1) == []
-    s.command("a", 40.0, 6.0)  # step: the PID needs time, timer starts at the step
-    for i in range(1, 29):
-        s.feedback("a", 30.0, 6.0 + i * 0.1)
-        assert s.evaluate(6.0 + i * 0.1) == []
+    s = ChannelSupervisor(["a"], start=0.0)
+    s.command("a", 20.0, 0.0)
+    for i in range(1, 60):
+        s.feedback("a", 20.0, i * 0.1)
+        assert s.evaluate(i * 0.1) == []
+    s.command("a", 40.0, 6.0)  # the shaft follows a 100 % step within RESPONSE_LAG_S
+    for i in range(1, 60):
+        t = 6.0 + i * 0.1
+        s.feedback("a", 20.0 if i <= 2 else 40.0, t)
+        assert s.evaluate(t) == []
+
+
+def test_turning_while_told_to_stop_alarms_after_off_target_s() -> None:
+    s = ChannelSupervisor(["a"], start=0.0)
+    s.command("a", 0.0, 0.0)
+    alarms: list[ChannelAlarm] = []
+    for i in range(1, 45):
+        s.feedback("a", 8.0, i * 0.1)
+        alarms += s.evaluate(i * 0.1)
+    assert kinds(alarms) == {("a", "off_target", True)}
+    assert "commanded to stop" in alarms[0].message
+
+
+# The issue-20 cases, judged against the simulated controller's own PID, valve and motor
+# (simulator.can_pid.MeterPlant): the target follows a radar with 3 % noise, a new value every
+# 0.3 s, commands at 10 Hz and feedback at 20 Hz, as on the bus.
+RADAR_NOISE = 0.03
+GRAMS_PER_REV = 200.0  # per revolution of the shaft, all outlets: 30 r/min at 8 km/h
+WIDTH_M = 3.0
+RATE_KG_HA = 150.0
+
+
+def drive_channel(plant: MeterPlant, seconds: float, *, speed_kmh: float = 8.0,
+                  accelerate_to_kmh: float | None = None,
+                  max_rpm: float = 60.0) -> list[ChannelAlarm]:
+    """``seconds`` of the channel with a noisy, moving target; every alarm change seen."""
+    import random
+
+    rng = random.Random(3)
+    sup = ChannelSupervisor(["seed"], start=0.0, max_rpm={"seed": max_rpm})
+    alarms: list[ChannelAlarm] = []
+    radar = speed_kmh
+    dt = 0.05
+    for step in range(round(seconds / dt)):
+        t = round((step + 1) * dt, 3)
+        true_kmh = speed_kmh
+        if accelerate_to_kmh is not None:  # 1 km/h a second from 20 s on
+            true_kmh = min(accelerate_to_kmh, speed_kmh + max(0.0, t - 20.0))
+        if step % 6 == 0:  # the radar's new reading every 0.3 s
+            radar = true_kmh * (1 + rng.gauss(0.0, RADAR_NOISE))
+        if step % 2 == 0:  # commands at 10 Hz
+            target = target_shaft_rpm(RATE_KG_HA, radar, WIDTH_M, GRAMS_PER_REV)
+            plant.command(target, True, step)
+            sup.command("seed", target, t)
+        plant.advance(dt)
+        status = plant.status(1)
+        sup.feedback("seed", status.measured_rpm, t)
+        alarms += sup.evaluate(t)
+    return alarms
+
+
+def test_a_healthy_shaft_under_a_noisy_moving_target_never_alarms() -> None:
+    assert drive_channel(MeterPlant(GRAMS_PER_REV), 60.0) == []
+    assert drive_channel(MeterPlant(GRAMS_PER_REV), 40.0, speed_kmh=4.0,
+                         accelerate_to_kmh=12.0) == []
+
+
+def test_a_shaft_held_at_55_percent_of_a_moving_target_alarms_off_target() -> None:
+    """Issue 20 item 1: ~52 g/s delivered against 100 g/s asked, for 15 s, raised nothing
+    because the radar's noise restarted the timer on every poll."""
+    alarms = drive_channel(MeterPlant(GRAMS_PER_REV, held_fraction=0.55), 15.0)
+    raised = [a for a in alarms if a.active]
+    assert [a.kind for a in raised] == ["off_target"]
+    assert raised[0].since <= 1.0 + 3.0 + 1.0 + 0.5  # settle + window + hold, one poll late
+    assert "-45%" in raised[0].message
+
+
+def test_a_node_reporting_ten_times_its_speed_alarms_impossible_and_off_target() -> None:
+    """Issue 20 item 1: a node reporting 10x its speed for 10 s raised nothing."""
+    alarms = drive_channel(MeterPlant(GRAMS_PER_REV, report_scale=10.0), 10.0)
+    raised = {a.kind: a for a in alarms if a.active}
+    assert set(raised) == {"impossible_speed", "off_target"}
+    assert raised["impossible_speed"].since <= 1.0
+    assert "max_shaft_rpm 60" in raised["impossible_speed"].message
 
 
 def test_controller_fault_is_its_own_alarm() -> None:

@@ -105,6 +105,31 @@ def test_alarms_are_listed_with_their_times(tmp_path: Path) -> None:
     assert embedded(out)["alarm_events"] == 2
 
 
+def test_row_monitor_alarms_are_in_the_table_and_the_timeline(tmp_path: Path) -> None:
+    """Issue 20: a blocked row and all rows silent, as the daemon stores them."""
+    alarms = [
+        AlarmEvent(code="row.4.blocked", active=True, severity="critical",
+                   message="row 4 blocked: no seeds (0 % of the median row); check its tube "
+                   "and sensor", utc=T0 + timedelta(seconds=3)),
+        AlarmEvent(code="row.4.blocked", active=False, severity="critical",
+                   message="row 4 blocked", utc=T0 + timedelta(seconds=6)),
+        AlarmEvent(code="seed_sensors.all_rows_silent", active=True, severity="critical",
+                   message="no seed on any row for 5 s while the meter turns",
+                   utc=T0 + timedelta(seconds=7)),
+        AlarmEvent(code="row.2.chattering", active=True, severity="warning",
+                   message="row 2: its sensor sends edges faster than a row can drop seeds",
+                   utc=T0 + timedelta(seconds=8)),
+    ]
+    cfg = config(tmp_path, make_store(tmp_path, drops(), alarms))
+    out = tmp_path / "r.html"
+    assert report(cfg, out) == 0
+    text = html.unescape(out.read_text())
+    for code in ("row.4.blocked", "seed_sensors.all_rows_silent", "row.2.chattering"):
+        assert code in text
+    assert "row 4 blocked: no seeds" in text
+    assert "4 events, 3 alarm periods" in text
+
+
 def test_the_seed_mass_needs_the_thousand_seed_mass(tmp_path: Path) -> None:
     cfg = config(tmp_path, make_store(tmp_path, drops(400)))
     out = tmp_path / "r.html"
