@@ -11,9 +11,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from drivers.agopengps_udp import AgOpenGpsEndpoint
     from drivers.can_bus import IsobusListener
     from drivers.gnss_reader import GnssReader
     from drivers.seed_sensors import GpioSeedSensors, SerialSeedSensors
+    from gateway.app.agopengps import CabInputs
     from gateway.app.rejected_input import RejectedInputs
     from gateway.link.mqtt import MqttLink
     from gateway.metering.channels import MeteringComponent
@@ -35,4 +37,6 @@ class Parts:
     metering: MeteringComponent | None = None
     isobus: IsobusListener | None = None
     rejected: RejectedInputs | None = None
+    agopengps: AgOpenGpsEndpoint | None = None
+    agopengps_cab: CabInputs | None = None
 

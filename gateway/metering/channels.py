@@ -248,6 +248,9 @@ class MeteringComponent:
         self._by_node = {c.node_id: c for c in self.channels}
         self.rates = {c.name: c.target_rate_kg_ha for c in self.channels}  # operator's rates
         self._last_as_applied = -1e9
+        # whether a channel may meter now beside the work state (AgOpenGPS's sections:
+        # gateway.app.agopengps); None: every channel follows the work state alone
+        self.channel_gate: Callable[[str, float], bool] | None = None
         self.working = False
         self.speed_kmh: float | None = None
 
@@ -295,7 +298,9 @@ class MeteringComponent:
             m_total = ch.grams_per_rev * ch.outlets
             rpm = 0.0
             too_fast = None
-            if working and speed is not None and speed > 0:
+            gate = self.channel_gate
+            section_on = gate is None or gate(ch.name, now)
+            if working and section_on and speed is not None and speed > 0:
                 rpm = target_shaft_rpm(rate, speed, width, m_total)
                 if rpm > ch.max_shaft_rpm:
                     max_kmh = 0.6 * ch.max_shaft_rpm * m_total / (rate * width)
