@@ -24,6 +24,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable
+from typing import cast
 
 from drivers.log_limit import RateLimitedLog
 from protocol import agopengps as aog
@@ -74,8 +75,7 @@ class AgOpenGpsEndpoint(asyncio.DatagramProtocol):
         )
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.DatagramTransport)
-        self.transport = transport
+        self.transport = cast(asyncio.DatagramTransport, transport)
 
     def close(self) -> None:
         if self.transport is not None:
