@@ -1,0 +1,81 @@
+"""AgOpenGPS's frames as the machine understands them: work state, sections per channel and
+row, and the controller's fallback when AgOpenGPS goes quiet."""
+
+from __future__ import annotations
+
+from gateway.app.agopengps import CabInputs
+from gateway.config import parse_config
+from gateway.control.controller import Controller
+from gateway.control.work_state import WorkState
+from gateway.core.alarms import AlarmBoard
+from protocol import agopengps as aog
+
+CHANNELS = [
+    {"name": n, "product": "wheat", "target_rate_kg_ha": 100.0, "node_id": i}
+    for i, n in ((1, "left"), (2, "right"), (3, "fert"))
+]
+SETTINGS = parse_config({
+    "machine": {"rows": 6},
+    "channel": CHANNELS,
+    "control": {"start_working": True},
+    "speed": {"source": "agopengps_then_radar"},
+    "isobus": {"enabled": False, "work_state_source": "agopengps_then_inclinometer"},
+    "agopengps": {"sections": [{"channel": "left", "rows": [1, 2, 3]},
+                               {"channel": "right", "rows": [4, 5, 6]}]},
+})
+
+
+def sections(*on: int) -> tuple[bool, ...]:
+    return tuple(i + 1 in on for i in range(16))
+
+
+def test_a_section_off_stops_its_channel_and_marks_its_rows() -> None:
+    cab = CabInputs(SETTINGS.agopengps)
+    cab.on_message(aog.SteerData(6.0, sections(1)), 10.0)
+    assert cab.working
+    assert cab.channel_on("left", 10.0) and not cab.channel_on("right", 10.0)
+    assert cab.channel_on("fert", 10.0)  # not mapped: follows the work state alone
+    assert cab.rows_off(10.0) == {4, 5, 6}
+    # stale: channels follow the work state (whose priority list says what AgOpenGPS lost is)
+    assert cab.channel_on("right", 14.5) and cab.rows_off(14.5) == set()
+
+
+def test_all_sections_off_lift_up_or_geo_stop_is_not_working() -> None:
+    cab = CabInputs(SETTINGS.agopengps)
+    cab.on_message(aog.SteerData(6.0, sections()), 1.0)
+    assert not cab.working
+    cab.on_message(aog.MachineData(0, 0.6, aog.HYD_LIFT_RAISE, 0, False, sections(1)), 1.1)
+    assert not cab.working
+    cab.on_message(aog.MachineData(0, 0.6, aog.HYD_LIFT_LOWER, 0, True, sections(1)), 1.2)
+    assert not cab.working
+    cab.on_message(aog.MachineData(0, 0.6, aog.HYD_LIFT_LOWER, 0, False, sections(1)), 1.3)
+    assert cab.working
+
+
+def test_pgn_229_sets_all_64_sections_and_the_tool_speeds() -> None:
+    cab = CabInputs(SETTINGS.agopengps)
+    cab.on_message(aog.Sections64((False,) * 63 + (True,), 1.2, 2.4), 1.0)
+    assert cab.sections[63] and cab.working and cab.tool_speeds_mps == (1.2, 2.4)
+
+
+def test_controller_follows_agopengps_then_falls_back() -> None:
+    c = Controller(SETTINGS, AlarmBoard("m1"))
+    for k in range(10):
+        t = k * 0.1
+        c.on_speed("agopengps", 6.0, t)
+        c.on_agopengps_work(True, t)
+        c.on_speed("radar", 0.0, t)
+        c.on_tilt(-6.0, t)  # inclinometer: lowered
+        out = c.tick(t)
+    assert out.speed_source == "agopengps" and out.state is WorkState.SEEDING
+    c.on_agopengps_work(False, 1.0)  # AgOpenGPS: all sections off
+    c.on_speed("agopengps", 6.0, 1.0)
+    assert c.tick(1.0).state is WorkState.TURNING
+    # AgOpenGPS quiet for longer than agopengps.stale_after_s (4 s): radar and inclinometer
+    for k in range(20):
+        t = 1.1 + k * 0.3
+        c.on_speed("radar", 0.0, t)
+        c.on_tilt(-6.0, t)
+        out = c.tick(t)
+    assert out.speed_source == "radar" and out.state is WorkState.PRE_SEED
+    assert c.alarms.is_active("agopengps.lost")
