@@ -1,8 +1,7 @@
 """AgOpenGPS in the cab: its speed, work state and sections into the controller and channels,
 sowgate's alarms back onto its screen (docs/agopengps.md).
 
-``CabInputs`` is the pure part: what the last trusted frames said (sections 1-64, lift,
-geo-stop, tool speeds) and what that means for each channel. ``attach_agopengps`` wires it:
+``gateway.metering.agopengps.CabInputs`` is the pure part. ``attach_agopengps`` wires it:
 the UDP endpoint (``drivers.agopengps_udp``) hands it each frame, PGN 254's speed goes to the
 controller as the ``agopengps`` speed source, the work verdict as the ``agopengps`` work-state
 source, and every alarm raised is sent as a PGN 221 text.
@@ -11,72 +10,40 @@ source, and every alarm raised is sent as a PGN 221 text.
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Coroutine
+from typing import TYPE_CHECKING, Any, Protocol
 
-from gateway.config import AgOpenGpsSection
+from gateway.config import Settings
+from gateway.metering.agopengps import CabInputs
 from protocol import agopengps as aog
 
 if TYPE_CHECKING:
-    from gateway.app.wiring import Daemon
+    from gateway.app.parts import Parts
+    from gateway.control.controller import Controller
+    from gateway.core.alarms import AlarmBoard
     from gateway.core.records import AlarmEvent
 
 log = logging.getLogger(__name__)
 
-N_SECTIONS = 64
 
+class Daemon(Protocol):
+    """What this part needs of the daemon (``gateway.app.wiring.Daemon`` is a superset; not
+    imported from there, which imports this module)."""
 
-class CabInputs:
-    """The latest trusted AgOpenGPS state; every reading carries the time it arrived."""
+    settings: Settings
+    alarms: AlarmBoard
+    controller: Controller
+    parts: Parts
 
-    def __init__(self, cfg: AgOpenGpsSection) -> None:
-        self.cfg = cfg
-        self.sections: list[bool] = [False] * N_SECTIONS
-        self.hyd_lift = aog.HYD_LIFT_NONE
-        self.geo_stop = False
-        self.tool_speeds_mps: tuple[float, float] | None = None
-        self.speed_kmh: float | None = None
-        self.last_t: float | None = None  # any section-bearing frame
+    def clock(self) -> float: ...
 
-    def on_message(self, msg: aog.Message, t: float) -> None:
-        if isinstance(msg, aog.SteerData):
-            self.sections[:16] = msg.sections
-            self.speed_kmh = msg.speed_kmh
-        elif isinstance(msg, aog.MachineData):
-            self.sections[:16] = msg.sections
-            self.hyd_lift, self.geo_stop = msg.hyd_lift, msg.geo_stop
-        elif isinstance(msg, aog.Sections64):
-            self.sections[:] = msg.sections
-            if msg.left_speed_mps is not None and msg.right_speed_mps is not None:
-                self.tool_speeds_mps = (msg.left_speed_mps, msg.right_speed_mps)
-        else:
-            return
-        self.last_t = t
-
-    def fresh(self, now: float) -> bool:
-        return self.last_t is not None and now - self.last_t <= self.cfg.stale_after_s
-
-    @property
-    def working(self) -> bool:
-        """Some section on, the lift not up and no geo-stop (AgOpenGPS's "out of bounds")."""
-        return any(self.sections) and self.hyd_lift != aog.HYD_LIFT_RAISE and not self.geo_stop
-
-    def channel_on(self, channel: str, now: float) -> bool:
-        """A channel mapped to sections meters only while one of them is on; unmapped
-        channels, and every channel while AgOpenGPS is stale, follow the work state alone
-        (the work-state priority list decides what a lost AgOpenGPS means)."""
-        mapped = [i for i, m in enumerate(self.cfg.sections) if m.channel == channel]
-        if not mapped or not self.fresh(now):
-            return True
-        return any(self.sections[i] for i in mapped)
-
-    def rows_off(self, now: float) -> set[int]:
-        """Rows (1-based) whose section AgOpenGPS has switched off: not sown."""
-        if not self.fresh(now):
-            return set()
-        return {r for i, m in enumerate(self.cfg.sections) if not self.sections[i] for r in m.rows}
-
-    def hello_sections(self) -> tuple[bool, ...]:
-        return tuple(self.sections[:16])
+    def add_task(
+        self,
+        name: str,
+        factory: Callable[[], Coroutine[Any, Any, None]],
+        *,
+        stop_stage: int | None = None,
+    ) -> None: ...
 
 
 def attach_agopengps(daemon: Daemon) -> None:
@@ -107,6 +74,8 @@ def attach_agopengps(daemon: Daemon) -> None:
     daemon.parts.agopengps = endpoint
     if daemon.parts.metering is not None:
         daemon.parts.metering.channel_gate = cab.channel_on
+        if cfg.channel_sides:
+            daemon.parts.metering.speed_factor = cab.speed_factor
     daemon.parts.agopengps_cab = cab
 
     def on_alarm(event: AlarmEvent) -> None:

@@ -15,9 +15,9 @@ if TYPE_CHECKING:
     from drivers.can_bus import IsobusListener
     from drivers.gnss_reader import GnssReader
     from drivers.seed_sensors import GpioSeedSensors, SerialSeedSensors
-    from gateway.app.agopengps import CabInputs
     from gateway.app.rejected_input import RejectedInputs
     from gateway.link.mqtt import MqttLink
+    from gateway.metering.agopengps import CabInputs
     from gateway.metering.channels import MeteringComponent
     from gateway.metering.pwm_channel import PwmChannelPart
     from gateway.recording.health import RecordingHealth

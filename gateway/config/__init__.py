@@ -308,6 +308,12 @@ def _check_agopengps(settings: Settings) -> None:
             )
         return
     names = {c.name for c in settings.channel}
+    for name in aog.channel_sides:
+        if name not in names:
+            raise FieldProblem(
+                f"agopengps.channel_sides.{name}",
+                f"no such channel (channels: {', '.join(sorted(names)) or 'none'})", name,
+            )
     for i, sec in enumerate(aog.sections):
         if sec.channel is not None and sec.channel not in names:
             raise FieldProblem(

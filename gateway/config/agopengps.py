@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import re
+from typing import Literal
 
 from pydantic import Field, field_validator
 
@@ -63,6 +64,9 @@ class AgOpenGpsSection(OptionalPart):
     max_frames_per_s: float = Field(100.0, ge=5, le=10_000)
     alarm_text_s: int = Field(5, ge=1, le=60)  # how long AgOpenGPS shows an alarm's text
     sections: list[AgOpenGpsSectionMap] = Field(default_factory=list, max_length=MAX_SECTIONS)
+    # curve compensation: channel name -> the half of the tool it feeds; that channel meters
+    # at its half's mean ground speed from PGN 229's far-left / far-right tool speeds
+    channel_sides: dict[str, Literal["left", "right"]] = Field(default_factory=dict)
 
     @field_validator("listen")
     @classmethod

@@ -2,9 +2,9 @@
 
 The daemon (with the simulated machine's RS485 radar standing still and two CAN metering
 channels on a virtual bus) takes its speed and work state from AgOpenGPS's PGN 254/239/229,
-meters only the channel whose section is on, answers AgIO's hello, shows its alarms on the
-AgOpenGPS screen as PGN 221 and falls back (radar speed; raised, every channel stopped) when
-the frames stop.
+meters only the channel whose section is on, each half of the tool at its own speed in a
+curve, answers AgIO's hello, shows its alarms on the AgOpenGPS screen as PGN 221 and falls
+back (radar speed; raised, every channel stopped) when the frames stop.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ class FakeAgIO:
         self.port = int(self.sock.getsockname()[1])
         self.speed_kmh = 6.0
         self.sections = [True, False] + [False] * 14
+        self.tool_speeds_mps = (1.7, 1.7)  # far left, far right: straight ahead
         self.sending = True
         self.received: list[bytes] = []
 
@@ -46,7 +47,7 @@ class FakeAgIO:
             if self.sending:
                 self.sock.sendto(aog.encode_steer_data(self.speed_kmh, self.sections), to)
                 self.sock.sendto(aog.encode_machine_data(self.speed_kmh, self.sections), to)
-                self.sock.sendto(aog.encode_sections_64(self.sections, 1.7, 1.7), to)
+                self.sock.sendto(aog.encode_sections_64(self.sections, *self.tool_speeds_mps), to)
             await asyncio.sleep(0.1)
 
     async def listen(self) -> None:
@@ -101,6 +102,7 @@ async def test_agopengps_drives_speed_and_sections_answers_and_falls_back(
             "agio": f"127.0.0.1:{agio.port}",
             "sections": [{"channel": "left", "rows": [1, 2, 3, 4, 5]},
                          {"channel": "right", "rows": [6, 7, 8, 9, 10]}],
+            "channel_sides": {"left": "left", "right": "right"},
         },
     }
     async with CanBus("virtual", can_channel) as bus, tasks(
@@ -125,10 +127,19 @@ async def test_agopengps_drives_speed_and_sections_answers_and_falls_back(
         assert cab is not None and cab.rows_off(rig.daemon.clock()) == {6, 7, 8, 9, 10}
 
         # the speed follows AgOpenGPS; section 2 on starts the right channel
-        left_at_6 = ch("left").target_rpm
+        left_at_6 = ch("left").target_rpm  # straight ahead: the tool speeds change nothing
         agio.speed_kmh, agio.sections[1] = 9.0, True
         await rig.until(lambda: ch("right").target_rpm > 0.0, what="right started")
         await rig.until(lambda: ch("left").target_rpm > left_at_6 * 1.3, what="left faster")
+
+        # a left-hand curve (PGN 229: far left 1.0 m/s, far right 3.0 m/s): the right half
+        # runs at 1.25x the machine's speed, the left at 0.75x, and so do their shafts
+        agio.tool_speeds_mps = (1.0, 3.0)
+        await rig.until(
+            lambda: abs(ch("right").target_rpm / max(ch("left").target_rpm, 1e-9) - 5 / 3)
+            < 0.01,
+            what="curve compensation",
+        )
 
         # the hello is answered with PGN 123 carrying the sections
         agio.sock.sendto(aog.hello_from_agio(), ("127.0.0.1", listen_port))
@@ -150,7 +161,8 @@ async def test_agopengps_drives_speed_and_sections_answers_and_falls_back(
             timeout=15.0, what="fallback to the radar",
         )
         await rig.until(lambda: rig.daemon.alarms.is_active("agopengps.lost"), what="lost")
-        assert ch("left").target_rpm == 0.0 and ch("right").target_rpm == 0.0
+        await rig.until(lambda: ch("left").target_rpm == 0.0 and ch("right").target_rpm == 0.0,
+                        what="every channel stopped")
         await rig.until(
             lambda: any(b"AgOpenGPS" in f.data[2:] for f in agio.frames(221)),
             what="the alarm as a PGN 221 text",

@@ -3,11 +3,11 @@ row, and the controller's fallback when AgOpenGPS goes quiet."""
 
 from __future__ import annotations
 
-from gateway.app.agopengps import CabInputs
 from gateway.config import parse_config
 from gateway.control.controller import Controller
 from gateway.control.work_state import WorkState
 from gateway.core.alarms import AlarmBoard
+from gateway.metering.agopengps import CabInputs
 from protocol import agopengps as aog
 
 CHANNELS = [
@@ -79,3 +79,32 @@ def test_controller_follows_agopengps_then_falls_back() -> None:
         out = c.tick(t)
     assert out.speed_source == "radar" and out.state is WorkState.PRE_SEED
     assert c.alarms.is_active("agopengps.lost")
+
+
+def test_curve_compensation_meters_each_half_at_its_own_speed() -> None:
+    settings = parse_config({
+        "channel": CHANNELS,
+        "agopengps": {"channel_sides": {"left": "left", "right": "right"}},
+    })
+    cab = CabInputs(settings.agopengps)
+    assert cab.speed_factor("left", 1.0) == 1.0  # no 229 yet
+    # a left-hand curve: far-left edge 1.0 m/s, far-right 3.0 m/s, centre 2.0
+    cab.on_message(aog.Sections64((True,) * 64, 1.0, 3.0), 1.0)
+    assert cab.speed_factor("left", 1.0) == 0.75  # left half's mean (1.0 + 2.0) / 2 = 1.5
+    assert cab.speed_factor("right", 1.0) == 1.25
+    assert cab.speed_factor("fert", 1.0) == 1.0  # feeds the whole width
+    assert cab.speed_factor("left", 6.0) == 1.0  # stale
+    cab.on_message(aog.Sections64((True,) * 64, 0.1, 0.1), 7.0)
+    assert cab.speed_factor("left", 7.0) == 1.0  # standing: no ratio
+
+
+def test_channel_sides_name_existing_channels() -> None:
+    import pytest
+
+    from gateway.config import ConfigError
+
+    with pytest.raises(ConfigError) as info:
+        parse_config({"agopengps": {"channel_sides": {"seed": "left"}}})
+    assert info.value.problems == [
+        "agopengps.channel_sides.seed: no such channel (channels: none) (got 'seed')"
+    ]
