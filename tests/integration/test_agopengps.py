@@ -151,6 +151,23 @@ async def test_agopengps_drives_speed_and_sections_answers_and_falls_back(
         await rig.until(lambda: rig.state() is WorkState.TURNING, what="not working")
         await rig.until(lambda: ch("left").target_rpm == 0.0, what="left stopped")
 
+        # a stranger on the LAN floods "all sections on at 20 km/h": nothing moves
+        endpoint = rig.daemon.parts.agopengps
+        assert endpoint is not None
+        stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        stranger.bind(("127.0.0.2", 0))
+        with stranger:
+            for burst in range(1, 6):
+                for _ in range(100):
+                    stranger.sendto(aog.encode_steer_data(20.0, [True] * 16),
+                                    ("127.0.0.1", listen_port))
+                await rig.until(lambda n=burst: endpoint.rejected["untrusted_sender"] == n * 100,
+                                what=f"stranger burst {burst} dropped")
+        out = rig.daemon.outputs
+        assert out is not None and out.speed_kmh is not None and abs(out.speed_kmh - 9.0) < 0.05
+        assert rig.state() is WorkState.TURNING
+        assert ch("left").target_rpm == 0.0 and ch("right").target_rpm == 0.0
+
         # AgOpenGPS goes quiet: radar speed, raised (critical alarm shown on its screen)
         agio.sections[:2] = [True, True]
         await rig.until(lambda: rig.state() is WorkState.SEEDING, what="seeding again")
@@ -167,5 +184,4 @@ async def test_agopengps_drives_speed_and_sections_answers_and_falls_back(
             lambda: any(b"AgOpenGPS" in f.data[2:] for f in agio.frames(221)),
             what="the alarm as a PGN 221 text",
         )
-        endpoint = rig.daemon.parts.agopengps
-        assert endpoint is not None and sum(endpoint.rejected.values()) == 0
+        assert dict(endpoint.rejected) == {"untrusted_sender": 500}
