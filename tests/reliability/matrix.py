@@ -12,6 +12,7 @@ import time
 from collections.abc import Awaitable, Callable, Iterable
 from pathlib import Path
 
+from tests.reliability.agopengps_faults import group_agopengps
 from tests.reliability.device_faults import group_modbus, group_serial
 from tests.reliability.harness import RowResult
 from tests.reliability.hopper_faults import group_hopper
@@ -28,6 +29,7 @@ GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
     "hopper": group_hopper,
     "commands": group_commands,
     "config": group_config,
+    "agopengps": group_agopengps,
 }
 
 

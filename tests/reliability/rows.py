@@ -47,6 +47,10 @@ HOPPER_FAULT_S = 6.0  # longer than the 2 s after which a silent device is alarm
 HOPPER_JUMP_KG = 250.0
 # the correction may move only by what a window fitted on both sides of the fault adds
 HOPPER_FACTOR_TOLERANCE = 0.002
+# the AgOpenGPS row: AgIO says 8 km/h at 10 Hz; a stranger sends this many frames of 30 km/h
+# (all sections on) per AgIO frame, plus junk, and AgIO's line one bad checksum per tick
+AGOPENGPS_KMH = 8.0
+STRANGER_FRAMES_PER_TICK = 50
 
 
 @dataclass(frozen=True)
@@ -120,6 +124,13 @@ ROWS: tuple[Row, ...] = (
              "fit restarts its line"),
         )
     ),
+    Row("agopengps_stranger_flood", "agopengps",
+        f"AgOpenGPS (through a fake AgIO on loopback UDP) is the speed source at "
+        f"{AGOPENGPS_KMH:g} km/h; for {FUZZ_S:g} s a stranger (127.0.0.2) sends "
+        f"{STRANGER_FRAMES_PER_TICK} well-formed frames of 30 km/h and random bytes per AgIO "
+        "frame, and AgIO's own line a frame with a bad checksum each tick",
+        f"duty unchanged (within steady ± {DUTY_TOLERANCE_PCT:g} points); ≤ "
+        f"{LOG_LINES_PER_FUZZ_MAX} log lines; daemon up, no traceback"),
     Row("serial_fuzz_hmi", "serial",
         f"{FUZZ_S:g} s of random bytes (64 B every 50 ms) on the touchscreen line",
         f"daemon up, no traceback; duty unchanged (≤ steady max + {DUTY_TOLERANCE_PCT:g}); "
