@@ -70,8 +70,9 @@ class AgOpenGpsEndpoint(asyncio.DatagramProtocol):
     # ---- lifecycle ------------------------------------------------------------------------
     async def open(self, host: str, port: int) -> None:
         loop = asyncio.get_running_loop()
+        # no SO_REUSEPORT: a second process on the port would silently take half the frames
         await loop.create_datagram_endpoint(
-            lambda: self, local_addr=(host, port), reuse_port=True, allow_broadcast=True
+            lambda: self, local_addr=(host, port), allow_broadcast=True
         )
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:

@@ -18,6 +18,7 @@ from gateway.metering.agopengps import CabInputs
 from protocol import agopengps as aog
 
 if TYPE_CHECKING:
+    from drivers.agopengps_udp import AgOpenGpsEndpoint
     from gateway.app.parts import Parts
     from gateway.control.controller import Controller
     from gateway.core.alarms import AlarmBoard
@@ -44,6 +45,36 @@ class Daemon(Protocol):
         *,
         stop_stage: int | None = None,
     ) -> None: ...
+
+
+OPEN_RETRY_MAX_S = 30.0
+
+
+async def open_until_listening(
+    endpoint: AgOpenGpsEndpoint, listen: str, alarms: AlarmBoard, first_retry_s: float = 1.0
+) -> None:
+    """Bind ``listen``, retrying with a growing pause while it cannot be (the port taken by
+    another program, the address not up yet) with ``agopengps.unavailable`` raised: the
+    daemon runs on with its other sources meanwhile."""
+    import asyncio
+
+    from gateway.config.agopengps import split_host_port
+
+    host, port = split_host_port(listen)
+    pause = first_retry_s
+    while True:
+        try:
+            await endpoint.open(host, port)
+        except OSError as exc:
+            if not alarms.is_active("agopengps.unavailable"):
+                log.error("AgOpenGPS: cannot listen on %s: %s; retrying", listen, exc)
+            alarms.raise_("agopengps.unavailable", f"cannot listen on {listen}: {exc}")
+            await asyncio.sleep(pause)
+            pause = min(OPEN_RETRY_MAX_S, pause * 2)
+            continue
+        alarms.clear("agopengps.unavailable")
+        log.info("AgOpenGPS: listening on %s", listen)
+        return
 
 
 def attach_agopengps(daemon: Daemon) -> None:
@@ -85,9 +116,7 @@ def attach_agopengps(daemon: Daemon) -> None:
     daemon.alarms.subscribe(on_alarm)
 
     async def run() -> None:
-        host, port = split_host_port(cfg.listen)
-        await endpoint.open(host, port)
-        log.info("AgOpenGPS: listening on %s", cfg.listen)
+        await open_until_listening(endpoint, cfg.listen, daemon.alarms)
         try:
             await asyncio.Event().wait()
         finally:

@@ -70,6 +70,12 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "check AgIO and the tractor LAN; set `agopengps.agio` if AgIO's address changed",
     ),
     AlarmCode(
+        "agopengps.unavailable", ("warning",),
+        "`agopengps.listen` cannot be bound (another program has the port, the address is not "
+        "up): retried with a growing pause up to 30 s; the other sources work meanwhile",
+        "free the port (AgIO itself must not run on this box on 8888) or fix `agopengps.listen`",
+    ),
+    AlarmCode(
         "radar.unavailable", ("warning",),
         "the radar does not answer on RS485",
         "check the radar's cable, power and Modbus address; speed comes from other sources",
