@@ -48,6 +48,7 @@ class Daemon(Protocol):
 
 
 OPEN_RETRY_MAX_S = 30.0
+STALE_WATCH_S = 0.5
 
 
 async def open_until_listening(
@@ -118,7 +119,9 @@ def attach_agopengps(daemon: Daemon) -> None:
     async def run() -> None:
         await open_until_listening(endpoint, cfg.listen, daemon.alarms)
         try:
-            await asyncio.Event().wait()
+            while True:  # AgOpenGPS frames carry no time: "stale" is the source gone quiet
+                await asyncio.sleep(STALE_WATCH_S)
+                cab.watch_staleness(daemon.clock())
         finally:
             endpoint.close()
 

@@ -4,11 +4,16 @@ its frame arrived (docs/agopengps.md). Wired by ``gateway.app.agopengps``."""
 
 from __future__ import annotations
 
+import logging
+
 from gateway.config import AgOpenGpsSection
 from protocol import agopengps as aog
 
 N_SECTIONS = 64
 MIN_CENTRE_SPEED_MPS = 0.3  # below, 229's 0.1 m/s steps make a ratio meaningless
+
+
+log = logging.getLogger(__name__)
 
 
 class CabInputs:
@@ -22,6 +27,8 @@ class CabInputs:
         self.tool_speeds_mps: tuple[float, float] | None = None
         self.speed_kmh: float | None = None
         self.last_t: float | None = None  # any section-bearing frame
+        self.stale_spells = 0  # times AgOpenGPS went quiet for stale_after_s
+        self._was_fresh = False
 
     def on_message(self, msg: aog.Message, t: float) -> None:
         if isinstance(msg, aog.SteerData):
@@ -37,6 +44,18 @@ class CabInputs:
         else:
             return
         self.last_t = t
+
+    def watch_staleness(self, now: float) -> bool:
+        """Count and log AgOpenGPS going quiet and coming back; True while fresh."""
+        fresh = self.fresh(now)
+        if self._was_fresh and not fresh:
+            self.stale_spells += 1
+            log.warning("AgOpenGPS silent for %g s: its speed, work state and sections are "
+                        "stale, the next sources decide", self.cfg.stale_after_s)
+        elif fresh and not self._was_fresh and self.stale_spells:
+            log.info("AgOpenGPS frames again")
+        self._was_fresh = fresh
+        return fresh
 
     def fresh(self, now: float) -> bool:
         return self.last_t is not None and now - self.last_t <= self.cfg.stale_after_s

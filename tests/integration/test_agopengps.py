@@ -178,6 +178,7 @@ async def test_agopengps_drives_speed_and_sections_answers_and_falls_back(
             timeout=15.0, what="fallback to the radar",
         )
         await rig.until(lambda: rig.daemon.alarms.is_active("agopengps.lost"), what="lost")
+        await rig.until(lambda: cab.stale_spells == 1, what="the silence counted")
         await rig.until(lambda: ch("left").target_rpm == 0.0 and ch("right").target_rpm == 0.0,
                         what="every channel stopped")
         await rig.until(

@@ -108,3 +108,14 @@ def test_channel_sides_name_existing_channels() -> None:
     assert info.value.problems == [
         "agopengps.channel_sides.seed: no such channel (channels: none) (got 'seed')"
     ]
+
+
+def test_going_quiet_is_counted_once_per_spell() -> None:
+    cab = CabInputs(SETTINGS.agopengps)
+    assert not cab.watch_staleness(0.0) and cab.stale_spells == 0  # never heard: no spell
+    cab.on_message(aog.SteerData(6.0, sections(1)), 1.0)
+    assert cab.watch_staleness(1.5)
+    assert not cab.watch_staleness(5.5) and cab.stale_spells == 1
+    assert not cab.watch_staleness(6.0) and cab.stale_spells == 1
+    cab.on_message(aog.SteerData(6.0, sections(1)), 7.0)
+    assert cab.watch_staleness(7.0) and not cab.watch_staleness(12.0) and cab.stale_spells == 2
