@@ -75,7 +75,7 @@ class MachineState:
     work_state: str  # a ``WorkState`` value: "stopped" until the first control tick
     mode: str  # the controller's ``Mode`` value
     speed_kmh: float | None
-    speed_source: str | None  # "radar", "gnss", "isobus"; None while no source is valid
+    speed_source: str | None  # "radar", "gnss", "isobus", "agopengps"; None: no valid source
     tilt_deg: float | None
     raised: bool
     crop: str

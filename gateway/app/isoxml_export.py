@@ -203,16 +203,17 @@ class TimeLogWriter:
         self._second = -1
         self._off_us = round(SECTION_OFF_AFTER_S * 1_000_000)
         self._recent: deque[tuple[int, int]] = deque()
-        self._set((ACTUAL_WORK_STATE.number, d.device.det_id), 0)
+        self._put_value((ACTUAL_WORK_STATE.number, d.device.det_id), 0)
         self._sections_changed()
         if d.target_spacing_m is not None:
-            self._set((SETPOINT_COUNT_PER_AREA.number, d.boom.det_id),
-                      round(1000 / (d.target_spacing_m * d.row_width_m)))
-            self._set((SETPOINT_SPACING.number, d.boom.det_id), round(d.target_spacing_m * 1000))
+            self._put_value((SETPOINT_COUNT_PER_AREA.number, d.boom.det_id),
+                            round(1000 / (d.target_spacing_m * d.row_width_m)))
+            self._put_value((SETPOINT_SPACING.number, d.boom.det_id),
+                            round(d.target_spacing_m * 1000))
 
     # ------------------------------------------------------------ state
 
-    def _set(self, key: Key, value: int) -> None:
+    def _put_value(self, key: Key, value: int) -> None:
         if self.state.get(key) != value:
             self.state[key] = value
             for log in self.where.get(key, ()):
@@ -228,10 +229,10 @@ class TimeLogWriter:
                                                             else OFF)
                 word |= bits << (2 * i)
             signed = word - (1 << 32) if word >= 1 << 31 else word
-            self._set((condensed_work_state(k).number, d.boom.det_id), signed)
-        self._set((ACTUAL_WORKING_WIDTH.number, d.boom.det_id),
+            self._put_value((condensed_work_state(k).number, d.boom.det_id), signed)
+        self._put_value((ACTUAL_WORKING_WIDTH.number, d.boom.det_id),
                   round(len(self.row_last_us) * d.row_width_m * 1000))
-        self._set((ACTUAL_WORK_STATE.number, d.device.det_id), 1 if self.row_last_us else 0)
+        self._put_value((ACTUAL_WORK_STATE.number, d.device.det_id), 1 if self.row_last_us else 0)
 
     def _update_quality(self) -> None:
         d = self.device
@@ -243,10 +244,10 @@ class TimeLogWriter:
                                  (AVERAGE_MULTIPLE, q.multiples_index),
                                  (AVERAGE_CV, q.precision)):
                 if percent is not None:
-                    self._set(keys[ddi], round(percent * 10_000))
-            self._set(keys[TOTAL_COUNT], self.seeds[row])
+                    self._put_value(keys[ddi], round(percent * 10_000))
+            self._put_value(keys[TOTAL_COUNT], self.seeds[row])
         self.quality_dirty.clear()
-        self._set((TOTAL_AREA.number, d.device.det_id), round(self.sown_m * d.row_width_m))
+        self._put_value((TOTAL_AREA.number, d.device.det_id), round(self.sown_m * d.row_width_m))
 
     def _close_idle(self, now_us: int) -> None:
         """Rows without a seed for ``SECTION_OFF_AFTER_S`` close, each with a record at the
@@ -298,7 +299,7 @@ class TimeLogWriter:
         self._recent.append((us, row))
         if not was_on:
             self._sections_changed()
-        self._set(self.speed_key, round(r[_SPEED] / 3.6 * 1000))
+        self._put_value(self.speed_key, round(r[_SPEED] / 3.6 * 1000))
         self.seeds[row] += 1
         self.quality_dirty.add(row)
         log = self.log_of_row[row]

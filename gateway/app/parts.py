@@ -11,11 +11,13 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from drivers.agopengps_udp import AgOpenGpsEndpoint
     from drivers.can_bus import IsobusListener
     from drivers.gnss_reader import GnssReader
     from drivers.seed_sensors import GpioSeedSensors, SerialSeedSensors
     from gateway.app.rejected_input import RejectedInputs
     from gateway.link.mqtt import MqttLink
+    from gateway.metering.agopengps import CabInputs
     from gateway.metering.channels import MeteringComponent
     from gateway.metering.pwm_channel import PwmChannelPart
     from gateway.recording.health import RecordingHealth
@@ -37,4 +39,6 @@ class Parts:
     isobus: IsobusListener | None = None
     rejected: RejectedInputs | None = None
     row_alarms: RowAlarms | None = None
+    agopengps: AgOpenGpsEndpoint | None = None
+    agopengps_cab: CabInputs | None = None
 

@@ -210,6 +210,10 @@ def attach(daemon: Daemon) -> None:
     _attach_channels(daemon)
     if s.isobus.enabled:
         _attach_isobus(daemon)
+    if s.agopengps.enabled:
+        from gateway.app.agopengps import attach_agopengps
+
+        attach_agopengps(daemon)
     _attach_rejected_inputs(daemon)
 
 

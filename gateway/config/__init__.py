@@ -19,6 +19,7 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from gateway.config._base import FieldProblem, OptionalPart, switch_on_present_parts
+from gateway.config.agopengps import AgOpenGpsSection
 from gateway.config.farm import CommandsSection, DashboardSection, MqttSection, TlsSection
 from gateway.config.farm_task import FarmSection
 from gateway.config.machine import (
@@ -70,6 +71,7 @@ __all__ = [
     "EXIT_CONFIG",
     "STORE_FILE",
     "ActuatorsSection",
+    "AgOpenGpsSection",
     "CanSection",
     "ChannelSection",
     "CommandsSection",
@@ -147,6 +149,7 @@ class Settings(BaseSettings):
     prescription: PrescriptionSection = Field(default_factory=PrescriptionSection)
     hopper_scale: HopperScaleSection = Field(default_factory=HopperScaleSection)
     farm: FarmSection = Field(default_factory=FarmSection)  # names for ISO-XML export
+    agopengps: AgOpenGpsSection = Field(default_factory=AgOpenGpsSection)
 
     @classmethod
     def settings_customise_sources(
@@ -202,6 +205,7 @@ class Settings(BaseSettings):
                 f"speed.source = {'_then_'.join(self.speed.source)!r} uses the GNSS speed but "
                 "gnss is not enabled (add a [gnss] table, or choose another source)"
             )
+        _check_agopengps(self)
         rows = self.machine.rows
         lateral = self.positioning.row_lateral_m
         if lateral is None:
@@ -294,6 +298,41 @@ class Settings(BaseSettings):
                 )
             nodes[ch.node_id] = i
         return self
+
+
+def _check_agopengps(settings: Settings) -> None:
+    """AgOpenGPS named as a speed or work-state source needs ``[agopengps]``; its section map
+    names channels and rows that exist."""
+    aog = settings.agopengps
+    if not aog.enabled:
+        if "agopengps" in settings.speed.source:
+            raise FieldProblem("speed.source", "uses agopengps but [agopengps] is not enabled",
+                               "_then_".join(settings.speed.source))
+        if "agopengps" in settings.isobus.work_state_source:
+            raise FieldProblem(
+                "isobus.work_state_source", "uses agopengps but [agopengps] is not enabled",
+                "_then_".join(settings.isobus.work_state_source),
+            )
+        return
+    names = {c.name for c in settings.channel}
+    for name in aog.channel_sides:
+        if name not in names:
+            raise FieldProblem(
+                f"agopengps.channel_sides.{name}",
+                f"no such channel (channels: {', '.join(sorted(names)) or 'none'})", name,
+            )
+    for i, sec in enumerate(aog.sections):
+        if sec.channel is not None and sec.channel not in names:
+            raise FieldProblem(
+                f"agopengps.sections[{i}].channel",
+                f"no such channel (channels: {', '.join(sorted(names)) or 'none'})", sec.channel,
+            )
+        bad = [r for r in sec.rows if r > settings.machine.rows]
+        if bad:
+            raise FieldProblem(
+                f"agopengps.sections[{i}].rows",
+                f"rows are 1..{settings.machine.rows} (machine.rows)", bad,
+            )
 
 
 def optional_parts() -> list[str]:

@@ -213,7 +213,7 @@ class HmiSection(OptionalPart):
         return self
 
 
-SpeedSourceName = Literal["radar", "gnss", "isobus"]
+SpeedSourceName = Literal["radar", "gnss", "isobus", "agopengps"]
 
 
 def _radar_only() -> list[SpeedSourceName]:

@@ -56,7 +56,7 @@ def _default_priority() -> list[SpeedSource]:
     return ["machine_selected", "ground", "wheel"]
 
 
-WorkStateSourceName = Literal["inclinometer", "hitch"]
+WorkStateSourceName = Literal["inclinometer", "hitch", "agopengps"]
 
 
 def _inclinometer_only() -> list[WorkStateSourceName]:

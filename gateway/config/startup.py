@@ -38,6 +38,7 @@ def _part_details(settings: Settings) -> dict[str, str]:
         "mqtt": mqtt,
         "can": f"{s.can.interface} {s.can.channel}",
         "isobus": f"{s.isobus.interface} {s.isobus.channel}",
+        "agopengps": f"{s.agopengps.listen}, AgIO {s.agopengps.agio or 'first seen'}",
         "prescription": s.prescription.path or "no path",
         "hopper_scale": f"RS485 id {s.hopper_scale.device_id}",
     }

@@ -40,8 +40,12 @@ log = logging.getLogger(__name__)
 TILT_STALE_S = 2.0
 LOWERED_READINGS = 3  # paper B averages 3 readings for the critical angle
 CRITICAL_READINGS_WITHIN_S = 5.0  # ... taken together, not one stale and two new
-WORK_STATE_SOURCES = ("inclinometer", "hitch")
-WORK_STATE_LABEL = {"inclinometer": "inclinometer", "hitch": "ISOBUS rear hitch status"}
+WORK_STATE_SOURCES = ("inclinometer", "hitch", "agopengps")
+WORK_STATE_LABEL = {
+    "inclinometer": "inclinometer",
+    "hitch": "ISOBUS rear hitch status",
+    "agopengps": "AgOpenGPS sections/lift",
+}
 OTHER_SOURCE_FILTER_SAMPLES = 5
 # ``rate.outside_calibration`` is raised only once the needed shaft speed has been outside the
 # crop model's fitted range this long (as DEVICE_LOST_AFTER_S for a silent device): every
@@ -143,6 +147,9 @@ class Controller:
             "isobus": SpeedSource(
                 MovingAverage(OTHER_SOURCE_FILTER_SAMPLES), corr.get("isobus", 1.0)
             ),
+            "agopengps": SpeedSource(
+                MovingAverage(OTHER_SOURCE_FILTER_SAMPLES), corr.get("agopengps", 1.0)
+            ),
         }
         thr, hyst = s.speed.moving_threshold_kmh, s.speed.moving_hysteresis_kmh
         self._moving = Hysteresis(thr + hyst, thr, initial=False)
@@ -157,6 +164,8 @@ class Controller:
         self._tilt_recent: deque[tuple[float, float]] = deque(maxlen=LOWERED_READINGS)
         self._hitch_working: bool | None = None
         self._hitch_t: float | None = None
+        self._aog_working: bool | None = None
+        self._aog_t: float | None = None
         self._speed_lost_since: float | None = None
         self._emptying_since: float | None = None
         self._outside_since: float | None = None  # first tick of the current outside spell
@@ -232,11 +241,18 @@ class Controller:
         self._hitch_working = in_work
         self._hitch_t = t
 
+    def on_agopengps_work(self, working: bool, t: float) -> None:
+        """AgOpenGPS's verdict: some section on and the lift not up (``gateway.app.agopengps``)."""
+        self._aog_working = working
+        self._aog_t = t
+
     def stale_after_s(self, source: str) -> float:
         """How long a source's last value counts; ISOBUS keeps the standard's 300 ms."""
         s = self.settings
         if source == "isobus":
             return min(s.speed.stale_after_s, s.isobus.stale_after_s)
+        if source == "agopengps":  # AgOpenGPS sends at its GNSS rate; gone after 4 s (RC)
+            return s.agopengps.stale_after_s
         return s.speed.stale_after_s
 
     def speed(self, now: float) -> tuple[float | None, str | None]:
@@ -422,9 +438,15 @@ class Controller:
             and self._hitch_working is not None
             and now - self._hitch_t <= self.settings.isobus.stale_after_s
         )
+        aog_fresh = (
+            self._aog_t is not None
+            and self._aog_working is not None
+            and now - self._aog_t <= self.settings.agopengps.stale_after_s
+        )
         verdicts = {
             "inclinometer": incl_raised,
             "hitch": (not self._hitch_working) if hitch_fresh else None,
+            "agopengps": (not self._aog_working) if aog_fresh else None,
         }
         order = self.settings.isobus.work_state_source
         chosen = next((src for src in order if verdicts[src] is not None), None)

@@ -45,7 +45,7 @@ REGISTRY: tuple[AlarmCode, ...] = (
     ),
     AlarmCode(
         "<source>.implausible", ("warning",),
-        "a speed source (`radar`, `gnss`, `isobus`) reported more than "
+        "a speed source (`radar`, `gnss`, `isobus`, `agopengps`) reported more than "
         "`speed.max_plausible_kmh`: those samples are ignored; clears `speed.stale_after_s` "
         "after the last one",
         "check that source's wiring and configuration; the others still give the speed",
@@ -61,6 +61,19 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "no fresh ISOBUS rear hitch status (`isobus.stale_after_s`) while it is a "
         "`isobus.work_state_source`: critical when no other source is fresh",
         "check the ISOBUS connection to the tractor",
+    ),
+    AlarmCode(
+        "agopengps.lost", ("warning", "critical"),
+        "no AgOpenGPS section/lift frame for `agopengps.stale_after_s` while `agopengps` is an "
+        "`isobus.work_state_source`: critical when no other source is fresh (treated as "
+        "raised: every channel stops)",
+        "check AgIO and the tractor LAN; set `agopengps.agio` if AgIO's address changed",
+    ),
+    AlarmCode(
+        "agopengps.unavailable", ("warning",),
+        "`agopengps.listen` cannot be bound (another program has the port, the address is not "
+        "up): retried with a growing pause up to 30 s; the other sources work meanwhile",
+        "free the port (AgIO itself must not run on this box on 8888) or fix `agopengps.listen`",
     ),
     AlarmCode(
         "radar.unavailable", ("warning",),

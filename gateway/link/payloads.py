@@ -55,7 +55,7 @@ __all__ = [
 
 REQUEST_ID_MAX_CHARS = 128
 WORK_STATES: list[JsonValue] = [w.value for w in WorkState]
-SPEED_SOURCES: list[JsonValue] = ["radar", "gnss", "isobus", "none"]
+SPEED_SOURCES: list[JsonValue] = ["radar", "gnss", "isobus", "agopengps", "none"]
 
 
 class _Payload(BaseModel):

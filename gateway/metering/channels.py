@@ -369,6 +369,12 @@ class MeteringComponent:
         self._by_node = {c.node_id: c for c in self.channels}
         self.rates = {c.name: c.target_rate_kg_ha for c in self.channels}  # operator's rates
         self._last_as_applied = -1e9
+        # whether a channel may meter now beside the work state (AgOpenGPS's sections:
+        # gateway.app.agopengps); None: every channel follows the work state alone
+        self.channel_gate: Callable[[str, float], bool] | None = None
+        # a channel's ground speed over the machine's (1.0 straight ahead; a channel feeding
+        # the outer half of a curve runs faster): AgOpenGPS's tool speeds, None: always 1
+        self.speed_factor: Callable[[str, float], float] | None = None
         self.working = False
         self.speed_kmh: float | None = None
 
@@ -404,10 +410,10 @@ class MeteringComponent:
     def tick(self, now: float) -> dict[str, float]:
         """One control step: new shaft targets per channel (also sent to the link)."""
         width = self.settings.machine.working_width_m
-        speed = self._speed()
+        machine_speed = self._speed()
         working = bool(self._working())
         pose = self._position()
-        self.working, self.speed_kmh = working, speed
+        self.working, self.speed_kmh = working, machine_speed
         targets: dict[str, float] = {}
         for ch in self.channels:
             st = self.state[ch.name]
@@ -416,7 +422,12 @@ class MeteringComponent:
             m_total = ch.grams_per_rev * ch.outlets
             rpm = 0.0
             too_fast = None
-            if working and speed is not None and speed > 0:
+            gate = self.channel_gate
+            section_on = gate is None or gate(ch.name, now)
+            speed = machine_speed
+            if speed is not None and self.speed_factor is not None:
+                speed *= self.speed_factor(ch.name, now)
+            if working and section_on and speed is not None and speed > 0:
                 rpm = target_shaft_rpm(rate, speed, width, m_total)
                 if rpm > ch.max_shaft_rpm:
                     max_kmh = 0.6 * ch.max_shaft_rpm * m_total / (rate * width)

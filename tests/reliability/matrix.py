@@ -12,6 +12,7 @@ import time
 from collections.abc import Awaitable, Callable, Iterable
 from pathlib import Path
 
+from tests.reliability.agopengps_faults import group_agopengps
 from tests.reliability.device_faults import group_modbus, group_serial
 from tests.reliability.gnss_time_faults import group_gnss_time
 from tests.reliability.harness import RowResult
@@ -32,6 +33,7 @@ GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
     "rows": group_rows,
     "commands": group_commands,
     "config": group_config,
+    "agopengps": group_agopengps,
 }
 
 

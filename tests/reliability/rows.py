@@ -67,6 +67,10 @@ ROW_ALARM_WITHIN_S = 10.0
 CHATTER_ROW = 2
 CHATTER_LINES_PER_S = 2300
 CHATTER_S = 10.0
+# the AgOpenGPS row: AgIO says 8 km/h at 10 Hz; a stranger sends this many frames of 30 km/h
+# (all sections on) per AgIO frame, plus junk, and AgIO's line one bad checksum per tick
+AGOPENGPS_KMH = 8.0
+STRANGER_FRAMES_PER_TICK = 50
 
 
 @dataclass(frozen=True)
@@ -180,6 +184,13 @@ ROWS: tuple[Row, ...] = (
         f"`row.{CHATTER_ROW}.chattering` and `seed_sensors.implausible_rate` on MQTT; none of "
         "the chatter stored as seeds; its edges counted in `state.row_monitor.rows."
         f"{CHATTER_ROW}.implausible_edges`; the other rows' seeds all stored; no traceback"),
+    Row("agopengps_stranger_flood", "agopengps",
+        f"AgOpenGPS (through a fake AgIO on loopback UDP) is the speed source at "
+        f"{AGOPENGPS_KMH:g} km/h; for {FUZZ_S:g} s a stranger (127.0.0.2) sends "
+        f"{STRANGER_FRAMES_PER_TICK} well-formed frames of 30 km/h and random bytes per AgIO "
+        "frame, and AgIO's own line a frame with a bad checksum each tick",
+        f"duty unchanged (within steady ± {DUTY_TOLERANCE_PCT:g} points); ≤ "
+        f"{LOG_LINES_PER_FUZZ_MAX} log lines; daemon up, no traceback"),
     Row("serial_fuzz_hmi", "serial",
         f"{FUZZ_S:g} s of random bytes (64 B every 50 ms) on the touchscreen line",
         f"daemon up, no traceback; duty unchanged (≤ steady max + {DUTY_TOLERANCE_PCT:g}); "

@@ -25,6 +25,7 @@ PRESENT_WITHOUT_ENABLED: dict[str, dict[str, Any]] = {
     "gnss": {"port": "/dev/ttyUSB1"},
     "prescription": {"path": "/srv/map.geojson"},
     "hopper_scale": {"device_id": 5},
+    "agopengps": {"listen": "0.0.0.0:8888"},
 }
 
 
@@ -89,7 +90,8 @@ def test_the_parts_summary_names_every_part_and_how_it_is_reached() -> None:
     assert parts_summary(s) == (
         "parts: rs485 on (/dev/ttyUSB0), hmi off, gnss on (/dev/ttyUSB1), seed_sensors off, "
         "row_monitor off (no seed_sensors), mqtt on (broker.example:8883 TLS), can off, "
-        "isobus off, prescription off, hopper_scale off, channel seed off (can_pid, but can is off)"
+        "isobus off, prescription off, hopper_scale off, agopengps off, "
+        "channel seed off (can_pid, but can is off)"
     )
 
 

@@ -63,7 +63,8 @@ def test_work_state_source_is_a_priority_list(given: object, order: list[str]) -
 @pytest.mark.parametrize(
     ("section", "given", "problem"),
     [
-        ("speed", "radar_then_sonar", "speed.source[1]: Input should be 'radar', 'gnss' or"),
+        ("speed", "radar_then_sonar",
+         "speed.source[1]: Input should be 'radar', 'gnss', 'isobus' or"),
         ("speed", ["gnss", "gnss"], "speed.source: each source may appear once"),
         ("speed", [], "speed.source: List should have at least 1 item"),
         ("isobus", "hitch_then_radar", "isobus.work_state_source[1]: Input should be"),
