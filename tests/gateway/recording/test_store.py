@@ -19,7 +19,7 @@ import pytest
 
 from gateway.core.records import AlarmEvent, SeedDrop, SeedRecord, utc_to_us
 from gateway.link.payloads import SeedBatch
-from gateway.recording.store import MAX_OUTBOX_LIMIT, RecordStore, StoreError
+from gateway.recording.store import ID_BLOCK, MAX_OUTBOX_LIMIT, RecordStore, StoreError
 from tests.helpers import eventually
 
 T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
@@ -100,17 +100,28 @@ def test_delivery_marks_survive_a_reopen(tmp_path: Path) -> None:
         assert s.backlog() == 2
 
 
-def test_ids_never_repeat_after_pruning_the_newest_records(tmp_path: Path) -> None:
-    """AUTOINCREMENT: a pruned id is gone for good, even across a restart."""
+def test_ids_never_repeat_after_the_records_are_gone(tmp_path: Path) -> None:
+    """A pruned id is gone for good, even across a restart, and so is every id of a store
+    whose rows were all deleted (the id reservation is kept apart from the store)."""
     path = tmp_path / "r.sqlite3"
     with RecordStore(path, "m", retention_days=1) as s:
-        recs = s.add_seeds(drops(3))
+        recs = s.add_seeds(drops(3)) + s.add_seeds(drops(1, start=T0 + timedelta(days=2)))
         s.flush()
         s.mark_seeds_delivered([r.id for r in recs])
         assert s.prune(T0 + timedelta(days=2)) == 3
-        assert list(s.query_seeds()) == []
+        assert [r.id for r in s.query_seeds()] == [4]
     with RecordStore(path, "m") as s:
-        assert [r.id for r in s.add_seeds(drops(2))] == [4, 5]
+        assert [r.id for r in s.add_seeds(drops(2))] == [5, 6]
+        s.flush()
+    sql_do(path, "DELETE FROM seeds")
+    with RecordStore(path, "m") as s:
+        assert [r.id for r in s.add_seeds(drops(1))] == [7]
+
+
+def sql_do(path: Path, statement: str) -> None:
+    with contextlib.closing(sqlite3.connect(path)) as db:
+        db.execute(statement)
+        db.commit()
 
 
 def test_prune_keeps_undelivered_and_recent_records(store: RecordStore) -> None:
@@ -268,7 +279,10 @@ def test_sigkill_during_writes_leaves_an_intact_contiguous_store(tmp_path: Path)
         assert ids == list(range(1, len(ids) + 1))  # strictly increasing, no gap
         assert len(ids) >= committed  # everything reported committed survived
         assert s.backlog() == len(ids)
-        assert [r.id for r in s.add_seeds(drops(1))] == [len(ids) + 1]
+        # the run did not close the store: the next ids start above its id reservation,
+        # at most a block ahead (the ids between may have been published; none is reused)
+        (new,) = [r.id for r in s.add_seeds(drops(1))]
+        assert len(ids) < new <= len(ids) + ID_BLOCK + 1
 
 
 def test_fast_records_equal_validated_ones(store: RecordStore) -> None:
@@ -322,15 +336,16 @@ def test_pruning_goes_in_bounded_steps(
 ) -> None:
     """A day of records is millions of rows: each step deletes a bounded chunk, so the
     control loop gets the event loop back between steps."""
-    monkeypatch.setattr("gateway.recording.store.PRUNE_CHUNK_ROWS", 5)
+    monkeypatch.setattr("gateway.recording.store.record_store.PRUNE_CHUNK_ROWS", 5)
     recs = store.add_seeds(drops(12))
+    store.add_seeds(drops(1, start=T0 + timedelta(days=2)))
     store.flush()
     store.mark_seeds_delivered([r.id for r in recs])
     later = T0 + timedelta(days=2)
     assert store.prune_step(later) == (5, True)
-    assert len(list(store.query_seeds())) == 7
+    assert len(list(store.query_seeds())) == 8
     assert store.prune(later) == 7
-    assert list(store.query_seeds()) == []
+    assert [r.id for r in store.query_seeds()] == [13]
 
 
 async def test_run_prunes_at_start_and_raises_an_old_backlog(tmp_path: Path) -> None:
@@ -481,9 +496,10 @@ def test_a_store_from_an_older_version_keeps_its_delivery_marks(tmp_path: Path) 
         assert s.backlog() == 6
         assert "delivered" not in [c[1] for c in sql(s, "PRAGMA table_info(seeds)")]
         s.mark_seeds_delivered([5, 6])
-        assert s.prune(datetime(1970, 1, 3, tzinfo=UTC)) == 5 + 1  # seeds 3-7, alarm 1
-        assert [r.id for r in s.query_seeds()] == [8, 9, 10]
         assert list(s.append_seeds(drops(1))) == [11]
+        s.flush()
+        assert s.prune(T0 + timedelta(hours=1)) == 5 + 1  # seeds 3-7, alarm 1
+        assert [r.id for r in s.query_seeds()] == [8, 9, 10, 11]
     with RecordStore(path, "m") as s:
         assert [r.id for r in s.pending_seeds(100)] == [8, 9, 10, 11]
         assert sql(s, "SELECT name FROM sqlite_master WHERE name LIKE '%pending'") == []

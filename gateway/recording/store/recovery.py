@@ -1,0 +1,120 @@
+"""Opening the store for writing, whatever the card left behind.
+
+A store that does not pass its check (a zero-length file, not a database, a truncated file, a
+page overwritten, an error while opening it) is never a reason to stop the daemon: rate
+control does not depend on it. It is moved aside, kept under a name with the time
+(``records.sqlite3.bad-20260420T080000Z``, its ``-wal`` and ``-shm`` with it), named in the
+log and in the ``store.replaced`` alarm, and a new store continues the ids (see ``ids``).
+The same happens while running when SQLite reports the file corrupt (``RecordStore``).
+
+The check at open is ``PRAGMA quick_check`` (every page's B-tree structure, not the indexes'
+contents), up to ``QUICK_CHECK_MAX_BYTES``; a larger store, on a card that reads 20 MB/s,
+would hold the start for a minute, so it gets the cheap checks only (schema, highest ids),
+and a corrupt page found later is handled while running.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sqlite3
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from gateway.recording.store.schema import TABLES, max_id, prepare_for_writing
+
+log = logging.getLogger(__name__)
+
+QUICK_CHECK_MAX_BYTES = 256 * 1024 * 1024
+_SIDE_FILES = ("-wal", "-shm")
+
+
+@dataclass(frozen=True)
+class ReplacedStore:
+    """A store that failed its check and was moved aside."""
+
+    reason: str
+    moved_to: Path | None  # None: it could not be moved (then it was left where it was)
+    max_ids: dict[str, int]  # what could still be read of its ids (0 where nothing could)
+
+    def describe(self) -> str:
+        where = f"kept as {self.moved_to}" if self.moved_to else "could not be moved aside"
+        return f"record store failed its check ({self.reason}); {where}; a new store continues"
+
+
+def is_corruption(exc: BaseException) -> bool:
+    """SQLite says the file is damaged (not: full, read-only, busy)."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    if code is not None:
+        return (code & 0xFF) in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
+    text = str(exc).lower()
+    return "malformed" in text or "not a database" in text
+
+
+def check_store(path: Path, *, quick_check: bool = True) -> str | None:
+    """Why the store at ``path`` cannot be used, or None if it can (or does not exist yet)."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        return None
+    if size == 0:
+        return "zero-length file"
+    try:
+        db = sqlite3.connect(path, isolation_level=None)
+    except sqlite3.Error as exc:
+        return f"cannot open: {exc}"
+    try:
+        prepare_for_writing(db, path)
+        if quick_check and size <= QUICK_CHECK_MAX_BYTES:
+            result = [str(r[0]) for r in db.execute("PRAGMA quick_check(5)")]
+            if result != ["ok"]:
+                return "quick_check: " + "; ".join(result)
+        for table in TABLES:
+            max_id(db, table)
+    except sqlite3.Error as exc:
+        return str(exc)
+    finally:
+        with contextlib.suppress(sqlite3.Error):
+            db.close()
+    return None
+
+
+def salvage_max_ids(path: Path) -> dict[str, int]:
+    """The highest ids a damaged store still shows (0 where it shows nothing)."""
+    out = dict.fromkeys(TABLES, 0)
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    except sqlite3.Error:
+        return out
+    try:
+        for table in TABLES:
+            with contextlib.suppress(sqlite3.Error):
+                out[table] = max_id(db, table)
+    finally:
+        db.close()
+    return out
+
+
+def move_aside(path: Path, reason: str, now: datetime | None = None) -> ReplacedStore:
+    """Rename the store (and its WAL and shared memory) out of the way, keeping them."""
+    ids = salvage_max_ids(path)
+    stamp = (now or datetime.now(UTC)).strftime("%Y%m%dT%H%M%SZ")
+    target = path.with_name(f"{path.name}.bad-{stamp}")
+    n = 1
+    while target.exists():
+        n += 1
+        target = path.with_name(f"{path.name}.bad-{stamp}-{n}")
+    try:
+        path.rename(target)
+    except OSError as exc:
+        log.error("record store %s failed its check (%s) and cannot be moved aside (%s)",
+                  path, reason, exc)
+        return ReplacedStore(reason, None, ids)
+    for suffix in _SIDE_FILES:
+        side = path.with_name(path.name + suffix)
+        with contextlib.suppress(FileNotFoundError, OSError):
+            side.rename(target.with_name(target.name + suffix))
+    replaced = ReplacedStore(reason, target, ids)
+    log.error("%s", replaced.describe())
+    return replaced
