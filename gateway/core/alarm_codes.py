@@ -253,6 +253,14 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "copy the file named in the message off the box; records not yet delivered are in it",
     ),
     AlarmCode(
+        "store.unclean_stop", ("warning",),
+        "the last run did not close the record store (a power cut, a crash, a kill): the ids "
+        "it had reserved are skipped and never given again (the message names them); seeds "
+        "of its last second may be missing from the store, those delivered are on the "
+        "broker; raised for the rest of the run",
+        "none if it was a power cut; otherwise look in the journal for why the daemon stopped",
+    ),
+    AlarmCode(
         "records.lost", ("critical",),
         "the store cannot write and its memory for held seeds is full: new seeds are lost and "
         "counted (`state.records_lost`); the clear event's message gives how many",

@@ -106,6 +106,8 @@ class StoreLike(Protocol):
     def stalled(self) -> bool: ...
     @property
     def replaced(self) -> Any: ...  # a ReplacedStore (describe()) or None
+    @property
+    def unclean_stop(self) -> str | None: ...
 
 
 class RecordingHealth:
@@ -217,7 +219,8 @@ class RecordingHealth:
     def _check_store(self, now: float) -> None:
         """``store.stalled`` while a write has been running for seconds (a slow or frozen
         card: records are held in memory, control runs on); ``store.replaced`` for the rest
-        of the run once a damaged store was moved aside."""
+        of the run once a damaged store was moved aside; ``store.unclean_stop`` for the rest
+        of the run when the last one did not close the store (ids skipped)."""
         store = self.store
         if store is None:
             return
@@ -231,6 +234,9 @@ class RecordingHealth:
         replaced = getattr(store, "replaced", None)
         if replaced is not None:
             self.alarms.raise_("store.replaced", replaced.describe(), "warning")
+        unclean = getattr(store, "unclean_stop", None)
+        if unclean is not None:
+            self.alarms.raise_("store.unclean_stop", unclean, "warning")
 
     def _check_seed_rate(self, now: float) -> None:
         """``seed_sensors.implausible_rate`` while rows get edges beyond their plausible rate

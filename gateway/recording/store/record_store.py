@@ -85,6 +85,7 @@ class StoreState:
     backlog: int  # committed records the broker has not acknowledged yet
     stalled: bool = False  # a write has been running longer than STALL_S
     replaced: str | None = None  # a store that failed its check was moved aside (this run)
+    unclean_stop: str | None = None  # the last run did not close the store (ids skipped)
 
 
 class RecordStore(StoreQueries, Outbox):
@@ -126,6 +127,8 @@ class RecordStore(StoreQueries, Outbox):
         self._db: sqlite3.Connection | None = None
         self._old_readers: list[sqlite3.Connection] = []  # of stores moved aside while running
         self.replaced: ReplacedStore | None = None  # the last store moved aside, this run
+        # set when this run started above ids the store does not have (see _continue_ids)
+        self.unclean_stop: str | None = None
         self._ids: IdReservation | None = None
         try:
             if readonly:
@@ -237,12 +240,14 @@ class RecordStore(StoreQueries, Outbox):
             if first - 1 > stored[table]:
                 self._acked[table].add(stored[table] + 1, first - 1)
                 self._acked_version += 1
-                if stored[table] or self.replaced is None:
-                    log.warning(
-                        "record store %s: %s ids %d..%d skipped (reserved by a run that did "
-                        "not close the store; they may have been published, so they are never "
-                        "given again)", self.path, table, stored[table] + 1, first - 1,
+                if self.replaced is None:
+                    self.unclean_stop = (
+                        f"the last run did not close the record store (power cut or crash): "
+                        f"{table} ids {stored[table] + 1}..{first - 1} are skipped, never given "
+                        "again; records of its last second may be missing from the store "
+                        "(those delivered are on the broker)"
                     )
+                    log.warning("record store %s: %s", self.path, self.unclean_stop)
             if table == "seeds":
                 self._next_seed_id = first
             else:
@@ -395,6 +400,7 @@ class RecordStore(StoreQueries, Outbox):
             backlog=self.backlog(),
             stalled=self.stalled,
             replaced=self.replaced.describe() if self.replaced is not None else None,
+            unclean_stop=self.unclean_stop,
         )
 
     # -- writing (the writer thread, or the caller of flush) --------------------------------

@@ -72,6 +72,7 @@ def test_a_clean_close_lowers_the_reservation_to_what_was_committed(tmp_path: Pa
         assert IdReservation(reservation_path(path)).end("seeds") == 5 + ID_BLOCK
     assert IdReservation(reservation_path(path)).end("seeds") == 5
     with RecordStore(path, "m") as s:
+        assert s.unclean_stop is None
         assert committed_ids(s, 2) == [6, 7]  # an ordinary restart: no gap
 
 
@@ -109,6 +110,7 @@ def test_a_lost_wal_never_gives_a_published_id_again(tmp_path: Path) -> None:
     after_cut = power_cut_copy(path, tmp_path / "b", with_wal=False)
     s.close()
     with RecordStore(after_cut, "m") as t:
+        assert t.unclean_stop is not None and "skipped" in t.unclean_stop
         assert [r.id for r in t.query_seeds()] == before
         new = committed_ids(t, 5)
         assert min(new) > max(lost)
