@@ -40,6 +40,11 @@ FUZZ_S = 5.0
 LOG_LINES_PER_FUZZ_MAX = 10
 RSS_GROWTH_MAX_MB = 30.0
 BINARY_LOG_BYTES = 1100  # binary receiver output between two sentences (over a line's limit)
+# the store's medium (issue 20 items 5-7)
+LAST_WRITES_LOST_S = 3.0  # an SD card whose cache lied about its last seconds of writes
+FREEZE_S = 8.0  # the state directory's file system frozen (a card that stalls)
+STORE_DAMAGE_ROWS = ("store_wal_lost", "store_last_writes_lost", "store_zero_length",
+                     "store_truncated", "store_page_overwritten")
 # the hopper scale rows: a wheat drill 8 % off its model, the correction learnt first
 HOPPER_BIAS = 0.08
 HOPPER_LEARN_MAX_S = 120.0
@@ -72,6 +77,32 @@ ROWS: tuple[Row, ...] = (
         "remounted 64 MiB",
         "every seed edge becomes a record (none lost); `records.store_failed` published on "
         "MQTT while full; ids contiguous; integrity ok"),
+    *(
+        Row(name, "store",
+            f"SIGKILL while seeding, then {how}, then the daemon started again on that state",
+            f"daemon up, no traceback; no id published for two different seeds (new ids above "
+            f"every id stored or published before); `{alarm}` on MQTT; the motor duty back at "
+            f"steady ≤ {RECOVERY_MAX_S:g} s after the seed port opens{kept}")
+        for name, how, alarm, kept in (
+            ("store_wal_lost", "the WAL (and -shm) deleted (what a power cut can take)",
+             "store.unclean_stop", ""),
+            ("store_last_writes_lost", f"the whole state dir put back as it was "
+             f"{LAST_WRITES_LOST_S:g} s before the cut (a card whose cache lied)",
+             "store.unclean_stop` (or `store.replaced", ""),
+            ("store_zero_length", "the store emptied to a zero-length file", "store.replaced",
+             "; the file kept as records.sqlite3.bad-<time>"),
+            ("store_truncated", "the store truncated to half its size", "store.replaced",
+             "; the file kept as records.sqlite3.bad-<time>"),
+            ("store_page_overwritten", "one 4 KiB page in the middle of the store overwritten",
+             "store.replaced", "; the file kept as records.sqlite3.bad-<time>"),
+        )
+    ),
+    Row("store_frozen_8s", "freeze",
+        f"state dir on a loop-mounted ext4 image, `fsfreeze --freeze` for {FREEZE_S:g} s at a "
+        "steady 8 km/h, then thawed",
+        f"the motor duty never below steady min − {DUTY_TOLERANCE_PCT:g} points while frozen "
+        "(control never waits for the card); `store.stalled` on MQTT while frozen; every seed "
+        "edge becomes a record; ids unique, contiguous; integrity ok; no traceback"),
     *(
         Row(f"modbus_radar_{fault}", "modbus",
             f"radar (id 1): {how} for {MODBUS_FAULT_S:g} s at a steady 8 km/h",

@@ -52,14 +52,14 @@ def moved_aside(path: Path) -> list[Path]:
 
 def test_the_reservation_is_written_once_a_block_and_read_back(tmp_path: Path) -> None:
     ids = IdReservation(tmp_path / "r.ids", block=100)
-    ids.cover("seeds", 1)
-    ids.cover("seeds", 100)  # inside the block: no write
+    ids.cover("seeds", 1)  # reserved through 101
+    ids.cover("seeds", 51)  # half a block still ahead: no write
     assert ids.writes == 1
-    ids.cover("seeds", 102)
+    ids.cover("seeds", 52)  # less than half a block ahead: renewed
     assert ids.writes == 2
-    assert json.loads((tmp_path / "r.ids").read_text()) == {"seeds": 202}
+    assert json.loads((tmp_path / "r.ids").read_text()) == {"seeds": 152}
     again = IdReservation(tmp_path / "r.ids", block=100)
-    assert again.next_id("seeds", store_max_id=150) == 203
+    assert again.next_id("seeds", store_max_id=150) == 153
     assert again.next_id("seeds", store_max_id=500) == 501
     assert again.next_id("alarms", store_max_id=7) == 8
     assert not (tmp_path / "r.ids.tmp").exists()
