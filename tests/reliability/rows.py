@@ -66,7 +66,8 @@ ROWS: tuple[Row, ...] = (
     Row("sigkill_during_seeding_x10", "kills",
         f"SIGKILL the daemon {KILLS}× while seeding (~2–3 s of seeds each time), restarted at "
         "once on the same store",
-        "`integrity_check` ok after every kill; ids 1..N contiguous; per kill, records lost "
+        "`integrity_check` ok after every kill; ids contiguous within each run and above "
+        "every earlier id (never reused); per kill, records lost "
         f"≤ seeds sensed in the last {COMMIT_WINDOW_S:g} s (the commit window)"),
     Row("broker_down_60s", "broker",
         f"mosquitto stopped for {BROKER_DOWN_S:g} s while seeding, then started again",
