@@ -43,6 +43,7 @@ BINARY_LOG_BYTES = 1100  # binary receiver output between two sentences (over a 
 # the store's medium (issue 20 items 5-7)
 LAST_WRITES_LOST_S = 3.0  # an SD card whose cache lied about its last seconds of writes
 FREEZE_S = 8.0  # the state directory's file system frozen (a card that stalls)
+ROLLOVER_WEEKS = 1024  # a receiver past a GPS week rollover dates everything this far back
 STORE_DAMAGE_ROWS = ("store_wal_lost", "store_last_writes_lost", "store_zero_length",
                      "store_truncated", "store_page_overwritten")
 # the hopper scale rows: a wheat drill 8 % off its model, the correction learnt first
@@ -98,6 +99,11 @@ ROWS: tuple[Row, ...] = (
              "store.replaced", "; the file kept as records.sqlite3.bad-<time>"),
         )
     ),
+    Row("store_prune_gps_rollover", "rollover",
+        f"the receiver's dates {ROLLOVER_WEEKS} weeks early (a GPS week rollover) while "
+        "seeding, every record delivered, then a restart (which prunes) with 30 days' retention",
+        "no record deleted (pruning counts age back from the earlier of the host clock and the "
+        "newest record's own time, never from one clock alone); daemon up, no traceback"),
     Row("store_frozen_8s", "freeze",
         f"state dir on a loop-mounted ext4 image, `fsfreeze --freeze` for {FREEZE_S:g} s at a "
         "steady 8 km/h, then thawed",

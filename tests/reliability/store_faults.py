@@ -18,6 +18,7 @@ import shutil
 import subprocess
 import time
 from collections.abc import Callable, Iterator
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from tests.helpers import eventually
@@ -41,6 +42,7 @@ from tests.reliability.rows import (
     FREEZE_S,
     LAST_WRITES_LOST_S,
     RECOVERY_MAX_S,
+    ROLLOVER_WEEKS,
     STORE_DAMAGE_ROWS,
 )
 
@@ -258,3 +260,50 @@ async def group_freeze(tmp: Path) -> dict[str, RowResult]:
                 await daemon.close()
             finish_row(res, daemon)
     return {"store_frozen_8s": res}
+
+
+# ---- GNSS dates 1024 weeks early, then the pruning a start runs ---------------------------
+
+
+async def group_rollover(tmp: Path) -> dict[str, RowResult]:
+    """A receiver past a GPS week rollover stamps every seed 1024 weeks early; the store's
+    pruning (at every start, and hourly) must not take that for age."""
+    res = RowResult()
+    early = datetime.now(UTC).replace(microsecond=0) - timedelta(weeks=ROLLOVER_WEEKS)
+    machine = TracedMachine(drive=sowing_drive(30.0), with_gnss=True, with_seed_tubes=True,
+                            gnss_utc_start=early)
+    with Mosquitto() as broker:
+        async with dashboard(broker.port) as dash, machine:
+            tubes = machine.seed_tubes
+            cfg = machine.write_config(tmp / "sowgate.toml", **mqtt_overrides(
+                broker.port, store={"retention_days": 30}))
+            db = tmp / "state" / STORE
+            daemon = DaemonProcess(cfg, tmp / "state", tmp / "daemon.log")
+            try:
+                await daemon.start()
+                await eventually(lambda: daemon.has_open(tubes.device_path), 30.0, "seed port")
+                await eventually(lambda: len(seed_ids(db)) > 300, 60.0, "seeds stored")
+                stored = seed_ids(db)
+                await eventually(lambda: set(stored) <= set(dash.seed_ids()), 30.0,
+                                 "the stored seeds delivered")
+                years = sorted({json.loads(p)["records"][0]["utc"][:4] for p in dash.on("seeds")})
+                code = await daemon.stop()
+                res.check(code == 0, f"graceful stop exited {code}")
+                kept_at_stop = seed_ids(db)
+                await daemon.start()  # the start prunes
+                await eventually(lambda: daemon.has_open(tubes.device_path), 30.0, "seed port")
+                await asyncio.sleep(5.0)
+                res.check(daemon.running, "daemon exited after the restart")
+                code = await daemon.stop()
+                res.check(code == 0, f"graceful stop exited {code}")
+                after = seed_ids(db)
+                deleted = sorted(set(kept_at_stop) - set(after))
+                res.check(not deleted, f"{len(deleted)} of {len(kept_at_stop)} delivered "
+                                       "records deleted by the pruning at start")
+                res.lost = f"{len(deleted)} of {len(kept_at_stop)} delivered records deleted"
+                res.notes.append(f"seeds stamped {', '.join(years)}; retention 30 days; "
+                                 f"{len(after)} records after the restart")
+            finally:
+                await daemon.close()
+            finish_row(res, daemon)
+    return {"store_prune_gps_rollover": res}
