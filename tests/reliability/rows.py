@@ -43,6 +43,7 @@ BINARY_LOG_BYTES = 1100  # binary receiver output between two sentences (over a 
 # the store's medium (issue 20 items 5-7)
 LAST_WRITES_LOST_S = 3.0  # an SD card whose cache lied about its last seconds of writes
 FREEZE_S = 8.0  # the state directory's file system frozen (a card that stalls)
+FREEZE_SETTLE_S = 5.0  # sowing before the steady duty is measured (the controller settles)
 ROLLOVER_WEEKS = 1024  # a receiver past a GPS week rollover dates everything this far back
 STORE_DAMAGE_ROWS = ("store_wal_lost", "store_last_writes_lost", "store_zero_length",
                      "store_truncated", "store_page_overwritten")
@@ -108,6 +109,7 @@ ROWS: tuple[Row, ...] = (
         f"state dir on a loop-mounted ext4 image, `fsfreeze --freeze` for {FREEZE_S:g} s at a "
         "steady 8 km/h, then thawed",
         f"the motor duty never below steady min − {DUTY_TOLERANCE_PCT:g} points while frozen "
+        f"(steady: the 4 s before the freeze, after {FREEZE_SETTLE_S:g} s of sowing) "
         "(control never waits for the card); `store.stalled` on MQTT while frozen; every seed "
         "edge becomes a record; ids unique, contiguous; integrity ok; no traceback"),
     *(

@@ -40,6 +40,7 @@ from tests.reliability.harness import (
 from tests.reliability.rows import (
     DUTY_TOLERANCE_PCT,
     FREEZE_S,
+    FREEZE_SETTLE_S,
     LAST_WRITES_LOST_S,
     RECOVERY_MAX_S,
     ROLLOVER_WEEKS,
@@ -223,7 +224,8 @@ async def group_freeze(tmp: Path) -> dict[str, RowResult]:
                 await eventually(lambda: daemon.has_open(tubes.device_path), 30.0, "seed port")
                 n_open = len(tubes.truth)
                 await eventually(lambda: len(dash.seed_ids()) > 100, 30.0, "seeds on the broker")
-                steady = await steady_duty(machine, 3.0)
+                await asyncio.sleep(FREEZE_SETTLE_S)  # the rate controller settles first
+                steady = await steady_duty(machine, 4.0)
                 # nothing in this process may touch the card while it is frozen (it would
                 # sleep uninterruptibly like the daemon once did)
                 freeze = await asyncio.create_subprocess_exec("fsfreeze", "--freeze", str(card))
@@ -240,6 +242,8 @@ async def group_freeze(tmp: Path) -> dict[str, RowResult]:
                           f"(steady {steady})")
                 res.duty = (f"steady {steady}; while frozen {low:.1f}–"
                             f"{max(during, default=0.0):.1f} %")
+                res.notes.append("duty each second while frozen: " + ", ".join(
+                    f"{d:.1f}" for d in during[::max(1, int(1.0 / 0.05))]))
                 alarms = dash.alarms_between(t_frozen, t_thawed + 1.0)
                 res.check("store.stalled" in alarms,
                           "store.stalled never published on MQTT while the card was frozen "
