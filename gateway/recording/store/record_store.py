@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import sqlite3
 import threading
@@ -28,7 +29,13 @@ from gateway.recording.id_ranges import IdRanges
 from gateway.recording.store.ids import ID_BLOCK, IdReservation, reservation_path
 from gateway.recording.store.outbox import BacklogCallback, Outbox
 from gateway.recording.store.queries import StoreQueries
-from gateway.recording.store.recovery import ReplacedStore, check_store, is_corruption, move_aside
+from gateway.recording.store.recovery import (
+    ReplacedStore,
+    check_store,
+    is_corruption,
+    move_aside,
+    salvage_undelivered,
+)
 from gateway.recording.store.schema import (
     INSERT_CHUNKS,
     TABLES,
@@ -212,6 +219,11 @@ class RecordStore(StoreQueries, Outbox):
         if reason is not None:
             self._move_aside(reason)
         self._connect()
+        if self.replaced is not None and self.replaced.moved_to is not None:
+            assert self._db is not None
+            self.replaced = dataclasses.replace(
+                self.replaced, salvaged=salvage_undelivered(self.replaced.moved_to, self._db)
+            )
 
     def _connect(self) -> None:
         db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)

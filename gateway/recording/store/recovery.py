@@ -21,12 +21,24 @@ import sqlite3
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
-from gateway.recording.store.schema import TABLES, max_id, prepare_for_writing
+from gateway.recording.id_ranges import IdRanges
+from gateway.recording.store.schema import (
+    SEED_COLUMNS,
+    TABLES,
+    load_delivered,
+    max_id,
+    prepare_for_writing,
+    readable_seed_columns,
+)
 
 log = logging.getLogger(__name__)
 
 QUICK_CHECK_MAX_BYTES = 256 * 1024 * 1024
+SALVAGE_CHUNK = 500  # rows read from a damaged store at a time (an unreadable chunk is skipped)
+SALVAGE_MAX_ERRORS = 1000  # then the rest of a table is given up as unreadable
+_ALARM_COLUMNS = "id, utc_us, code, active, severity, message"
 _SIDE_FILES = ("-wal", "-shm")
 
 
@@ -37,10 +49,13 @@ class ReplacedStore:
     reason: str
     moved_to: Path | None  # None: it could not be moved (then it was left where it was)
     max_ids: dict[str, int]  # what could still be read of its ids (0 where nothing could)
+    salvaged: int = 0  # undelivered records copied from it into the new store
 
     def describe(self) -> str:
         where = f"kept as {self.moved_to}" if self.moved_to else "could not be moved aside"
-        return f"record store failed its check ({self.reason}); {where}; a new store continues"
+        copied = f"; {self.salvaged} undelivered records copied" if self.salvaged else ""
+        return (f"record store failed its check ({self.reason}); {where}{copied}; a new "
+                "store continues the ids")
 
 
 def is_corruption(exc: BaseException) -> bool:
@@ -118,3 +133,92 @@ def move_aside(path: Path, reason: str, now: datetime | None = None) -> Replaced
     replaced = ReplacedStore(reason, target, ids)
     log.error("%s", replaced.describe())
     return replaced
+
+
+def salvage_undelivered(old: Path, db: sqlite3.Connection) -> int:
+    """Copy what can still be read of the records the broker had not acknowledged from the
+    store moved aside into the new one ``db``, under their ids, so they are still delivered;
+    the ids below them that are not copied count as delivered in the new store (nothing there
+    to wait for). Returns the records copied. Never raises: a damaged store gives what it can.
+    """
+    try:
+        src = sqlite3.connect(f"file:{old}?mode=ro", uri=True)
+    except sqlite3.Error:
+        return 0
+    copied: dict[str, list[int]] = {t: [] for t in TABLES}
+    try:
+        for table in TABLES:
+            _salvage_table(src, db, table, copied[table])
+        for table, ids in copied.items():
+            if ids:  # the ids below the last copied that were not copied: nothing to wait for
+                keep = IdRanges()
+                keep.add_ids(ids)
+                _in_transaction(db, "INSERT INTO delivered (tbl, lo, hi) VALUES (?, ?, ?)",
+                                [(table, lo, hi) for lo, hi in keep.gaps(0, max(ids))])
+    except sqlite3.Error as exc:
+        log.error("copying the undelivered records from %s stopped: %s", old, exc)
+    finally:
+        src.close()
+    n = sum(len(ids) for ids in copied.values())
+    if n:
+        log.warning("%d records not yet delivered copied from %s into the new store", n, old)
+    return n
+
+
+def _salvage_table(
+    src: sqlite3.Connection, db: sqlite3.Connection, table: str, copied: list[int]
+) -> None:
+    try:
+        cols = readable_seed_columns(src) if table == "seeds" else _ALARM_COLUMNS
+    except sqlite3.Error:
+        return
+    try:
+        acked = IdRanges(load_delivered(src, table))
+    except sqlite3.Error:  # not known: copy all that reads (a resend repeats the same record)
+        acked = IdRanges()
+    try:
+        top = max_id(src, table)
+    except sqlite3.Error:  # the last pages are gone: read on until nothing more comes
+        top = 2**62
+    into = SEED_COLUMNS if table == "seeds" else _ALARM_COLUMNS
+    errors = 0
+    for lo, hi in acked.gaps(0, top):
+        at = lo
+        while at <= hi and errors < SALVAGE_MAX_ERRORS:
+            try:
+                rows = src.execute(
+                    f"SELECT {cols} FROM {table} WHERE id >= ? AND id <= ? ORDER BY id LIMIT ?",
+                    (at, hi, SALVAGE_CHUNK),
+                ).fetchall()
+            except sqlite3.Error:  # an unreadable part: skip it
+                errors += 1
+                at += SALVAGE_CHUNK
+                continue
+            if not rows:
+                if top == 2**62 and errors:  # past the end or in the damage: keep probing
+                    errors += 1
+                    at += SALVAGE_CHUNK
+                    continue
+                break
+            marks = ",".join("?" * len(rows[0]))
+            _in_transaction(db, f"INSERT OR IGNORE INTO {table} ({into}) VALUES ({marks})",
+                            rows)
+            if table == "seeds":
+                times = [int(r[1]) for r in rows]
+                _in_transaction(
+                    db, "INSERT OR IGNORE INTO seed_spans (first_id, last_id, min_utc_us, "
+                    "max_utc_us) VALUES (?, ?, ?, ?)",
+                    [(rows[0][0], rows[-1][0], min(times), max(times))],
+                )
+            copied.extend(int(r[0]) for r in rows)
+            at = int(rows[-1][0]) + 1
+
+
+def _in_transaction(db: sqlite3.Connection, sql: str, rows: list[Any]) -> None:
+    db.execute("BEGIN")
+    try:
+        db.executemany(sql, rows)
+        db.execute("COMMIT")
+    except sqlite3.Error:
+        db.execute("ROLLBACK")
+        raise

@@ -159,6 +159,8 @@ def test_a_damaged_store_is_moved_aside_and_a_new_one_continues_the_ids(
     path = tmp_path / "records.sqlite3"
     with RecordStore(path, "m") as s:
         old = committed_ids(s, 3000)
+        s.mark_seeds_delivered(old[:1000])
+        s.flush()
     damage(path)
     content = path.read_bytes()
     with RecordStore(path, "m") as s:
@@ -167,10 +169,17 @@ def test_a_damaged_store_is_moved_aside_and_a_new_one_continues_the_ids(
         assert s.replaced.moved_to == kept
         assert kept.read_bytes() == content  # kept as it was, for whoever wants it
         assert "records.sqlite3.bad-" in s.state().replaced
+        # what can still be read of the undelivered records is copied, under its ids
+        salvaged = [r.id for r in s.pending_seeds(5000)]
+        assert set(salvaged) <= set(old[1000:])
+        assert s.replaced.salvaged == len(salvaged)
+        if damage is damage_one_page:  # (SQLite reads nothing of a truncated file)
+            assert len(salvaged) >= 500
         new = committed_ids(s, 2)
         assert min(new) > max(old)
         assert s.integrity_check() == "ok"
-        assert [r.id for r in s.pending_seeds(10)] == new  # nothing waited for below them
+        # nothing waited for below them but what was copied
+        assert [r.id for r in s.pending_seeds(5000)] == salvaged + new
     with RecordStore(path, "m") as s:  # the new store passes its check
         assert s.replaced is None
 
