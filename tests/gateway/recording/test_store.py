@@ -702,3 +702,31 @@ def test_an_older_store_gets_the_new_columns_and_keeps_its_seeds(tmp_path: Path)
         3.0, 105.0, -1.2, 0.4)
     # the published payload carries the attitude, not the store-only raw data
     assert "delay_ms" not in last.model_dump() and last.model_dump()["roll_deg"] == 3.0
+
+
+def test_no_single_wrong_clock_makes_pruning_delete_anything(store: RecordStore) -> None:
+    """Age is counted back from the earlier of the host clock and the newest record's own
+    time: a receiver past a GPS week rollover (new records 1024 weeks early) or a host clock
+    years ahead leaves every record where it is (issue 20 item 4: 1 599 of 1 717 delivered
+    records were deleted)."""
+    recent = store.add_seeds(drops(3))
+    early = store.add_seeds(drops(3, start=T0 - timedelta(weeks=1024)))
+    store.flush()
+    store.mark_seeds_delivered([r.id for r in recent + early])
+    assert store.prune(T0 + timedelta(days=40)) == 0
+    assert store.prune(T0 + timedelta(days=3650)) == 0
+    assert len(list(store.query_seeds())) == 6
+
+
+def test_a_record_stamped_in_the_past_out_of_turn_waits_for_those_before_it(
+    store: RecordStore,
+) -> None:
+    """Only a prefix in id order is pruned: one batch with a bad old date among recent ones
+    is not deleted ahead of its neighbours."""
+    first = store.add_seeds(drops(2, start=T0))
+    bad = store.add_seeds(drops(2, start=T0 - timedelta(days=400)))
+    last = store.add_seeds(drops(2, start=T0 + timedelta(hours=1)))
+    store.flush()
+    store.mark_seeds_delivered([r.id for r in first + bad + last])
+    assert store.prune(T0 + timedelta(hours=2)) == 0
+    assert [r.id for r in store.query_seeds()] == [r.id for r in first + bad + last]
