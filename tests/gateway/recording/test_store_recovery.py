@@ -248,3 +248,39 @@ def _rows(n: int) -> list[tuple[Any, ...]]:
     from gateway.core.records import drop_row
 
     return [drop_row(d) for d in drops(n)]
+
+
+class _CorruptOnCommit:
+    """The write connection, whose next COMMIT reports the file damaged (SQLITE_CORRUPT)."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        if sql == "COMMIT":
+            self._db.execute("ROLLBACK")
+            raise sqlite3.DatabaseError("database disk image is malformed")
+        return self._db.execute(sql, *args)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._db, name)
+
+
+def test_a_store_found_damaged_while_writing_is_replaced_and_nothing_queued_is_lost(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "records.sqlite3"
+    with RecordStore(path, "m") as s:
+        first = committed_ids(s, 10)
+        s.mark_seeds_delivered(first)
+        s._db = _CorruptOnCommit(s._db)  # type: ignore[arg-type,assignment]
+        queued = [r.id for r in s.add_seeds(drops(5))]
+        s.flush()  # the commit fails as corrupt: moved aside, written to a new store
+        assert s.replaced is not None and s.replaced.moved_to is not None
+        assert s.replaced.moved_to.exists() and not s.failing
+        assert [r.id for r in s.query_seeds()] == queued
+        assert [r.id for r in s.pending_seeds(100)] == queued
+        assert min(committed_ids(s, 1)) > max(queued)
+    with RecordStore(path, "m") as s:
+        assert s.replaced is None
+        assert [r.id for r in s.pending_seeds(100)][:5] == queued
