@@ -8,8 +8,8 @@ log and in the ``store.replaced`` alarm, and a new store continues the ids (see 
 The same happens while running when SQLite reports the file corrupt (``RecordStore``).
 
 The check at open is ``PRAGMA quick_check`` (every page's B-tree structure, not the indexes'
-contents), up to ``QUICK_CHECK_MAX_BYTES``; a larger store, on a card that reads 20 MB/s,
-would hold the start for a minute, so it gets the cheap checks only (schema, highest ids),
+contents), up to ``QUICK_CHECK_MAX_BYTES``; a larger store would hold the start (and with it
+the first metering) for seconds on an SD card, so it gets the cheap checks only (schema, ids),
 and a corrupt page found later is handled while running.
 """
 
@@ -35,7 +35,7 @@ from gateway.recording.store.schema import (
 
 log = logging.getLogger(__name__)
 
-QUICK_CHECK_MAX_BYTES = 256 * 1024 * 1024
+QUICK_CHECK_MAX_BYTES = 64 * 1024 * 1024  # ~1.5 s of a card reading 40 MB/s
 SALVAGE_CHUNK = 500  # rows read from a damaged store at a time (an unreadable chunk is skipped)
 SALVAGE_MAX_ERRORS = 1000  # then the rest of a table is given up as unreadable
 _ALARM_COLUMNS = "id, utc_us, code, active, severity, message"
