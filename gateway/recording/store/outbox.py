@@ -111,6 +111,15 @@ class Outbox:
             rows.extend(tail[lo - tail_first : hi - tail_first + 1])
         return ids, rows
 
+    def seeds_on_disk(self, after_id: int = 0) -> bool:
+        """Whether the next read after ``after_id`` reads SQLite (a backlog older than the
+        in-memory tail): the MQTT link then reads on a worker thread, so a card that stalls
+        never holds up the event loop (and with it the control loop)."""
+        with self._lock:
+            for lo, _ in self._acked["seeds"].gaps(after_id, self._visible_seed_id):
+                return lo < self._tail_first
+        return False
+
     def pending_seeds(self, limit: int, after_id: int = 0) -> list[SeedRecord]:
         """Committed, undelivered seed records with ``id > after_id``, oldest first."""
         ids, rows = self._undelivered(limit, after_id)
