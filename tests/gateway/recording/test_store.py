@@ -425,12 +425,14 @@ def test_a_link_behind_the_memory_tail_reads_the_older_rows_from_disk(
 ) -> None:
     """Only the newest rows stay in memory; a batch spanning the edge joins both, skipping
     what the broker already acknowledged."""
-    monkeypatch.setattr("gateway.recording.store.TAIL_MAX_ROWS", 5)
+    monkeypatch.setattr("gateway.recording.store.outbox.TAIL_MAX_ROWS", 5)
     written = drops(12)
     for i in range(0, 12, 4):
         store.append_seeds(written[i:i + 4])
     store.flush()
     store.mark_seeds_delivered([3, 4, 9])
+    # the link reads on a worker thread when SQLite is read, at once from the tail
+    assert store.seeds_on_disk(after_id=0) and not store.seeds_on_disk(after_id=7)
     ids, payload = _payloads(store)
     assert ids == [1, 2, 5, 6, 7, 8, 10, 11, 12]
     assert SeedBatch.model_validate_json(payload).records == [
