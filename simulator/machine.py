@@ -99,6 +99,9 @@ class SimulatedMachine(StartClose):
     seed: int = 1
     loop_drive: bool = False
     with_gnss: bool = False
+    # the receiver's UTC at the start (None: now); e.g. 1024 weeks early for a receiver past a
+    # GPS week rollover
+    gnss_utc_start: datetime | None = None
     with_seed_tubes: bool = False
     discharge_bias: float = 0.0  # plant discharge off the fitted model by this fraction
     pwm_watchdog: bool = True  # False: a PWM module without a comm-loss timeout register

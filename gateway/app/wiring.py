@@ -201,8 +201,8 @@ def attach(daemon: Daemon) -> None:
         _attach_gnss(daemon)
     if recording and store is not None:
         _attach_seed_recording(daemon, store)
-    if s.gnss.enabled:
-        _attach_recording_health(daemon, store if recording else None)
+    if s.gnss.enabled or store is not None:  # the store's own alarms need it too
+        _attach_recording_health(daemon, store)
     if recording and s.row_monitor.enabled:
         _attach_row_monitor(daemon)
     if s.mqtt.enabled and store is not None:
@@ -309,7 +309,8 @@ def _attach_seed_recording(daemon: Daemon, store: Any) -> None:
 
 
 def _attach_recording_health(daemon: Daemon, store: Any) -> None:
-    """Alarms for a lost receiver, a degraded fix, lost seed sensors and a failing store."""
+    """Alarms for a lost receiver, a degraded fix, lost seed sensors and a failing, stalled
+    or replaced store."""
     from gateway.recording.health import RecordingHealth
 
     health = RecordingHealth(

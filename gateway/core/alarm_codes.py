@@ -330,6 +330,29 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "free disk space on the box",
     ),
     AlarmCode(
+        "store.stalled", ("warning",),
+        "a write to the record store (or its fsync) has not finished for over 2 s: a slow or "
+        "frozen SD card. Seeds are held in memory (`state.records_held`) and written when it "
+        "answers; rate control never waits for it; clears when the write finishes",
+        "if it recurs, replace the SD card (a card that stalls is wearing out)",
+    ),
+    AlarmCode(
+        "store.replaced", ("warning",),
+        "the record store failed its check (zero length, not a database, truncated, a damaged "
+        "page) at start or while writing: it was moved aside, kept under a name with the time "
+        "(named in the message), and a new store continues the ids; raised for the rest of the "
+        "run",
+        "copy the file named in the message off the box; records not yet delivered are in it",
+    ),
+    AlarmCode(
+        "store.unclean_stop", ("warning",),
+        "the last run did not close the record store (a power cut, a crash, a kill): the ids "
+        "it had reserved are skipped and never given again (the message names them); seeds "
+        "of its last second may be missing from the store, those delivered are on the "
+        "broker; raised for the rest of the run",
+        "none if it was a power cut; otherwise look in the journal for why the daemon stopped",
+    ),
+    AlarmCode(
         "records.lost", ("critical",),
         "the store cannot write and its memory for held seeds is full: new seeds are lost and "
         "counted (`state.records_lost`); the clear event's message gives how many",

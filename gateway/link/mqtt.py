@@ -338,7 +338,12 @@ class MqttLink:
                 if deadline is None:
                     deadline = now + self.cfg.batch_max_ms / 1000.0
                 if waiting >= limit or now >= deadline or self._draining:
-                    batch = self.store.pending_seed_batch(limit, after_id=cursor)
+                    if self.store.seeds_on_disk(cursor):  # a backlog: SQLite, off the loop
+                        batch = await asyncio.to_thread(
+                            self.store.pending_seed_batch, limit, cursor
+                        )
+                    else:  # the in-memory tail: no disk
+                        batch = self.store.pending_seed_batch(limit, after_id=cursor)
                     if batch is not None:
                         return batch
             timeout = None if deadline is None else max(0.0, deadline - now)
@@ -374,7 +379,10 @@ class MqttLink:
                 )
                 self._live_alarms.popleft()
                 self.stats.alarms_published += 1
-            events = self.store.pending_alarms(ALARMS_PER_READ, after_id=cursor)
+            events = (  # read from SQLite: off the loop (a stalled card must not hold it)
+                await asyncio.to_thread(self.store.pending_alarms, ALARMS_PER_READ, cursor)
+                if self.store.pending_alarm_count() else []
+            )
             for event in events:  # one at a time: alarms are rare and order matters to readers
                 await client.publish(
                     self.topics.alarms,

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 from gateway.core.alarms import AlarmBoard
 from gateway.core.records import AlarmSeverity
@@ -129,6 +129,12 @@ class StoreLike(Protocol):
     def records_lost(self) -> int: ...
     @property
     def max_held_records(self) -> int: ...
+    @property
+    def stalled(self) -> bool: ...
+    @property
+    def replaced(self) -> Any: ...  # a ReplacedStore (describe()) or None
+    @property
+    def unclean_stop(self) -> str | None: ...
 
 
 class RecordingHealth:
@@ -223,6 +229,7 @@ class RecordingHealth:
             f"(room for {cap}), written when the disk has space again"
         )
         self._set("records.store_failed", error is not None, message, "critical", now)
+        self._check_store(now)
         lost = (store.records_lost if store is not None else 0) + (
             rec.records_lost if rec is not None else 0
         )
@@ -267,6 +274,28 @@ class RecordingHealth:
             "GNSS leap second (23:59:60) received: seeds in it stamped 23:59:59.999999",
             "info", now,
         )
+
+    def _check_store(self, now: float) -> None:
+        """``store.stalled`` while a write has been running for seconds (a slow or frozen
+        card: records are held in memory, control runs on); ``store.replaced`` for the rest
+        of the run once a damaged store was moved aside; ``store.unclean_stop`` for the rest
+        of the run when the last one did not close the store (ids skipped)."""
+        store = self.store
+        if store is None:
+            return
+        stalled = bool(getattr(store, "stalled", False))
+        self._set(
+            "store.stalled", stalled,
+            f"the card has not finished a write for seconds: {store.records_held} seed records "
+            "held in memory until it answers; rate control is not affected",
+            "warning", now,
+        )
+        replaced = getattr(store, "replaced", None)
+        if replaced is not None:
+            self.alarms.raise_("store.replaced", replaced.describe(), "warning")
+        unclean = getattr(store, "unclean_stop", None)
+        if unclean is not None:
+            self.alarms.raise_("store.unclean_stop", unclean, "warning")
 
     def _check_seed_rate(self, now: float) -> None:
         """``seed_sensors.implausible_rate`` while rows get edges beyond their plausible rate

@@ -272,7 +272,8 @@ class SeedRecorder:
         under the ids they already have and retries with backoff (``gateway.recording.store``), and
         ``RecordingHealth`` raises records.store_failed from its ``commit_error``.
         """
-        commit = getattr(self.store, "flush", None)
+        # commit_soon only wakes the store's writer thread: control never waits for the card
+        commit = getattr(self.store, "commit_soon", None) or getattr(self.store, "flush", None)
         if commit is None:
             return
         try:

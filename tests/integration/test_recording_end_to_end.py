@@ -228,5 +228,9 @@ async def test_sigkilled_daemon_leaves_its_will_and_resends_after_restart(tmp_pa
                     await first.wait()
             assert undelivered_seeds(state / "records.sqlite3") == 0
             ids = await received_after_stop(state / "records.sqlite3", sub)
-    assert sorted(set(sub.seed_ids())) == ids == list(range(1, len(ids) + 1))
+    assert sorted(set(sub.seed_ids())) == ids
+    # each process's ids are contiguous; the second's start above the first's id reservation
+    # (a killed run may have published ids the store lost: gateway.recording.store.ids)
+    breaks = [k for k in range(1, len(ids)) if ids[k] != ids[k - 1] + 1]
+    assert ids[0] == 1 and len(breaks) <= 1
     assert sub.on("status")[-1] == b"offline"  # clean shutdown of the second process

@@ -21,11 +21,15 @@ from tests.reliability.input_faults import group_commands, group_config
 from tests.reliability.recording_faults import group_broker, group_disk, group_kills
 from tests.reliability.row_faults import group_rows
 from tests.reliability.rows import ROWS, ROWS_BY_NAME
+from tests.reliability.store_faults import group_freeze, group_rollover, group_store
 
 GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
     "kills": group_kills,
     "broker": group_broker,
     "disk": group_disk,
+    "store": group_store,
+    "freeze": group_freeze,
+    "rollover": group_rollover,
     "modbus": group_modbus,
     "serial": group_serial,
     "hopper": group_hopper,

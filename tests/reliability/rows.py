@@ -40,6 +40,13 @@ FUZZ_S = 5.0
 LOG_LINES_PER_FUZZ_MAX = 10
 RSS_GROWTH_MAX_MB = 30.0
 BINARY_LOG_BYTES = 1100  # binary receiver output between two sentences (over a line's limit)
+# the store's medium (issue 20 items 5-7)
+LAST_WRITES_LOST_S = 3.0  # an SD card whose cache lied about its last seconds of writes
+FREEZE_S = 8.0  # the state directory's file system frozen (a card that stalls)
+FREEZE_SETTLE_S = 5.0  # sowing before the steady duty is measured (the controller settles)
+ROLLOVER_WEEKS = 1024  # a receiver past a GPS week rollover dates everything this far back
+STORE_DAMAGE_ROWS = ("store_wal_lost", "store_last_writes_lost", "store_zero_length",
+                     "store_truncated", "store_page_overwritten")
 # the hopper scale rows: a wheat drill 8 % off its model, the correction learnt first
 HOPPER_BIAS = 0.08
 HOPPER_LEARN_MAX_S = 120.0
@@ -85,7 +92,8 @@ ROWS: tuple[Row, ...] = (
     Row("sigkill_during_seeding_x10", "kills",
         f"SIGKILL the daemon {KILLS}× while seeding (~2–3 s of seeds each time), restarted at "
         "once on the same store",
-        "`integrity_check` ok after every kill; ids 1..N contiguous; per kill, records lost "
+        "`integrity_check` ok after every kill; ids contiguous within each run and above "
+        "every earlier id (never reused); per kill, records lost "
         f"≤ seeds sensed in the last {COMMIT_WINDOW_S:g} s (the commit window)"),
     Row("broker_down_60s", "broker",
         f"mosquitto stopped for {BROKER_DOWN_S:g} s while seeding, then started again",
@@ -96,6 +104,38 @@ ROWS: tuple[Row, ...] = (
         "remounted 64 MiB",
         "every seed edge becomes a record (none lost); `records.store_failed` published on "
         "MQTT while full; ids contiguous; integrity ok"),
+    *(
+        Row(name, "store",
+            f"SIGKILL while seeding, then {how}, then the daemon started again on that state",
+            f"daemon up, no traceback; no id published for two different seeds (new ids above "
+            f"every id stored or published before); `{alarm}` on MQTT; the motor duty back at "
+            f"steady ≤ {RECOVERY_MAX_S:g} s after the seed port opens{kept}")
+        for name, how, alarm, kept in (
+            ("store_wal_lost", "the WAL (and -shm) deleted (what a power cut can take)",
+             "store.unclean_stop", ""),
+            ("store_last_writes_lost", f"the whole state dir put back as it was "
+             f"{LAST_WRITES_LOST_S:g} s before the cut (a card whose cache lied)",
+             "store.unclean_stop` (or `store.replaced", ""),
+            ("store_zero_length", "the store emptied to a zero-length file", "store.replaced",
+             "; the file kept as records.sqlite3.bad-<time>"),
+            ("store_truncated", "the store truncated to half its size", "store.replaced",
+             "; the file kept as records.sqlite3.bad-<time>"),
+            ("store_page_overwritten", "one 4 KiB page in the middle of the store overwritten",
+             "store.replaced", "; the file kept as records.sqlite3.bad-<time>"),
+        )
+    ),
+    Row("store_prune_gps_rollover", "rollover",
+        f"the receiver's dates {ROLLOVER_WEEKS} weeks early (a GPS week rollover) while "
+        "seeding, every record delivered, then a restart (which prunes) with 30 days' retention",
+        "no record deleted (pruning counts age back from the earlier of the host clock and the "
+        "newest record's own time, never from one clock alone); daemon up, no traceback"),
+    Row("store_frozen_8s", "freeze",
+        f"state dir on a loop-mounted ext4 image, `fsfreeze --freeze` for {FREEZE_S:g} s at a "
+        "steady 8 km/h, then thawed",
+        f"the motor duty never below steady min − {DUTY_TOLERANCE_PCT:g} points while frozen "
+        f"(steady: the 4 s before the freeze, after {FREEZE_SETTLE_S:g} s of sowing) "
+        "(control never waits for the card); `store.stalled` on MQTT while frozen; every seed "
+        "edge becomes a record; ids unique, contiguous; integrity ok; no traceback"),
     *(
         Row(f"modbus_radar_{fault}", "modbus",
             f"radar (id 1): {how} for {MODBUS_FAULT_S:g} s at a steady 8 km/h",

@@ -19,7 +19,7 @@ import pytest
 
 from gateway.core.records import AlarmEvent, SeedDrop, SeedRecord, utc_to_us
 from gateway.link.payloads import SeedBatch
-from gateway.recording.store import MAX_OUTBOX_LIMIT, RecordStore, StoreError
+from gateway.recording.store import ID_BLOCK, MAX_OUTBOX_LIMIT, RecordStore, StoreError
 from tests.helpers import eventually
 
 T0 = datetime(2026, 4, 20, 8, 0, tzinfo=UTC)
@@ -100,17 +100,28 @@ def test_delivery_marks_survive_a_reopen(tmp_path: Path) -> None:
         assert s.backlog() == 2
 
 
-def test_ids_never_repeat_after_pruning_the_newest_records(tmp_path: Path) -> None:
-    """AUTOINCREMENT: a pruned id is gone for good, even across a restart."""
+def test_ids_never_repeat_after_the_records_are_gone(tmp_path: Path) -> None:
+    """A pruned id is gone for good, even across a restart, and so is every id of a store
+    whose rows were all deleted (the id reservation is kept apart from the store)."""
     path = tmp_path / "r.sqlite3"
     with RecordStore(path, "m", retention_days=1) as s:
-        recs = s.add_seeds(drops(3))
+        recs = s.add_seeds(drops(3)) + s.add_seeds(drops(1, start=T0 + timedelta(days=2)))
         s.flush()
         s.mark_seeds_delivered([r.id for r in recs])
         assert s.prune(T0 + timedelta(days=2)) == 3
-        assert list(s.query_seeds()) == []
+        assert [r.id for r in s.query_seeds()] == [4]
     with RecordStore(path, "m") as s:
-        assert [r.id for r in s.add_seeds(drops(2))] == [4, 5]
+        assert [r.id for r in s.add_seeds(drops(2))] == [5, 6]
+        s.flush()
+    sql_do(path, "DELETE FROM seeds")
+    with RecordStore(path, "m") as s:
+        assert [r.id for r in s.add_seeds(drops(1))] == [7]
+
+
+def sql_do(path: Path, statement: str) -> None:
+    with contextlib.closing(sqlite3.connect(path)) as db:
+        db.execute(statement)
+        db.commit()
 
 
 def test_prune_keeps_undelivered_and_recent_records(store: RecordStore) -> None:
@@ -268,7 +279,10 @@ def test_sigkill_during_writes_leaves_an_intact_contiguous_store(tmp_path: Path)
         assert ids == list(range(1, len(ids) + 1))  # strictly increasing, no gap
         assert len(ids) >= committed  # everything reported committed survived
         assert s.backlog() == len(ids)
-        assert [r.id for r in s.add_seeds(drops(1))] == [len(ids) + 1]
+        # the run did not close the store: the next ids start above its id reservation,
+        # at most a block ahead (the ids between may have been published; none is reused)
+        (new,) = [r.id for r in s.add_seeds(drops(1))]
+        assert len(ids) < new <= len(ids) + ID_BLOCK + 1
 
 
 def test_fast_records_equal_validated_ones(store: RecordStore) -> None:
@@ -322,15 +336,16 @@ def test_pruning_goes_in_bounded_steps(
 ) -> None:
     """A day of records is millions of rows: each step deletes a bounded chunk, so the
     control loop gets the event loop back between steps."""
-    monkeypatch.setattr("gateway.recording.store.PRUNE_CHUNK_ROWS", 5)
+    monkeypatch.setattr("gateway.recording.store.record_store.PRUNE_CHUNK_ROWS", 5)
     recs = store.add_seeds(drops(12))
+    store.add_seeds(drops(1, start=T0 + timedelta(days=2)))
     store.flush()
     store.mark_seeds_delivered([r.id for r in recs])
     later = T0 + timedelta(days=2)
     assert store.prune_step(later) == (5, True)
-    assert len(list(store.query_seeds())) == 7
+    assert len(list(store.query_seeds())) == 8
     assert store.prune(later) == 7
-    assert list(store.query_seeds()) == []
+    assert [r.id for r in store.query_seeds()] == [13]
 
 
 async def test_run_prunes_at_start_and_raises_an_old_backlog(tmp_path: Path) -> None:
@@ -410,12 +425,14 @@ def test_a_link_behind_the_memory_tail_reads_the_older_rows_from_disk(
 ) -> None:
     """Only the newest rows stay in memory; a batch spanning the edge joins both, skipping
     what the broker already acknowledged."""
-    monkeypatch.setattr("gateway.recording.store.TAIL_MAX_ROWS", 5)
+    monkeypatch.setattr("gateway.recording.store.outbox.TAIL_MAX_ROWS", 5)
     written = drops(12)
     for i in range(0, 12, 4):
         store.append_seeds(written[i:i + 4])
     store.flush()
     store.mark_seeds_delivered([3, 4, 9])
+    # the link reads on a worker thread when SQLite is read, at once from the tail
+    assert store.seeds_on_disk(after_id=0) and not store.seeds_on_disk(after_id=7)
     ids, payload = _payloads(store)
     assert ids == [1, 2, 5, 6, 7, 8, 10, 11, 12]
     assert SeedBatch.model_validate_json(payload).records == [
@@ -481,9 +498,10 @@ def test_a_store_from_an_older_version_keeps_its_delivery_marks(tmp_path: Path) 
         assert s.backlog() == 6
         assert "delivered" not in [c[1] for c in sql(s, "PRAGMA table_info(seeds)")]
         s.mark_seeds_delivered([5, 6])
-        assert s.prune(datetime(1970, 1, 3, tzinfo=UTC)) == 5 + 1  # seeds 3-7, alarm 1
-        assert [r.id for r in s.query_seeds()] == [8, 9, 10]
         assert list(s.append_seeds(drops(1))) == [11]
+        s.flush()
+        assert s.prune(T0 + timedelta(hours=1)) == 5 + 1  # seeds 3-7, alarm 1
+        assert [r.id for r in s.query_seeds()] == [8, 9, 10, 11]
     with RecordStore(path, "m") as s:
         assert [r.id for r in s.pending_seeds(100)] == [8, 9, 10, 11]
         assert sql(s, "SELECT name FROM sqlite_master WHERE name LIKE '%pending'") == []
@@ -686,3 +704,31 @@ def test_an_older_store_gets_the_new_columns_and_keeps_its_seeds(tmp_path: Path)
         3.0, 105.0, -1.2, 0.4)
     # the published payload carries the attitude, not the store-only raw data
     assert "delay_ms" not in last.model_dump() and last.model_dump()["roll_deg"] == 3.0
+
+
+def test_no_single_wrong_clock_makes_pruning_delete_anything(store: RecordStore) -> None:
+    """Age is counted back from the earlier of the host clock and the newest record's own
+    time: a receiver past a GPS week rollover (new records 1024 weeks early) or a host clock
+    years ahead leaves every record where it is (issue 20 item 4: 1 599 of 1 717 delivered
+    records were deleted)."""
+    recent = store.add_seeds(drops(3))
+    early = store.add_seeds(drops(3, start=T0 - timedelta(weeks=1024)))
+    store.flush()
+    store.mark_seeds_delivered([r.id for r in recent + early])
+    assert store.prune(T0 + timedelta(days=40)) == 0
+    assert store.prune(T0 + timedelta(days=3650)) == 0
+    assert len(list(store.query_seeds())) == 6
+
+
+def test_a_record_stamped_in_the_past_out_of_turn_waits_for_those_before_it(
+    store: RecordStore,
+) -> None:
+    """Only a prefix in id order is pruned: one batch with a bad old date among recent ones
+    is not deleted ahead of its neighbours."""
+    first = store.add_seeds(drops(2, start=T0))
+    bad = store.add_seeds(drops(2, start=T0 - timedelta(days=400)))
+    last = store.add_seeds(drops(2, start=T0 + timedelta(hours=1)))
+    store.flush()
+    store.mark_seeds_delivered([r.id for r in first + bad + last])
+    assert store.prune(T0 + timedelta(hours=2)) == 0
+    assert [r.id for r in store.query_seeds()] == [r.id for r in first + bad + last]
