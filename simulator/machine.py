@@ -100,7 +100,7 @@ class SimulatedMachine(StartClose):
     loop_drive: bool = False
     with_gnss: bool = False
     # the receiver's UTC at the start (None: now); e.g. 1024 weeks early for a receiver past a
-    # GPS week rollover
+    # GPS week rollover, or just before a UTC midnight where a leap second can be inserted
     gnss_utc_start: datetime | None = None
     with_seed_tubes: bool = False
     discharge_bias: float = 0.0  # plant discharge off the fitted model by this fraction
@@ -115,9 +115,6 @@ class SimulatedMachine(StartClose):
     roll_deg: float = 0.0
     antenna_height_m: float = 0.0
     heading_offset_deg: float = 0.0
-    # the receiver's UTC at the start of the drive (default: now); a fault row sets it so
-    # that a UTC midnight, where a leap second can be inserted, falls within the run
-    gnss_utc_start: datetime | None = None
 
     def __post_init__(self) -> None:
         self.rng = random.Random(self.seed)
