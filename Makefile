@@ -57,11 +57,14 @@ reliability: $(STAMP) mosquitto
 bench: $(STAMP) mosquitto chromium
 	$(BIN)/python -m benchmarks --output docs/benchmarks.md
 
-# a wheel to install on the cab box (systemd/README.md): sowgate is not on PyPI
+# the offline install bundles for the cab box (docs/deployment.md): the wheel, every dependency
+# as a wheel at its constraints.txt version, units, udev rule, example config, install.sh.
+# dist/sowgate-<version>-linux-<arch>.tar.gz per arch; dependency wheels cached in build/.
+DIST_ARCHES ?= x86_64 aarch64
 dist: $(STAMP)
-	rm -rf build dist/sowgate-*.whl   # build/: setuptools would reuse stale files from it
+	rm -rf build/lib build/bdist.* dist/sowgate-*   # setuptools would reuse stale files
 	$(BIN)/pip wheel --no-deps --quiet -w dist .
-	@ls dist/sowgate-*.whl
+	$(BIN)/python deploy/bundle.py --wheel dist/sowgate-*.whl $(addprefix --arch ,$(DIST_ARCHES))
 
 schemas: $(STAMP)
 	$(BIN)/python -m gateway.link.payloads --write docs/schemas

@@ -79,6 +79,7 @@ from gateway.core.records import (
     utc_to_us,
 )
 from gateway.recording.id_ranges import IdRanges
+from gateway.recording.store_schema import check_schema_version, stamp_schema_version
 
 log = logging.getLogger(__name__)
 
@@ -276,15 +277,18 @@ class RecordStore:
             if readonly:
                 uri = f"file:{self.path}?mode=ro"
                 self._db = sqlite3.connect(uri, uri=True, isolation_level=None)
+                check_schema_version(self._db, self.path)
             else:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
                 self._db = sqlite3.connect(self.path, isolation_level=None)
+                check_schema_version(self._db, self.path)
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.executescript(SCHEMA)
                 self._convert_delivered_columns()
                 self._convert_time_index()
                 self._add_seed_columns()
+                stamp_schema_version(self._db)
             self._seed_columns = self._readable_seed_columns()
             self._acked = {table: IdRanges(self._load_delivered(table)) for table in _TABLES}
         except sqlite3.Error as exc:
