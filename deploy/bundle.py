@@ -96,16 +96,20 @@ def check_pinned(wheels: list[Path], constraints: Path) -> None:
 
 
 def build(wheel: Path, arch: str, out_dir: Path, cache: Path) -> Path:
+    """Download the dependencies of ``wheel`` for ``arch`` (cached) and write its bundle."""
     constraints = REPO / "constraints.txt"
-    _, version = wheel_version(wheel)
     # one cache folder per constraints.txt content: a re-lock never mixes versions
     digest = hashlib.sha256(constraints.read_bytes()).hexdigest()[:12]
     deps = download(wheel, arch, cache / f"{arch}-{digest}", constraints)
     check_pinned(deps, constraints)
+    return write_bundle(out_dir, wheel_version(wheel)[1], arch, [wheel, *deps])
+
+
+def write_bundle(out_dir: Path, version: str, arch: str, wheels: list[Path]) -> Path:
+    """dist/sowgate-<version>-linux-<arch>.tar.gz: one top folder, reproducible (mtime 0),
+    SHA256SUMS over every other file (install.sh checks it before installing anything)."""
     top = f"sowgate-{version}-linux-{arch}"
-    members: dict[str, bytes] = {f"wheels/{wheel.name}": wheel.read_bytes()}
-    for whl in deps:
-        members[f"wheels/{whl.name}"] = whl.read_bytes()
+    members: dict[str, bytes] = {f"wheels/{whl.name}": whl.read_bytes() for whl in wheels}
     for name, source in FILES.items():
         members[name] = (REPO / source).read_bytes()
     members["BUNDLE"] = f"VERSION={version}\nARCH={arch}\n".encode()
@@ -127,8 +131,9 @@ def build(wheel: Path, arch: str, out_dir: Path, cache: Path) -> Path:
 
 
 def native_wheels(wheels: list[Path]) -> list[str]:
-    """Dependencies with compiled code (a platform wheel, not py3-none-any)."""
-    return sorted(w.name for w in wheels if not w.name.endswith("-none-any.whl"))
+    """Dependencies with compiled code (a platform wheel, not pure Python), as name==version."""
+    return sorted("{}=={}".format(*wheel_version(w)) for w in wheels
+                  if not w.name.endswith("-none-any.whl"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -142,9 +147,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"{args.wheel} is not a wheel")
     for arch in args.arch:
         target = build(args.wheel, arch, args.out, args.cache)
-        size = target.stat().st_size / 1e6
-        print(f"{target.relative_to(Path.cwd()) if target.is_relative_to(Path.cwd()) else target}"
-              f" ({size:.0f} MB)")
+        with tarfile.open(target) as tar:
+            names = [Path(n) for n in tar.getnames() if n.endswith(".whl")]
+        print(f"{target} ({target.stat().st_size / 1e6:.0f} MB, {len(names)} wheels; "
+              f"compiled for {arch}: {', '.join(native_wheels(names)) or 'none'})")
     return 0
 
 
