@@ -4,7 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto chromium demo test reliability lint typecheck bench schemas dist clean lock
+.PHONY: mosquitto chromium demo test reliability lint typecheck bench schemas dist clean lock \
+	system-test system-test-tools
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -65,6 +66,19 @@ dist: $(STAMP)
 	rm -rf build/lib build/bdist.* dist/sowgate-*   # setuptools would reuse stale files
 	$(BIN)/pip wheel --no-deps --quiet -w dist .
 	$(BIN)/python deploy/bundle.py --wheel dist/sowgate-*.whl $(addprefix --arch ,$(DIST_ARCHES))
+
+# The x86_64 bundle installed by its install.sh in a throwaway Debian 12 and booted under qemu
+# with systemd as PID 1 (docs/deployment.md "System test"); image and kernel cached in build/.
+system-test-tools:
+	@command -v qemu-system-x86_64 >/dev/null && command -v debootstrap >/dev/null && \
+	  test -x /bin/busybox && command -v depmod >/dev/null || \
+	  { (apt-get update -qq && apt-get install -y -qq --no-install-recommends qemu-system-x86 \
+	      qemu-utils debootstrap busybox-static kmod e2fsprogs) || \
+	    { echo "the system test needs: apt-get install qemu-system-x86 debootstrap busybox-static kmod" >&2; exit 1; }; }
+
+system-test: $(STAMP) system-test-tools
+	$(MAKE) dist DIST_ARCHES=x86_64
+	$(BIN)/python systemtest/run.py dist/sowgate-*-linux-x86_64.tar.gz
 
 schemas: $(STAMP)
 	$(BIN)/python -m gateway.link.payloads --write docs/schemas

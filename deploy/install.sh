@@ -38,6 +38,9 @@ while [ $# -gt 0 ]; do
 done
 
 HERE=$(cd "$(dirname "$0")" && pwd)
+# the bundle's wheels only, whatever pip configuration this box has
+export PIP_CONFIG_FILE=/dev/null
+unset PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_FIND_LINKS PIP_CONSTRAINT PIP_REQUIRE_VIRTUALENV 2>/dev/null || true
 OPT="$ROOT/opt/sowgate"
 CONFIG=/etc/sowgate/sowgate.toml
 EX_CONFIG=78
