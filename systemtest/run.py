@@ -195,13 +195,14 @@ async def host_side(machine: Any, settings: Any, qemu: asyncio.subprocess.Proces
         await asyncio.sleep(0.25)
         pose = machine.pose()
         duty = machine.rs485.duty_pct["motor"]
-        # steady sowing only: the same speed for the last 6 s (the speed filter and the
-        # motor lag a change by a few seconds)
+        # steady sowing with the motor driven: the same speed for the last 6 s (the speed
+        # filter and the motor lag a change by a few seconds), before the watchdog check
         steady = abs(machine.pose_at(machine.now() - 6.0).speed_kmh - pose.speed_kmh) < 0.1
-        if "operate" in answered and "frozen" not in answered and pose.tilt_deg < 0 \
+        if duty > 0 and "frozen" not in answered and pose.tilt_deg < 0 \
                 and pose.speed_kmh > 0.5 and steady:
             samples.append((pose.speed_kmh, duty))
-        for name, answer in (("operate", "started"), ("operate-again", "started-again")):
+        for name, answer in (("operate", "started"), ("operate-again", "started-again"),
+                             ("operate-after-restart", "started-after-restart")):
             if name not in answered and (OUT / f"flag-{name}").exists():
                 answered.add(name)
                 await operate(machine, settings)
@@ -292,8 +293,9 @@ async def run(bundle: Path) -> list[dict[str, Any]]:
     return rows
 
 
-ORDER = ["image", "install", "boot", "runner", "start", "sows", "duty_follows_radar", "bad_config",
-         "watchdog", "pwm_comm_loss", "security", "sandbox", "dashboard", "journal", "total"]
+ORDER = ["image", "install", "boot", "runner", "start", "sows", "duty_follows_radar",
+         "bad_config", "watchdog", "pwm_comm_loss", "security", "sandbox", "other_tty",
+         "dashboard", "journal", "total"]
 
 
 def table(rows: list[dict[str, Any]]) -> str:
@@ -305,11 +307,13 @@ def table(rows: list[dict[str, Any]]) -> str:
     rows = sorted(rows, key=lambda r: rank.get(r["check"], len(ORDER)))
     lines = [f"Run {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, commit {commit}"
              f"{' (with uncommitted changes)' if dirty else ''}, `make system-test`: "
-             f"{sum(r['ok'] for r in rows)} of {len(rows)} rows hold.", "",
+             f"{sum(r['ok'] and not r.get('limit') for r in rows)} of "
+             f"{sum(not r.get('limit') for r in rows)} checks hold.", "",
              "| check | result | what was seen |", "|---|---|---|"]
     for r in rows:
         detail = str(r["detail"]).replace("|", "\\|").replace("\n", " ")
-        lines.append(f"| {r['check']} | {'ok' if r['ok'] else '**FAIL**'} | {detail} |")
+        verdict = "not held (known)" if r.get("limit") else "ok" if r["ok"] else "**FAIL**"
+        lines.append(f"| {r['check']} | {verdict} | {detail} |")
     return "\n".join(lines) + "\n"
 
 
