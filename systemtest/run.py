@@ -38,7 +38,7 @@ ROOT = BUILD / "root"
 DISK = BUILD / "disk.img"
 DOC = REPO / "docs" / "deployment.md"
 BEGIN, END = "<!-- system-test:begin -->", "<!-- system-test:end -->"
-BOOT_TIMEOUT_S = 480.0
+BOOT_TIMEOUT_S = 600.0  # one boot of the guest, its checks and poweroff
 # guest port -> which simulated device (the udev rule in the image names them like the
 # shipped 99-sowgate.rules does for USB adapters)
 PORTS = {"ttyS1": "rs485", "ttyS2": "gnss", "ttyS3": "seeds", "ttyS4": "hmi"}
@@ -189,6 +189,9 @@ async def operate(machine: Any, settings: Any) -> None:
 async def host_side(machine: Any, settings: Any, qemu: asyncio.subprocess.Process,
                     rows: list[dict[str, Any]]) -> None:
     """Answer the guest's flags; sample duty against the radar's speed while it sows."""
+    if (OUT / "phase2").exists():  # after the power cut the guest needs nothing from here
+        await qemu.wait()
+        return
     samples: list[tuple[float, float]] = []
     answered: set[str] = set()
     while qemu.returncode is None:
@@ -196,13 +199,18 @@ async def host_side(machine: Any, settings: Any, qemu: asyncio.subprocess.Proces
         pose = machine.pose()
         duty = machine.rs485.duty_pct["motor"]
         # steady sowing with the motor driven: the same speed for the last 6 s (the speed
-        # filter and the motor lag a change by a few seconds), before the watchdog check
+        # filter and the motor lag a change by a few seconds)
         steady = abs(machine.pose_at(machine.now() - 6.0).speed_kmh - pose.speed_kmh) < 0.1
-        if duty > 0 and "frozen" not in answered and pose.tilt_deg < 0 \
-                and pose.speed_kmh > 0.5 and steady:
+        if duty > 0 and pose.tilt_deg < 0 and pose.speed_kmh > 0.5 and steady:
             samples.append((pose.speed_kmh, duty))
+        if "cut" not in answered and (OUT / "flag-cut").exists() \
+                and not (OUT / "phase2").exists():
+            answered.add("cut")
+            qemu.kill()  # the power cut: no shutdown, no sync in the guest
+            break
         for name, answer in (("operate", "started"), ("operate-again", "started-again"),
-                             ("operate-after-restart", "started-after-restart")):
+                             ("operate-after-restart", "started-after-restart"),
+                             ("operate-before-cut", "started-before-cut")):
             if name not in answered and (OUT / f"flag-{name}").exists():
                 answered.add(name)
                 await operate(machine, settings)
@@ -219,13 +227,59 @@ async def host_side(machine: Any, settings: Any, qemu: asyncio.subprocess.Proces
                                    f"(comm_timeout_s {settings.actuators.comm_timeout_s:g})"
                          if off else "motor/fan still driven 15 s after the freeze"})
             (OUT / "host-pwm-checked").write_text("")
+    SAMPLES.extend(samples)
+
+
+SAMPLES: list[tuple[float, float]] = []  # (true speed km/h, motor duty %) over both boots
+
+
+def duty_row() -> dict[str, Any]:
+    samples = SAMPLES
     speeds = {round(s) for s, _ in samples}
     corr = statistics.correlation([s for s, _ in samples], [d for _, d in samples]) \
         if len(samples) > 3 and len(speeds) > 1 else float("nan")
-    rows.append({"check": "duty_follows_radar", "ok": corr > 0.7,
+    return {"check": "duty_follows_radar", "ok": corr > 0.7,
                  "detail": f"{len(samples)} samples of steady sowing at {sorted(speeds)} km/h "
                            f"(host side, the PWM module's duty register): correlation of motor "
-                           f"duty with the true speed {corr:.2f}"})
+                           f"duty with the true speed {corr:.2f}"}
+
+
+async def boot_once(machine: Any, settings: Any, rows: list[dict[str, Any]],
+                    console_name: str) -> None:
+    """One qemu boot of the image, its ptys bridged to the simulator, until it powers off
+    (or the guest asks for the power cut: then it is killed)."""
+    console_path = BUILD / console_name
+    console = console_path.open("wb")
+    qemu = await asyncio.create_subprocess_exec(
+        *qemu_command(), stdin=subprocess.DEVNULL, stdout=console, stderr=console)
+    bridges: list[Bridge] = []
+    try:
+        ptys: dict[str, str] = {}
+        waited = time.monotonic()
+        while len(ptys) < len(PORTS):  # qemu says where each pty is on its stdout
+            if qemu.returncode is not None or time.monotonic() - waited > 60:
+                raise SystemExit(f"qemu did not open its ptys ({console_path})")
+            await asyncio.sleep(0.1)
+            text = console_path.read_text(errors="replace")
+            for path, n in re.findall(r"redirected to (/dev/pts/\d+) \(label s(\d)\)", text):
+                ptys[f"ttyS{n}"] = path
+        devices = {"rs485": machine.rs485, "gnss": machine.gnss,
+                   "seeds": machine.seed_tubes, "hmi": machine.hmi}
+        for tty_name, name in PORTS.items():
+            bridges.append(Bridge(devices[name].device_path, ptys[tty_name]))
+        await asyncio.wait_for(
+            asyncio.gather(host_side(machine, settings, qemu, rows), qemu.wait()),
+            BOOT_TIMEOUT_S)
+    except TimeoutError:
+        rows.append({"check": "timeout", "ok": False,
+                     "detail": f"the guest did not power off within {BOOT_TIMEOUT_S:.0f} s"})
+    finally:
+        if qemu.returncode is None:
+            qemu.kill()
+            await qemu.wait()
+        for bridge in bridges:
+            bridge.close()
+        console.close()
 
 
 async def run(bundle: Path) -> list[dict[str, Any]]:
@@ -248,41 +302,15 @@ async def run(bundle: Path) -> list[dict[str, Any]]:
         rows.append({"check": "install", "ok": True, "detail": built["install"]})
         shutil.rmtree(OUT, ignore_errors=True)
         OUT.mkdir(parents=True)
-        console = (BUILD / "console.log").open("wb")
         boot = time.monotonic()
-        qemu = await asyncio.create_subprocess_exec(
-            *qemu_command(), stdin=subprocess.DEVNULL, stdout=console, stderr=console)
-        bridges: list[Bridge] = []
-        try:
-            ptys: dict[str, str] = {}
-            waited = time.monotonic()
-            while len(ptys) < len(PORTS):  # qemu says where each pty is on its stdout
-                if qemu.returncode is not None or time.monotonic() - waited > 60:
-                    raise SystemExit("qemu did not open its ptys (build/system-test/console.log)")
-                await asyncio.sleep(0.1)
-                text = (BUILD / "console.log").read_text(errors="replace")
-                for path, n in re.findall(r"redirected to (/dev/pts/\d+) \(label s(\d)\)", text):
-                    ptys[f"ttyS{n}"] = path
-            devices = {"rs485": machine.rs485, "gnss": machine.gnss,
-                       "seeds": machine.seed_tubes, "hmi": machine.hmi}
-            for tty_name, name in PORTS.items():
-                bridges.append(Bridge(devices[name].device_path, ptys[tty_name]))
-            await asyncio.wait_for(
-                asyncio.gather(host_side(machine, settings, qemu, rows), qemu.wait()),
-                BOOT_TIMEOUT_S)
-        except TimeoutError:
-            rows.append({"check": "timeout", "ok": False,
-                         "detail": f"the guest did not power off within {BOOT_TIMEOUT_S:.0f} s"})
-        finally:
-            if qemu.returncode is None:
-                qemu.kill()
-                await qemu.wait()
-            for bridge in bridges:
-                bridge.close()
-            console.close()
-        ran = time.monotonic() - boot
-        rows.append({"check": "boot", "ok": qemu.returncode == 0,
-                     "detail": f"qemu ran {ran:.0f} s (boot, checks, poweroff)"})
+        await boot_once(machine, settings, rows, "console.log")
+        if (OUT / "flag-cut").exists():  # the power cut: the same disk boots again
+            (OUT / "phase2").write_text("")
+            await boot_once(machine, settings, rows, "console-after-cut.log")
+        rows.append(duty_row())
+        rows.append({"check": "boot", "ok": not any(r["check"] == "timeout" for r in rows),
+                     "detail": f"qemu ran {time.monotonic() - boot:.0f} s (boots, checks, "
+                               f"power cut, poweroff)"})
     guest = OUT / "results.jsonl"
     if guest.exists():
         rows += [json.loads(line) for line in guest.read_text().splitlines() if line.strip()]
@@ -295,7 +323,7 @@ async def run(bundle: Path) -> list[dict[str, Any]]:
 
 ORDER = ["image", "install", "boot", "runner", "start", "sows", "duty_follows_radar",
          "bad_config", "watchdog", "pwm_comm_loss", "security", "sandbox", "other_tty",
-         "dashboard", "journal", "total"]
+         "dashboard", "journal", "power_cut", "after_cut_mqtt", "total"]
 
 
 def table(rows: list[dict[str, Any]]) -> str:
