@@ -310,7 +310,7 @@ def before_power_cut() -> None:
         time.sleep(1)
         _, lo, hi = store_ids()
     (OUT / "before-cut.json").write_text(json.dumps(
-        {"max_id_read": hi, "undelivered_from": delivered_upto(lo) + 1,
+        {"max_id_read": hi, "before_outage": hi0, "undelivered_from": delivered_upto(lo) + 1,
          "commit_interval_s": 0.5, "seen_at": time.time()}))
     flag("cut")  # the host kills qemu now, while sowing
     time.sleep(600)
@@ -323,9 +323,11 @@ def after_power_cut() -> None:
     n, lo, hi = store_ids()
     contiguous = n == hi - lo + 1
     lost = max(0, before["max_id_read"] - hi)
+    written = before["max_id_read"] - before["before_outage"]
     result("power_cut", s.get("ActiveState") == "active" and ok_integrity == "ok"
-           and contiguous and lost == 0,
-           f"qemu killed while sowing, booted again: sowgate {s.get('ActiveState')} by itself "
+           and contiguous and lost == 0 and written > 0,
+           f"qemu killed while sowing ({written} records stored with the broker down), "
+           f"booted again: sowgate {s.get('ActiveState')} by itself "
            f"(enabled); integrity_check {ok_integrity}; {n} records, ids {lo}..{hi} contiguous: "
            f"{contiguous}; last id read before the cut {before['max_id_read']}, "
            f"{lost} of them lost (commit window {before['commit_interval_s']} s)")

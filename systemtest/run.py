@@ -285,10 +285,15 @@ async def boot_once(machine: Any, settings: Any, rows: list[dict[str, Any]],
 async def run(bundle: Path) -> list[dict[str, Any]]:
     sys.path.insert(0, str(REPO))
     from simulator.machine import SimulatedMachine
+    from simulator.plant import Drive, demo_drive
 
     rows: list[dict[str, Any]] = []
     started = time.monotonic()
-    async with SimulatedMachine(loop_drive=True, with_gnss=True, with_seed_tubes=True) as machine:
+    # three rounds of the demo's field work (~15 min): the seed tubes follow the drive without
+    # looping, so the whole run (~8 min) must fit in one pass
+    drive = Drive(legs=demo_drive().legs * 3)
+    async with SimulatedMachine(drive=drive, loop_drive=True, with_gnss=True,
+                                with_seed_tubes=True) as machine:
         import tomli_w
 
         from gateway.config import parse_config
