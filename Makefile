@@ -4,7 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto chromium isoxml-js demo test reliability lint typecheck bench schemas dist clean lock
+.PHONY: mosquitto chromium isoxml-js demo test reliability lint typecheck bench schemas dist clean \
+	lock system-test system-test-tools
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -68,11 +69,27 @@ reliability: $(STAMP) mosquitto
 bench: $(STAMP) mosquitto chromium
 	$(BIN)/python -m benchmarks --output docs/benchmarks.md
 
-# a wheel to install on the cab box (systemd/README.md): sowgate is not on PyPI
+# the offline install bundles for the cab box (docs/deployment.md): the wheel, every dependency
+# as a wheel at its constraints.txt version, units, udev rule, example config, install.sh.
+# dist/sowgate-<version>-linux-<arch>.tar.gz per arch; dependency wheels cached in build/.
+DIST_ARCHES ?= x86_64 aarch64
 dist: $(STAMP)
-	rm -rf build dist/sowgate-*.whl   # build/: setuptools would reuse stale files from it
+	rm -rf build/lib build/bdist.* dist/sowgate-*   # setuptools would reuse stale files
 	$(BIN)/pip wheel --no-deps --quiet -w dist .
-	@ls dist/sowgate-*.whl
+	$(BIN)/python systemd/bundle.py --wheel dist/sowgate-*.whl $(addprefix --arch ,$(DIST_ARCHES))
+
+# The x86_64 bundle installed by its install.sh in a throwaway Debian 12 and booted under qemu
+# with systemd as PID 1 (docs/deployment.md "System test"); image and kernel cached in build/.
+system-test-tools:
+	@command -v qemu-system-x86_64 >/dev/null && command -v debootstrap >/dev/null && \
+	  test -x /bin/busybox && command -v depmod >/dev/null || \
+	  { (apt-get update -qq && apt-get install -y -qq --no-install-recommends qemu-system-x86 \
+	      qemu-utils debootstrap busybox-static kmod e2fsprogs) || \
+	    { echo "the system test needs: apt-get install qemu-system-x86 debootstrap busybox-static kmod" >&2; exit 1; }; }
+
+system-test: $(STAMP) system-test-tools
+	$(MAKE) dist DIST_ARCHES=x86_64
+	$(BIN)/python tests/system/run.py dist/sowgate-*-linux-x86_64.tar.gz
 
 schemas: $(STAMP)
 	$(BIN)/python -m gateway.link.payloads --write docs/schemas

@@ -24,6 +24,7 @@ from gateway.config import (
     prepare_state_dir,
     undriven_channels,
 )
+from gateway.core.journal_logging import use_journal_priorities
 
 log = logging.getLogger("sowgate")
 
@@ -53,6 +54,7 @@ def setup_logging(verbose: bool, quiet: bool = False) -> None:
     logging.basicConfig(
         level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
+    use_journal_priorities()
     # pymodbus logs every server start ("Server listening."), its repeat marker
     # ("Repeating....") and frame dumps at INFO/DEBUG: noise next to sowgate's own device
     # messages (which name the device that failed). Only -v lets it through.

@@ -40,6 +40,9 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr,
     )
+    from gateway.core.journal_logging import use_journal_priorities
+
+    use_journal_priorities()
     import uvicorn
 
     from gateway.dashboard.server import create_app

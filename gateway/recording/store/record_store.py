@@ -48,6 +48,11 @@ from gateway.recording.store.schema import (
     readable_seed_columns,
     scalar,
 )
+from gateway.recording.store.version import (
+    check_schema_version,
+    refuse_if_too_new,
+    stamp_schema_version,
+)
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +148,7 @@ class RecordStore(StoreQueries, Outbox):
                     f"file:{self.path}?mode=ro", uri=True, isolation_level=None,
                     check_same_thread=False,
                 )
+                check_schema_version(self._read_db, self.path)
             else:
                 self._open_for_writing()
             self._seed_columns = readable_seed_columns(self._read_db)
@@ -215,6 +221,7 @@ class RecordStore(StoreQueries, Outbox):
         if self.path.exists() and not self.path.is_file():
             raise StoreError(f"record store {self.path} is not a file")
         self._ids = IdReservation(reservation_path(self.path), self._id_block)
+        refuse_if_too_new(self.path)  # exit 78: never moved aside as if it were damaged
         reason = check_store(self.path)
         if reason is not None:
             self._move_aside(reason)
@@ -229,6 +236,7 @@ class RecordStore(StoreQueries, Outbox):
         db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
         try:
             prepare_for_writing(db, self.path)
+            stamp_schema_version(db)
             reader = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
         except sqlite3.Error:
             db.close()
