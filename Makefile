@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto chromium demo test reliability lint typecheck bench schemas dist clean lock
+.PHONY: mosquitto chromium poppler demo test reliability lint typecheck bench schemas dist clean lock
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -35,12 +35,19 @@ chromium:
 	  { (apt-get update -qq && apt-get install -y -qq chromium) || \
 	    { echo "chromium is needed for the dashboard's browser tests: apt-get install -y chromium" >&2; exit 1; }; }
 
+# the PDF report's test renders its pages with poppler's pdftoppm and reads text positions
+# with pdftotext -bbox
+poppler:
+	@command -v pdftoppm >/dev/null 2>&1 || \
+	  { (apt-get update -qq && apt-get install -y -qq poppler-utils) || \
+	    { echo "poppler-utils is needed for the PDF report's test: apt-get install -y poppler-utils" >&2; exit 1; }; }
+
 demo: $(STAMP)
 	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || \
 	  echo "note: without mosquitto (make mosquitto) the demo runs without its web dashboard" >&2
 	$(BIN)/sowgate demo --dashboard
 
-test: $(STAMP) mosquitto chromium
+test: $(STAMP) mosquitto chromium poppler
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/lint-imports

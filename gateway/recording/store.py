@@ -78,6 +78,7 @@ from gateway.core.records import (
     us_to_utc,
     utc_to_us,
 )
+from gateway.recording import runs as run_markers
 from gateway.recording.id_ranges import IdRanges
 
 log = logging.getLogger(__name__)
@@ -282,6 +283,7 @@ class RecordStore:
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.executescript(SCHEMA)
+                self._db.executescript(run_markers.SCHEMA)
                 self._convert_delivered_columns()
                 self._convert_time_index()
                 self._add_seed_columns()
@@ -330,6 +332,7 @@ class RecordStore:
         self.checkpoints = 0  # WAL fsyncs made (an idle box makes none; for tests and the log)
         # why writing fails, None once everything held is written (read by the alarms)
         self.commit_error: str | None = None
+        self._run_id: int | None = None  # the daemon run marked by start_run
 
     @classmethod
     def open_readonly(cls, path: str | Path, machine_id: str) -> RecordStore:
@@ -1131,6 +1134,22 @@ class RecordStore:
             retries=self.retries,
             backlog=self.backlog(),
         )
+
+    # -- daemon runs (gateway.recording.runs) ---------------------------------------------
+
+    def start_run(self, settings: dict[str, Any], now: datetime) -> None:
+        """Mark a daemon start (and close a previous run that never marked its stop)."""
+        self._run_id = run_markers.start_run(self._db, utc_to_us(now), settings)
+
+    def stop_run(self, now: datetime) -> None:
+        """Mark the clean stop of the run ``start_run`` began."""
+        if self._run_id is not None:
+            run_markers.stop_run(self._db, self._run_id, utc_to_us(now))
+            self._run_id = None
+
+    def runs(self) -> list[run_markers.Run]:
+        """The daemon runs this store saw, oldest first ([] for an older store)."""
+        return run_markers.read_runs(self._db)
 
     def integrity_check(self) -> str:
         return str(self._db.execute("PRAGMA integrity_check").fetchone()[0])

@@ -133,6 +133,7 @@ def main_report(args: argparse.Namespace) -> int:
             seed_map = SeedMap(summary)
             for chunk in store.query_seed_rows(since, until, rows):
                 seed_map.add_rows(chunk)
+            runs = store.runs()
             alarms: list[AlarmEvent] = []
             total = 0
             for a in store.query_alarms(since, until):
@@ -148,6 +149,7 @@ def main_report(args: argparse.Namespace) -> int:
     intervals = alarm_intervals(
         [(utc_to_us(a.utc), a.code, a.active, a.severity) for a in alarms],
         summary.first_us, summary.last_us,
+        [(r.start_us, r.stop_us) for r in runs],
     )
     report = FieldReport(
         machine_id=settings.machine.id,
@@ -159,6 +161,7 @@ def main_report(args: argparse.Namespace) -> int:
         alarms=alarms,
         alarms_total=total,
         intervals=intervals,
+        runs=runs,
         since=since,
         until=until,
         rows=rows,

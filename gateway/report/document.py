@@ -21,9 +21,10 @@ from typing import Any
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
-from gateway.core.records import AlarmEvent, us_to_utc
+from gateway.core.records import AlarmEvent, us_to_utc, utc_to_us
 from gateway.recording.export import quality_json
-from gateway.recording.field_stats import CLASS_NAMES, FieldSummary, MapResult
+from gateway.recording.field_stats import CLASS_NAMES, AlarmInterval, FieldSummary, MapResult
+from gateway.recording.runs import Run
 from gateway.report import figures
 
 PNG_DPI = 90
@@ -42,11 +43,12 @@ class FieldReport:
     seed_map: MapResult
     alarms: list[AlarmEvent]
     alarms_total: int
-    intervals: list[tuple[str, str, int, int, bool]]
+    intervals: list[AlarmInterval]
     since: datetime | None
     until: datetime | None
     rows: list[int] | None
     tsw_g: float | None
+    runs: list[Run] = field(default_factory=list)  # daemon starts and stops (recording.runs)
     created: datetime = field(default_factory=lambda: datetime.now(UTC))
 
     @property
@@ -118,6 +120,17 @@ class FieldReport:
             "map_classes": dict(zip(CLASS_NAMES, self.seed_map.class_counts,
                                     strict=True)),
             "alarm_events": self.alarms_total,
+            "alarm_periods": [
+                {"code": i.code, "severity": i.severity, "from_utc": _iso_us(i.from_us),
+                 "to_utc": _iso_us(i.to_us), "end": i.end}
+                for i in self.intervals
+            ],
+            "daemon_runs": [
+                {"start_utc": _iso_us(r.start_us),
+                 "stop_utc": None if r.stop_us is None else _iso_us(r.stop_us),
+                 "clean_stop": r.clean}
+                for r in self.runs
+            ],
         }
 
     def figures(self) -> Iterator[tuple[str, str, Figure]]:
@@ -134,14 +147,17 @@ class FieldReport:
                "line falling at high speed means the meter could not keep up.",
                figures.rate_against_speed(s, self.tsw_g))
         yield ("Alarm timeline", "Every alarm raised or cleared in the window.",
-               figures.alarm_timeline(self.intervals, *self.timeline_span()))
+               figures.alarm_timeline(self.intervals, *self.timeline_span(), stops=self.stops()))
+
+    def stops(self) -> list[int]:
+        return [r.stop_us for r in self.runs if r.stop_us is not None]
 
     def timeline_span(self) -> tuple[int, int]:
         """The seeds' time span, widened to alarms of the window outside it (raised before
         the first seed or after the last), so every period shows."""
         start, end = self.summary.first_us, self.summary.last_us
-        for _code, _sev, a, b, _cleared in self.intervals:
-            start, end = min(start, a), max(end, b)
+        for i in self.intervals:
+            start, end = min(start, i.from_us), max(end, i.to_us)
         return start, end
 
 
@@ -261,18 +277,50 @@ def _figure_html(heading: str, caption: str, fig: Figure) -> str:
             f"<img alt=\"{e(heading)}\" src=\"data:image/png;base64,{_png(fig)}\">")
 
 
+ALARM_TABLE_HEAD = ["time (UTC)", "alarm", "severity", "", "message"]
+
+
+def alarm_table(report: FieldReport) -> list[tuple[list[str], bool]]:
+    """The alarm events shown (the first ``ALARM_ROWS_SHOWN``), with the daemon's starts and
+    stops among them in time order: each row's cells and whether it is a critical raise.
+    A stop names the alarms still active then, which end there (``gateway.recording.runs``)."""
+    lo, hi = report.timeline_span()
+    rows: list[tuple[int, int, list[str], bool]] = []
+    for a in report.alarms[:ALARM_ROWS_SHOWN]:
+        rows.append((utc_to_us(a.utc), 1, [
+            a.utc.strftime("%Y-%m-%d %H:%M:%S"), a.code, a.severity,
+            "raised" if a.active else "cleared", a.message,
+        ], a.severity == "critical" and a.active))
+    for r in report.runs:
+        if lo <= r.start_us <= hi:
+            rows.append((r.start_us, 0, [_when_us(r.start_us)[:-4], "daemon", "", "started",
+                                         "sowgate started"], False))
+        if r.stop_us is not None and lo <= r.stop_us <= hi:
+            ended = sorted({i.code for i in report.intervals
+                            if i.end == "stop" and i.to_us == r.stop_us})
+            text = "sowgate stopped" if r.clean else (
+                "sowgate stopped without marking it (power cut or killed): the time of its "
+                "last record")
+            if ended:
+                text += "; alarms still active end here: " + ", ".join(ended)
+            rows.append((r.stop_us, 2, [_when_us(r.stop_us)[:-4], "daemon", "", "stopped",
+                                        text], False))
+    rows.sort(key=lambda row: (row[0], row[1]))
+    return [(cells, bad) for _us, _order, cells, bad in rows]
+
+
 def _alarm_table(report: FieldReport) -> str:
     e = html.escape
     if not report.alarms:
         return "<h2>Alarm events</h2><p>No alarm was raised or cleared in this window.</p>"
-    out = ["<h2>Alarm events</h2><table><tr><th>time (UTC)</th><th>alarm</th>"
-           "<th>severity</th><th></th><th>message</th></tr>"]
-    for a in report.alarms[:ALARM_ROWS_SHOWN]:
-        cls = " class=\"bad\"" if a.severity == "critical" and a.active else ""
+    out = ["<h2>Alarm events</h2><table><tr>"
+           + "".join(f"<th>{e(h)}</th>" for h in ALARM_TABLE_HEAD) + "</tr>"]
+    for cells, bad in alarm_table(report):
+        time, code, severity, what, message = cells
+        cls = " class=\"bad\"" if bad else ""
         out.append(
-            f"<tr><td>{e(a.utc.strftime('%Y-%m-%d %H:%M:%S'))}</td><td>{e(a.code)}</td>"
-            f"<td{cls}>{e(a.severity)}</td><td>{'raised' if a.active else 'cleared'}</td>"
-            f"<td>{e(a.message)}</td></tr>"
+            f"<tr><td>{e(time)}</td><td>{e(code)}</td><td{cls}>{e(severity)}</td>"
+            f"<td>{e(what)}</td><td>{e(message)}</td></tr>"
         )
     out.append("</table>")
     if report.alarms_total > ALARM_ROWS_SHOWN:

@@ -27,6 +27,7 @@ from gateway.recording.field_stats import (
     MISS,
     MULTIPLE,
     UNRATED,
+    AlarmInterval,
     FieldSummary,
     MapResult,
 )
@@ -303,9 +304,12 @@ def time_tick_formatter(start_us: int, span_h: float) -> Callable[[float, object
 
 
 def alarm_timeline(
-    intervals: Sequence[tuple[str, str, int, int, bool]], start_us: int, end_us: int
+    intervals: Sequence[AlarmInterval], start_us: int, end_us: int,
+    stops: Sequence[int] = (),
 ) -> Figure:
-    codes = sorted({i[0] for i in intervals})
+    """A bar per alarm period; a period still active when the daemon stopped ends at that
+    stop (hatched), and each daemon stop in the window is a dotted line."""
+    codes = sorted({i.code for i in intervals})
     fig = Figure(figsize=(11, 1.6 + 0.35 * max(1, len(codes))), layout="constrained")
     ax = fig.add_subplot()
     span_h = max((end_us - start_us) / 3.6e9, 1 / 60)
@@ -317,12 +321,16 @@ def alarm_timeline(
         ax.text(0.5, 0.5, "no alarms in this window", ha="center", va="center",
                 transform=ax.transAxes, fontsize=12)
         ax.set_yticks([])
-    for code, severity, a, b, cleared in intervals:
-        y = codes.index(code)
-        width = max(hours(b) - hours(a), span_h / 400)  # a blip still shows
-        ax.barh(y, width, left=hours(a), height=0.6,
-                color=SEVERITY_COLOURS.get(severity, "#888"),
-                edgecolor="none" if cleared else "black")
+    for iv in intervals:
+        y = codes.index(iv.code)
+        width = max(hours(iv.to_us) - hours(iv.from_us), span_h / 400)  # a blip still shows
+        ax.barh(y, width, left=hours(iv.from_us), height=0.6,
+                color=SEVERITY_COLOURS.get(iv.severity, "#888"),
+                edgecolor="none" if iv.end == "cleared" else "black",
+                hatch="///" if iv.end == "stop" else None)
+    for stop in stops:
+        if start_us <= stop <= end_us:
+            ax.axvline(hours(stop), color="#555", ls=":", lw=1.2)
     if codes:
         ax.set_yticks(range(len(codes)), codes, fontsize=9)
         ax.invert_yaxis()
@@ -331,7 +339,8 @@ def alarm_timeline(
     ax.set_xlim(0, span_h)
     ax.xaxis.set_major_locator(FixedLocator(clock_ticks_h(start_us, span_h)))
     ax.xaxis.set_major_formatter(FuncFormatter(time_tick_formatter(start_us, span_h)))
-    ax.set_xlabel("time (UTC); a bar runs from raised to cleared, outlined if still active")
+    ax.set_xlabel("time (UTC); a bar runs from raised to cleared, outlined if still active; "
+                  "hatched: ended by a daemon stop (dotted line)")
     ax.set_title("Alarms")
     ax.grid(alpha=0.3, axis="x")
     return fig
