@@ -44,6 +44,7 @@ from gateway.recording.export import (
     parse_rows,
     parse_time,
     quality_by_row_chunks,
+    target_spacing,
 )
 
 
@@ -86,13 +87,13 @@ def main_export(args: argparse.Namespace) -> int:
             return _export_as_applied(settings, args, since, until, fmt, state)
         rows = parse_rows(getattr(args, "rows", None), settings.machine.rows)
         path = store_path(settings, state)
-        x_ref = settings.positioning.target_spacing_m
         moved = None
         if getattr(args, "reposition", False):
             from gateway.app.position_calibration import Repositioner, calibrated_settings
 
             moved = Repositioner(calibrated_settings(settings, state))
         with RecordStore.open_readonly(path, settings.machine.id) as store:
+            x_ref = target_spacing(settings.positioning.target_spacing_m, store, since, until)
             # two passes over the store, each streaming: the quality goes before the features
             quality = quality_by_row_chunks(store.query_seed_rows(since, until, rows), x_ref)
             chunks = store.query_seed_rows(since, until, rows)

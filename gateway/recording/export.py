@@ -32,7 +32,8 @@ import orjson
 from gateway.core.errors import GatewayError
 from gateway.core.records import SeedRecord, utc_to_us
 from gateway.recording.spacing_quality import RowQualityAccumulator, SpacingQuality
-from gateway.recording.store import STORED_SEED_COLUMNS, StoredSeedRow
+from gateway.recording.runs import stored_setting
+from gateway.recording.store import STORED_SEED_COLUMNS, RecordStore, StoredSeedRow
 
 ExportFormat = Literal["geojson", "csv"]
 CSV_FIELDS = [
@@ -75,6 +76,25 @@ QUALITY_SUFFIX = ".quality.csv"
 
 class ExportError(GatewayError):
     """The export cannot be made (bad filter, no store, unwritable output)."""
+
+
+def target_spacing(
+    configured: float | None,
+    store: RecordStore,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> float | None:
+    """The target spacing the spacings are judged against: the config's, else the one the
+    daemon ran with (kept in its run marker, ``gateway.recording.runs``), so ``sowgate
+    export`` without ``--config`` gives the same per-row numbers as ``sowgate report`` and
+    the daemon. None (each row's median is the reference) when neither has one."""
+    if configured is not None:
+        return configured
+    stored = stored_setting(
+        store.runs(), "target_spacing_m",
+        None if since is None else utc_to_us(since), None if until is None else utc_to_us(until),
+    )
+    return float(stored) if isinstance(stored, int | float) and stored > 0 else None
 
 
 def quality_by_row(

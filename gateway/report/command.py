@@ -20,7 +20,7 @@ from typing import Literal
 
 from gateway.config import EXIT_CONFIG, ConfigError, load_config, store_path
 from gateway.core.records import AlarmEvent, utc_to_us
-from gateway.recording.export import ExportError, parse_rows, parse_time
+from gateway.recording.export import ExportError, parse_rows, parse_time, target_spacing
 from gateway.recording.store import RecordStore, StoreError
 
 ReportFormat = Literal["html", "pdf"]
@@ -122,7 +122,8 @@ def main_report(args: argparse.Namespace) -> int:
                       file=sys.stderr)
                 return EXIT_NO_RECORDS
             row_spacing = settings.machine.working_width_m / settings.machine.rows
-            stats = FieldStats(settings.positioning.target_spacing_m, row_spacing, span)
+            x_ref = target_spacing(settings.positioning.target_spacing_m, store, since, until)
+            stats = FieldStats(x_ref, row_spacing, span)
             for chunk in store.query_seed_rows(since, until, rows):
                 stats.add_rows(chunk)
             summary = stats.result()

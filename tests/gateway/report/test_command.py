@@ -3,6 +3,7 @@ a store without a target spacing, and outputs that cannot be written."""
 
 from __future__ import annotations
 
+import csv
 import html
 import json
 import re
@@ -156,3 +157,32 @@ def test_degenerate_stores_still_give_a_whole_report(
         assert report(cfg, out) == 0
     assert embedded(tmp_path / "r.html")["seeds"] == len(seeds)
     assert (tmp_path / "r.pdf").read_bytes().startswith(b"%PDF-")
+
+
+def test_export_without_config_judges_spacings_against_the_runs_target_as_report_does(
+    tmp_path: Path,
+) -> None:
+    """The daemon keeps its target spacing in its run marker: ``sowgate export`` without
+    ``--config`` (as the demo prints it) gives the report's per-row numbers, not numbers
+    judged against each row's median."""
+    # spacings that vary, so the median and the 0.2 m target give different precisions
+    seeds = [d.model_copy(update={"spacing_m": None if d.spacing_m is None
+                                  else 0.17 + 0.01 * (i % 4)}) for i, d in enumerate(drops())]
+    path = tmp_path / "records.sqlite3"
+    with RecordStore(path, "seeder-01") as store:
+        store.start_run({"target_spacing_m": 0.2}, T0)
+        store.add_seeds(seeds)
+        store.flush()
+        store.stop_run(T0 + timedelta(minutes=1))
+    cfg = config(tmp_path, path, target=None)  # a config that does not say it
+    out = tmp_path / "r.html"
+    assert report(cfg, out) == 0
+    exported = tmp_path / "seeds.csv"
+    assert sowgate(["export", "--state-dir", str(tmp_path), "--output", str(exported)]) == 0
+    rows = list(csv.DictReader((tmp_path / "seeds.csv.quality.csv").open()))
+    quality = embedded(out)["quality"]
+    assert isinstance(quality, dict)
+    assert {r["row"] for r in rows} == set(quality) and len(rows) == 6
+    for r in rows:
+        assert float(r["x_ref_m"]) == quality[r["row"]]["x_ref_m"] == 0.2
+        assert float(r["precision"]) == pytest.approx(quality[r["row"]]["precision"], rel=1e-12)
