@@ -72,6 +72,9 @@ FORMAT_BY_EXTENSION: dict[str, ExportFormat] = {
     ".json": "geojson",
 }
 QUALITY_SUFFIX = ".quality.csv"
+# Decimals of degrees written for a CSV coordinate: 1e-8 degree is about 1 mm, well below
+# what RTK resolves; the float's full 15 digits only made the file larger and harder to read.
+COORD_DECIMALS = 8
 
 
 class ExportError(GatewayError):
@@ -271,7 +274,8 @@ def _csv(chunks: Iterable[Sequence[StoredSeedRow]], machine_id: str, out: TextIO
     utc = _UtcText()
     for chunk in chunks:
         w.writerows(
-            (i, machine_id, row, utc(us), lat, lon, fix, speed,
+            (i, machine_id, row, utc(us), f"{lat:.{COORD_DECIMALS}f}",
+             f"{lon:.{COORD_DECIMALS}f}", fix, speed,
              "" if heading is None else heading, source, bool(extrapolated), method,
              "" if spacing is None else spacing, attitude, "" if roll is None else roll,
              "" if pitch is None else pitch)

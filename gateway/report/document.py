@@ -75,7 +75,7 @@ class FieldReport:
         if target is not None:
             rate += f", target {target:,.0f} seeds/ha"
             if pop is not None:
-                rate += f" ({100 * (pop / target - 1):+.1f} %)"
+                rate += f" ({signed_pct(100 * (pop / target - 1))})"
         window = (
             f"{_when(self.since) if self.since else 'start of the store'} to "
             f"{_when(self.until) if self.until else 'end of the store'}"
@@ -194,6 +194,13 @@ def _duration(seconds: float) -> str:
 
 def _rows_text(rows: Sequence[int]) -> str:
     return ",".join(str(r) for r in rows)
+
+
+def signed_pct(v: float) -> str:
+    """``+1.2 %``, ``-1.2 %``, and ``0.0 %`` for anything that rounds to zero (``:+.1f``
+    wrote ``-0.0 %`` for a rate a hair under the target)."""
+    text = f"{v:+.1f}"
+    return "0.0 %" if float(text) == 0 else f"{text} %"
 
 
 def _pct(v: float | None, digits: int = 1) -> str:

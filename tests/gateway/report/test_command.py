@@ -6,7 +6,9 @@ from __future__ import annotations
 import csv
 import html
 import json
+import os
 import re
+import stat
 from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -18,6 +20,7 @@ from gateway.config import EXIT_CONFIG
 from gateway.core.records import AlarmEvent, SeedDrop
 from gateway.recording.store import RecordStore
 from gateway.report.command import EXIT_FAILED, EXIT_NO_RECORDS
+from gateway.report.document import signed_pct
 
 T0 = datetime(2026, 5, 2, 6, 0, tzinfo=UTC)
 
@@ -186,3 +189,29 @@ def test_export_without_config_judges_spacings_against_the_runs_target_as_report
     for r in rows:
         assert float(r["x_ref_m"]) == quality[r["row"]]["x_ref_m"] == 0.2
         assert float(r["precision"]) == pytest.approx(quality[r["row"]]["precision"], rel=1e-12)
+
+
+def test_a_rate_a_hair_off_the_target_reads_0_0_not_minus_0_0() -> None:
+    assert signed_pct(-0.04) == "0.0 %" and signed_pct(0.049) == "0.0 %"
+    assert signed_pct(-1.25) == "-1.2 %" and signed_pct(2.0) == "+2.0 %"
+
+
+def test_export_files_are_as_readable_as_the_report_and_coordinates_are_to_a_millimetre(
+    tmp_path: Path,
+) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, drops(50)))
+    old = os.umask(0o022)
+    try:
+        assert report(cfg, tmp_path / "r.html") == 0
+        assert sowgate(["export", "--config", str(cfg), "--output",
+                        str(tmp_path / "s.csv")]) == 0
+        assert sowgate(["export", "--config", str(cfg), "--output",
+                        str(tmp_path / "s.geojson")]) == 0
+    finally:
+        os.umask(old)
+    modes = {p.name: stat.S_IMODE(p.stat().st_mode)
+             for p in tmp_path.iterdir() if p.suffix in (".html", ".csv", ".geojson")}
+    assert modes == {"r.html": 0o644, "s.csv": 0o644, "s.csv.quality.csv": 0o644,
+                     "s.geojson": 0o644}
+    first = next(csv.DictReader((tmp_path / "s.csv").open()))
+    assert first["lat"] == "52.00000000" and first["lon"] == "13.00000000"
