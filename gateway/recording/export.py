@@ -31,8 +31,8 @@ import orjson
 
 from gateway.core.errors import GatewayError
 from gateway.core.records import SeedRecord, utc_to_us
-from gateway.recording.spacing_quality import RowQualityAccumulator, SpacingQuality
 from gateway.recording.runs import stored_setting
+from gateway.recording.spacing_quality import RowQualityAccumulator, SpacingQuality
 from gateway.recording.store import STORED_SEED_COLUMNS, RecordStore, StoredSeedRow
 
 ExportFormat = Literal["geojson", "csv"]

@@ -87,7 +87,8 @@ def main_report(args: argparse.Namespace) -> int:
     """Returns the exit status; every problem is one line on standard error."""
     # numpy and matplotlib only for this command, not for every ``sowgate`` start
     from gateway.recording.field_stats import FieldStats, SeedMap, alarm_intervals
-    from gateway.report.document import FieldReport, to_html, to_pdf
+    from gateway.report.document import FieldReport, to_html
+    from gateway.report.pdf import to_pdf
 
     try:
         settings = load_config(args.config)

@@ -4,7 +4,7 @@ HTML: inline CSS, every plot a base64 PNG in an ``<img src="data:...">``, no scr
 external reference of any kind, so it opens offline on the cab box, a laptop or a phone and
 can be mailed as one file. The numbers it shows are also embedded as JSON
 (``<script type="application/json" id="report-data">``) for scripts that want them.
-PDF: matplotlib's PdfPages, a page for the summary and the quality table, then one per plot.
+The PDF (same content, A4 pages to print) is laid out by ``gateway.report.pdf``.
 """
 
 from __future__ import annotations
@@ -13,13 +13,12 @@ import base64
 import html
 import io
 import json
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
-from matplotlib.backends.backend_pdf import PdfPages
-from matplotlib.figure import Figure
+from matplotlib.figure import Figure, FigureBase
 
 from gateway.core.records import AlarmEvent, us_to_utc, utc_to_us
 from gateway.recording.export import quality_json
@@ -133,21 +132,30 @@ class FieldReport:
             ],
         }
 
+    def plots(self) -> list[tuple[str, str, Callable[[FigureBase | None], FigureBase]]]:
+        """(heading, caption, draw) in the report's order: ``draw(None)`` makes a figure of
+        its own (the HTML's PNG), ``draw(part)`` draws into a part of a PDF page."""
+        s = self.summary
+        return [
+            ("Seed map", MAP_CAPTION,
+             lambda fig: figures.seed_map(self.seed_map, "Seed map by spacing class", fig)),
+            ("Spacing per row", HISTOGRAM_CAPTION,
+             lambda fig: figures.spacing_histograms(s, self.shown_rows(), fig)),
+            ("Applied rate along the drive", rate_note(s),
+             lambda fig: figures.rate_along_drive(s, self.tsw_g, fig)),
+            ("Applied rate against speed", SPEED_CAPTION,
+             lambda fig: figures.rate_against_speed(s, self.tsw_g, fig)),
+            ("Alarm timeline", TIMELINE_CAPTION,
+             lambda fig: figures.alarm_timeline(self.intervals, *self.timeline_span(),
+                                                stops=self.stops(), fig=fig)),
+        ]
+
     def figures(self) -> Iterator[tuple[str, str, Figure]]:
         """(heading, caption, figure) in the report's order, drawn one at a time."""
-        s = self.summary
-        yield ("Seed map", "Each seed where it landed, coloured by the spacing to the previous "
-               "seed of its row (ISO 7256-1: a multiple at ≤ 0.5 × the target, a miss at "
-               "> 1.5 ×).", figures.seed_map(self.seed_map, "Seed map by spacing class"))
-        yield ("Spacing per row", "How far apart the seeds of each row fell, against the "
-               "target spacing.", figures.spacing_histograms(s, self.shown_rows()))
-        yield ("Applied rate along the drive", _rate_note(s),
-               figures.rate_along_drive(s, self.tsw_g))
-        yield ("Applied rate against speed", "The same measured rate grouped by speed: a "
-               "line falling at high speed means the meter could not keep up.",
-               figures.rate_against_speed(s, self.tsw_g))
-        yield ("Alarm timeline", "Every alarm raised or cleared in the window.",
-               figures.alarm_timeline(self.intervals, *self.timeline_span(), stops=self.stops()))
+        for heading, caption, draw in self.plots():
+            fig = draw(None)
+            assert isinstance(fig, Figure)
+            yield heading, caption, fig
 
     def stops(self) -> list[int]:
         return [r.stop_us for r in self.runs if r.stop_us is not None]
@@ -161,7 +169,22 @@ class FieldReport:
         return start, end
 
 
-def _rate_note(s: FieldSummary) -> str:
+MAP_CAPTION = (
+    "Each seed where it landed, coloured by the spacing to the previous seed of its row "
+    "(ISO 7256-1: a multiple at ≤ 0.5 × the target, a miss at > 1.5 ×).")
+HISTOGRAM_CAPTION = "How far apart the seeds of each row fell, against the target spacing."
+SPEED_CAPTION = ("The same measured rate grouped by speed: a line falling at high speed means "
+                 "the meter could not keep up.")
+TIMELINE_CAPTION = ("Every alarm raised or cleared in the window; an alarm still active when "
+                    "sowgate stopped ends at that stop.")
+QUALITY_NOTE = (
+    "Multiples: spacings ≤ 0.5 × the reference; misses: > 1.5 ×; quality of feed = 100 − "
+    "multiples − misses (the singles); precision: the spread of the singles relative to the "
+    "reference (lower is better). The reference is the target spacing, or each row's median "
+    "spacing without one. The same figures as sowgate export.")
+
+
+def rate_note(s: FieldSummary) -> str:
     note = ("The applied rate is the population the seed sensors counted: seeds per metre "
             "of row (from the stored spacings) over the row spacing. The controller's "
             "commanded rate is not in the record store.")
@@ -257,13 +280,7 @@ def to_html(report: FieldReport) -> bytes:
     heading, caption, fig = next(figs)
     parts.append(_figure_html(heading, caption, fig))
     parts.append("<h2>Spacing quality per row (ISO 7256-1)</h2>")
-    parts.append(
-        "<p class=\"note\">Multiples: spacings ≤ 0.5 × the reference; misses: > 1.5 ×; "
-        "quality of feed = 100 − multiples − misses (the singles); precision: the spread "
-        "of the singles relative to the reference (lower is better). The reference is the "
-        "target spacing, or each row's median spacing without one. The same figures as "
-        "<code>sowgate export</code>.</p>"
-    )
+    parts.append(f"<p class=\"note\">{html.escape(QUALITY_NOTE)}</p>")
     head, body = quality_table(report)
     parts.append("<table><tr>" + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>")
     for cells in body:
@@ -334,39 +351,3 @@ def _alarm_table(report: FieldReport) -> str:
         out.append(f"<p class=\"note\">The first {ALARM_ROWS_SHOWN} of "
                    f"{report.alarms_total} events; all are in the timeline.</p>")
     return "".join(out)
-
-
-def to_pdf(report: FieldReport) -> bytes:
-    buf = io.BytesIO()
-    with PdfPages(buf) as pdf:
-        pdf.savefig(_summary_page(report))
-        for heading, caption, fig in report.figures():
-            own = fig.get_suptitle()  # the raster map explains itself there: keep it
-            fig.suptitle(f"{heading}\n{own}" if own else heading, fontsize=11 if own else 13,
-                         fontweight="bold")
-            fig.text(0.01, 0.002, caption, fontsize=7, va="bottom", color="#555", wrap=True)
-            pdf.savefig(fig)
-        info = pdf.infodict()
-        info["Title"] = report.title
-        info["Creator"] = "sowgate report"
-    return buf.getvalue()
-
-
-def _summary_page(report: FieldReport) -> Figure:
-    head, body = quality_table(report)
-    fig = Figure(figsize=(8.27, 11.69))  # A4
-    fig.text(0.06, 0.96, report.title, fontsize=15, fontweight="bold", va="top")
-    y = 0.92
-    for k, v in report.summary_lines():
-        fig.text(0.06, y, k, fontsize=8.5, fontweight="bold", va="top")
-        fig.text(0.26, y, v, fontsize=8.5, va="top", wrap=True)
-        y -= 0.03
-    fig.text(0.06, y - 0.01, "Spacing quality per row (ISO 7256-1)", fontsize=11,
-             fontweight="bold", va="top")
-    ax = fig.add_axes((0.06, 0.03, 0.88, max(0.05, y - 0.06)))
-    ax.axis("off")
-    table = ax.table(cellText=body or [["–"] * len(head)], colLabels=head, loc="upper center")
-    table.auto_set_font_size(False)
-    table.set_fontsize(7 if len(body) <= 24 else 5.5)
-    table.scale(1, 1.0 if len(body) <= 24 else 0.62)
-    return fig

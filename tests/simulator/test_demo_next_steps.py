@@ -39,11 +39,8 @@ def test_the_printed_export_and_report_give_the_same_per_row_numbers(tmp_path: P
         assert cli_main(export) == 0
         assert cli_main(report) == 0
     seeds_csv = tmp_path / export[export.index("--output") + 1]
-    exported = {
-        row["row"]: row
-        for row in csv.DictReader(
-            Path(f"{seeds_csv}.quality.csv").open(encoding="utf-8"))
-    }
+    with Path(f"{seeds_csv}.quality.csv").open(encoding="utf-8") as f:
+        exported = {row["row"]: row for row in csv.DictReader(f)}
     html = (tmp_path / report[report.index("--output") + 1]).read_text(encoding="utf-8")
     m = re.search(r'id="report-data">(.*?)</script>', html, re.S)
     assert m is not None
