@@ -133,9 +133,10 @@ def histogram_columns(rows: int) -> int:
 
 def spacing_histograms(
     s: FieldSummary, rows: Sequence[int], fig: FigureBase | None = None,
-    cols: int | None = None,
+    cols: int | None = None, title_pt: float | None = None,
 ) -> FigureBase:
-    """A histogram per row; ``cols`` panels a line (default ``histogram_columns``)."""
+    """A histogram per row; ``cols`` panels a line (default ``histogram_columns``);
+    ``title_pt``: the panels' title size (a printed page's panels are narrower)."""
     cols = cols or histogram_columns(len(rows))
     nrows = math.ceil(len(rows) / cols)
     if fig is None:
@@ -164,7 +165,8 @@ def spacing_histograms(
             ax.axvline(r, color="black", ls="--", lw=1)
         a = "–" if q is None or q.quality_of_feed_index is None else (
             f"{q.quality_of_feed_index:.1f} %")
-        ax.set_title(f"row {row}: singles {a}", fontsize=10 if cols <= 4 else 9)
+        ax.set_title(f"row {row}: singles {a}",
+                     fontsize=title_pt or (10 if cols <= 4 else 9))
         ax.tick_params(labelsize=9 if cols <= 4 else 7, labelbottom=True)
     for k in range(len(rows), nrows * cols):
         axes[k // cols][k % cols].set_visible(False)

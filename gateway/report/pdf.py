@@ -65,13 +65,19 @@ CAPTION_PT = 8.0
 HEADING_PT = 12.0
 TABLE_PT = 7.5
 MAP_MIN_IN = 4.5  # the seed map shrinks to what page 1 leaves, but not below this
-HIST_PANEL_IN = 1.9  # height of one line of per-row histograms
+HIST_PANEL_IN = 1.75  # height of one line of per-row histograms
 GREY = "#555555"
 
 
 def _chars(width_in: float, pt: float) -> int:
     """Characters of ``pt`` text that fit in ``width_in`` (by the ``CHAR_EM`` estimate)."""
     return max(1, int(width_in * 72 / (pt * CHAR_EM)))
+
+
+def _text_in(text: str, pt: float) -> float:
+    """Estimated width of ``text`` in inches: digits are wider than the mean character."""
+    digits = sum(c.isdigit() for c in text)
+    return (digits * DIGIT_EM + (len(text) - digits) * CHAR_EM) * pt / 72
 
 
 def _line_in(pt: float) -> float:
@@ -217,7 +223,7 @@ def _column_widths(head: Sequence[str], rows: Sequence[Sequence[str]], pt: float
     ``wrap_last`` the last column takes what is left (its text wraps)."""
     widths = []
     for k, h in enumerate(head):
-        cells = max(len(r[k]) for r in rows) * pt * DIGIT_EM / 72
+        cells = max(_text_in(r[k], pt) for r in rows)
         word = max((len(w) for w in h.split()), default=0) * pt * BOLD_EM / 72
         widths.append(max(cells, word) + 0.2)
     if wrap_last:
@@ -262,7 +268,7 @@ def histogram_blocks(report: FieldReport) -> list[Block]:
         panel_lines = math.ceil(len(chunk) / cols)
 
         def draw(part: FigureBase, chunk: list[int] = chunk) -> None:
-            figures.spacing_histograms(s, chunk, part, cols=cols)
+            figures.spacing_histograms(s, chunk, part, cols=cols, title_pt=8.5)
 
         blocks.append(plot_block(heading, HISTOGRAM_CAPTION if k == 0 else "",
                                  panel_lines * HIST_PANEL_IN + label_in, draw))
