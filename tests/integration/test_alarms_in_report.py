@@ -5,6 +5,7 @@ module not answering) followed by a clean run does not draw the fault across the
 from __future__ import annotations
 
 import asyncio
+import csv
 import json
 import re
 from collections.abc import Iterator
@@ -14,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from gateway.app.cli import main as sowgate
-from gateway.core.records import utc_to_us
+from gateway.core.records import us_to_utc, utc_to_us
 from gateway.recording.store import RecordStore
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
@@ -102,3 +103,24 @@ def test_the_report_ends_the_alarm_at_the_faulty_runs_stop(
     assert "<td>pwm.unavailable</td>" in text
     assert "alarms still active end here: pwm.unavailable" in text
     assert "No alarm was raised" not in text
+
+
+def test_the_alarm_export_ends_it_at_the_stop_too(two_runs: TwoRuns, tmp_path: Path) -> None:
+    out = tmp_path / "alarms.csv"
+    assert sowgate(["export", "--what", "alarms", "--state-dir", str(two_runs.state),
+                    "--output", str(out)]) == 0
+    with out.open(encoding="utf-8") as f:
+        periods = [r for r in csv.DictReader(f) if r["code"] == "pwm.unavailable"]
+    with RecordStore.open_readonly(two_runs.state / "records.sqlite3", MACHINE_ID) as store:
+        first, second = store.runs()
+    (period,) = periods
+    assert period["ended"] == "stop" and period["severity"] == "critical"
+    assert period["ended_utc"] == _iso(first.stop_us)
+    assert "not answering" in period["message"]
+    assert sowgate(["export", "--what", "alarms", "--state-dir", str(two_runs.state),
+                    "--output", str(tmp_path / "alarms.geojson")]) == 2  # CSV only
+
+
+def _iso(us: int | None) -> str:
+    assert us is not None
+    return us_to_utc(us).isoformat().replace("+00:00", "Z")
