@@ -112,7 +112,7 @@ def test_the_alarm_export_ends_it_at_the_stop_too(two_runs: TwoRuns, tmp_path: P
     with out.open(encoding="utf-8") as f:
         periods = [r for r in csv.DictReader(f) if r["code"] == "pwm.unavailable"]
     with RecordStore.open_readonly(two_runs.state / "records.sqlite3", MACHINE_ID) as store:
-        first, second = store.runs()
+        first, _second = store.runs()
     (period,) = periods
     assert period["ended"] == "stop" and period["severity"] == "critical"
     assert period["ended_utc"] == _iso(first.stop_us)

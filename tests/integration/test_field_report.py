@@ -21,8 +21,8 @@ from gateway.report.command import EXIT_NO_RECORDS, EXIT_USAGE
 from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
 from tests.helpers import eventually, run_sowgate, sowgate_env
-from tests.pdf_pages import A4_PT, overlapping_words, pages, words_off_the_page
 from tests.integration.conftest import running
+from tests.pdf_pages import A4_PT, overlapping_words, pages, words_off_the_page
 
 MACHINE_ID = "seeder-01"
 SEEDS = 600
