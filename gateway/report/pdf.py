@@ -332,13 +332,14 @@ def paginate(items: Sequence[Block | Table]) -> list[list[tuple[Block, float]]]:
             place(item)
             continue
         indices = list(range(len(item.rows)))
+        row_in = [item.row_in(r) for r in item.rows]
         first = True
         while True:  # as many rows as fit, the rest on the next page
             taken: list[int] = []
+            height = _table_block(item, [], first).height_in  # its heading and header
             for i in indices:
-                trial = _table_block(item, [*taken, i], first)
-                if trial.height_in > left - (GAP_IN if pages[-1] else 0.0) and (
-                        taken or pages[-1]):
+                height += row_in[i]
+                if height > left - (GAP_IN if pages[-1] else 0.0) and (taken or pages[-1]):
                     break
                 taken.append(i)
             if not taken and indices:
