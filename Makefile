@@ -4,8 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto chromium isoxml-js demo test reliability lint typecheck bench schemas dist clean \
-	lock system-test system-test-tools
+.PHONY: mosquitto chromium poppler isoxml-js demo test reliability lint typecheck bench schemas \
+	dist clean lock system-test system-test-tools
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -47,12 +47,19 @@ $(ISOXML_JS): tests/isoxml_js/package.json tests/isoxml_js/package-lock.json
 	cd tests/isoxml_js && npm ci --no-audit --no-fund --silent
 	touch $@
 
+# the PDF report's test renders its pages with poppler's pdftoppm and reads text positions
+# with pdftotext -bbox
+poppler:
+	@command -v pdftoppm >/dev/null 2>&1 || \
+	  { (apt-get update -qq && apt-get install -y -qq poppler-utils) || \
+	    { echo "poppler-utils is needed for the PDF report's test: apt-get install -y poppler-utils" >&2; exit 1; }; }
+
 demo: $(STAMP)
 	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || \
 	  echo "note: without mosquitto (make mosquitto) the demo runs without its web dashboard" >&2
 	$(BIN)/sowgate demo --dashboard
 
-test: $(STAMP) mosquitto chromium isoxml-js
+test: $(STAMP) mosquitto chromium poppler isoxml-js
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/lint-imports

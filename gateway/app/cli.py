@@ -249,9 +249,10 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("export", help="export seed records (or the as-applied log)")
     e.add_argument(
         "--what",
-        choices=["seeds", "as-applied"],
+        choices=["seeds", "as-applied", "alarms"],
         default="seeds",
-        help="seed records with spacing quality (default) or the metering as-applied log",
+        help="seed records with spacing quality (default), the metering as-applied log, or "
+        "the alarm periods (CSV: raised, ended, and whether cleared or ended by a stop)",
     )
     e.add_argument(
         "--format",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import json
 import os
 import sys
@@ -25,6 +26,7 @@ from gateway.config import (
     parse_config,
     store_path,
 )
+from gateway.core.records import us_to_utc, utc_to_us
 from gateway.metering.prescription import (
     PrescriptionError,
     read_as_applied_csv,
@@ -44,6 +46,7 @@ from gateway.recording.export import (
     parse_rows,
     parse_time,
     quality_by_row_chunks,
+    target_spacing,
 )
 
 
@@ -55,6 +58,10 @@ def atomic_output(path: str) -> Iterator[TextIO]:
     target = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
     try:
+        # as open() would make it (mkstemp makes it 0600), like the report next to it
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
             yield f
         os.replace(tmp, target)
@@ -88,15 +95,17 @@ def main_export(args: argparse.Namespace) -> int:
             raise ExportError("--until must be later than --since")
         if getattr(args, "what", "seeds") == "as-applied":
             return _export_as_applied(settings, args, since, until, fmt, state)
+        if getattr(args, "what", "seeds") == "alarms":
+            return _export_alarms(settings, args, since, until, fmt, state)
         rows = parse_rows(getattr(args, "rows", None), settings.machine.rows)
         path = store_path(settings, state)
-        x_ref = settings.positioning.target_spacing_m
         moved = None
         if getattr(args, "reposition", False):
             from gateway.app.position_calibration import Repositioner, calibrated_settings
 
             moved = Repositioner(calibrated_settings(settings, state))
         with RecordStore.open_readonly(path, settings.machine.id) as store:
+            x_ref = target_spacing(settings.positioning.target_spacing_m, store, since, until)
             # two passes over the store, each streaming: the quality goes before the features
             quality = quality_by_row_chunks(store.query_seed_rows(since, until, rows), x_ref)
             chunks = store.query_seed_rows(since, until, rows)
@@ -137,6 +146,53 @@ def main_export(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
     return 0
+
+
+ALARM_FIELDS = ["code", "severity", "raised_utc", "ended_utc", "ended", "message"]
+
+
+def _export_alarms(
+    settings: Settings,
+    args: argparse.Namespace,
+    since: datetime | None,
+    until: datetime | None,
+    fmt: ExportFormat,
+    state: Path | None,
+) -> int:
+    """The alarm periods of the record store as CSV: raised, ended, and how it ended:
+    ``cleared``, ``stop`` (still active when sowgate stopped: it ends at that stop, see
+    ``gateway.recording.runs``) or ``open`` (still active at the end of the store or window).
+    The same periods as the report's alarm timeline."""
+    from gateway.recording.field_stats import alarm_intervals
+    from gateway.recording.store import RecordStore
+
+    if fmt != "csv" or args.output == "-":
+        raise ExportError("--what alarms writes CSV: name the file .csv or pass --format csv")
+    path = store_path(settings, state)
+    with RecordStore.open_readonly(path, settings.machine.id) as store:
+        events = list(store.query_alarms(since, until))
+        runs = store.runs()
+        span = store.seed_time_span(since, until)
+    times = [utc_to_us(e.utc) for e in events]
+    start = min([*times, *(span[:1] if span else [])], default=0)
+    end = max([*times, *(span[1:] if span else [])], default=0)
+    messages = {(e.code, t): e.message for e, t in zip(events, times, strict=True)}
+    periods = alarm_intervals(
+        [(t, e.code, e.active, e.severity) for e, t in zip(events, times, strict=True)],
+        start, end, [(r.start_us, r.stop_us) for r in runs],
+    )
+    with atomic_output(args.output) as out:
+        w = csv.writer(out, lineterminator="\n")
+        w.writerow(ALARM_FIELDS)
+        for p in periods:
+            message = messages.get((p.code, p.from_us)) or messages.get((p.code, p.to_us), "")
+            w.writerow([p.code, p.severity, _iso(p.from_us), _iso(p.to_us), p.end, message])
+    print(f"wrote {len(periods)} alarm periods to {args.output} (csv)", file=sys.stderr)
+    return 0
+
+
+def _iso(us: int) -> str:
+    return us_to_utc(us).isoformat().replace("+00:00", "Z")
 
 
 def _export_as_applied(

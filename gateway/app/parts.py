@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from gateway.metering.agopengps import CabInputs
     from gateway.metering.channels import MeteringComponent
     from gateway.metering.pwm_channel import PwmChannelPart
+    from gateway.recording.alarm_recorder import AlarmRecorder
     from gateway.recording.health import RecordingHealth
     from gateway.recording.recorder import SeedRecorder
     from gateway.recording.row_alarms import RowAlarms
@@ -29,6 +30,7 @@ if TYPE_CHECKING:
 @dataclass
 class Parts:
     store: RecordStore | None = None
+    alarm_recorder: AlarmRecorder | None = None  # alarm events into the store, MQTT or not
     gnss: GnssReader | None = None
     seeds: SeedRecorder | None = None  # the seed recorder
     seed_sensors: SerialSeedSensors | GpioSeedSensors | None = None

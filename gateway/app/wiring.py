@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable, Coroutine
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -21,7 +22,7 @@ from gateway.config import Settings, as_applied_path, store_path, undriven_chann
 from gateway.control.controller import Controller, ControlOutputs
 from gateway.core import commands as cmd
 from gateway.core.alarms import AlarmBoard
-from gateway.core.records import AlarmSeverity
+from gateway.core.records import AlarmEvent, AlarmSeverity
 from gateway.ui.touchscreen import HmiAdapter
 
 if TYPE_CHECKING:
@@ -197,6 +198,7 @@ def attach(daemon: Daemon) -> None:
         daemon.parts.store = store
         daemon.add_task("store", store.run, stop_stage=STOP_STORE)
         daemon.closers.append(store.close)
+        _record_alarms_and_runs(daemon, store)
     if s.gnss.enabled:
         _attach_gnss(daemon)
     if recording and store is not None:
@@ -215,6 +217,32 @@ def attach(daemon: Daemon) -> None:
 
         attach_agopengps(daemon)
     _attach_rejected_inputs(daemon)
+
+
+def _record_alarms_and_runs(daemon: Daemon, store: Any) -> None:
+    """Alarm events into the store, MQTT or not; the run's start now and its stop on a clean
+    stop (``gateway.recording.runs``): views end an alarm still active at a stop there."""
+    from gateway.recording.alarm_recorder import AlarmRecorder
+
+    s = daemon.settings
+    active = daemon.alarms.active  # raised while starting, before the store was open
+    now = datetime.now(UTC)
+    store.start_run(
+        {
+            "target_spacing_m": s.positioning.target_spacing_m,
+            "rows": s.machine.rows,
+            "working_width_m": s.machine.working_width_m,
+            "crop": s.control.crop,
+            "machine_id": s.machine.id,
+        },
+        min([now, *(a.since for a in active)]),
+    )
+    daemon.parts.alarm_recorder = AlarmRecorder(daemon.alarms, store)
+    for a in active:
+        store.add_alarm(AlarmEvent(machine_id=s.machine.id, code=a.code, active=True,
+                                   severity=a.severity, message=a.message, utc=a.since))
+    # closers run in reverse: this one before store.close, after the store's last commit
+    daemon.closers.append(lambda: store.stop_run(datetime.now(UTC)))
 
 
 def _attach_rejected_inputs(daemon: Daemon) -> None:
@@ -368,7 +396,8 @@ def _seed_sensor_source(daemon: Daemon, on_edge: Any) -> Any:
 def _attach_mqtt(daemon: Daemon, store: Any) -> None:
     from gateway.link.mqtt import MqttLink
 
-    link = MqttLink(daemon.settings, store, daemon, lambda: state_payload(daemon), daemon.alarms)
+    link = MqttLink(daemon.settings, store, daemon, lambda: state_payload(daemon), daemon.alarms,
+                    recorded=daemon.parts.alarm_recorder)
     daemon.parts.mqtt = link
 
     def on_tick(out: ControlOutputs) -> None:

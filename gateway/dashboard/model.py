@@ -27,6 +27,7 @@ from array import array
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any
 
 import orjson
@@ -67,12 +68,15 @@ class AlarmEntry:
     active: bool = True
     # a critical alarm stays listed until acknowledged (command ack_alarm), as on the screen
     acknowledged: bool = False
+    # "cleared", or "offline": still active when the box went offline (sowgate stopped, or
+    # its link to the broker broke); it ends there, not at the box's next start
+    ended: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "code": self.code, "severity": self.severity, "message": self.message,
             "raised": self.raised, "cleared": self.cleared, "active": self.active,
-            "acknowledged": self.acknowledged,
+            "acknowledged": self.acknowledged, "ended": self.ended,
         }
 
 
@@ -261,7 +265,10 @@ class Fleet:
         text = payload.decode("utf-8", "replace").strip()
         if text not in ("online", "offline"):
             raise ValueError(f"status {text!r}")
-        self.machine(machine_id).status = text
+        view = self.machine(machine_id)
+        view.status = text
+        if text == "offline":
+            _end_active_alarms(view)
         self._dirty.add(machine_id)
         return True
 
@@ -288,6 +295,8 @@ class Fleet:
         while view.rate and view.rate[0][0] < now - RATE_HISTORY_S:
             view.rate.popleft()
         self._sync_active_alarms(view, state)
+        if view.status == "offline":  # a retained state read after the retained "offline"
+            _end_active_alarms(view)
         waiting = set(state.unacknowledged)
         for code, entry in view.alarms.items():
             entry.acknowledged = entry.severity != "critical" or code not in waiting
@@ -312,6 +321,7 @@ class Fleet:
             if entry.active and code not in active:
                 entry.active = False
                 entry.cleared = entry.cleared or state.utc.isoformat()
+                entry.ended = entry.ended or "cleared"
 
     def _seeds(self, machine_id: str, payload: bytes) -> bool:
         batch = SeedBatch.model_validate_json(payload)
@@ -374,9 +384,11 @@ class Fleet:
             entry.active = False
             entry.cleared = utc
             entry.message = event.message
+            entry.ended = "cleared"
         else:
             view.alarms[event.code] = AlarmEntry(
-                event.code, event.severity, event.message, None, utc, active=False
+                event.code, event.severity, event.message, None, utc, active=False,
+                ended="cleared",
             )
         while len(view.alarms) > ALARM_HISTORY:
             oldest = next((c for c, a in view.alarms.items() if not a.active), None)
@@ -436,3 +448,17 @@ def _interleave(view: MachineView) -> list[float]:
 
 def encode(message: dict[str, Any]) -> str:
     return orjson.dumps(message).decode()
+
+
+def _end_active_alarms(view: MachineView) -> None:
+    """The box went offline: its active alarms end at the last state it sent (or now). An
+    alarm active when sowgate stopped is never cleared by an event; listed as active it was
+    drawn across the stop and into the next run. If the box comes back with the alarm still
+    active (only the link had broken), its state lists it again as active."""
+    at = view.state.get("utc") if view.state else None
+    ended = str(at) if at else datetime.now(UTC).isoformat()
+    for entry in view.alarms.values():
+        if entry.active:
+            entry.active = False
+            entry.cleared = ended
+            entry.ended = "offline"

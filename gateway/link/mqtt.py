@@ -46,7 +46,8 @@ from gateway.link.command_payloads import (
     parse_command,
 )
 from gateway.link.payloads import CommandAck, StatePayload
-from gateway.recording.store import OutboxBatch, RecordStore, StoreError
+from gateway.recording.alarm_recorder import AlarmRecorder
+from gateway.recording.store import OutboxBatch, RecordStore
 
 log = logging.getLogger(__name__)
 
@@ -122,6 +123,7 @@ class MqttLink:
         alarms: AlarmBoard,
         *,
         backoff: Backoff | None = None,
+        recorded: AlarmRecorder | None = None,
     ) -> None:
         self.cfg = settings.mqtt
         self.enabled_commands = frozenset(settings.commands.enabled)
@@ -147,25 +149,23 @@ class MqttLink:
         self._live_alarms: collections.deque[AlarmEvent] = collections.deque(
             maxlen=MAX_LIVE_ALARMS
         )
-        alarms.subscribe(self._on_alarm)
+        # The daemon stores its alarms whether MQTT is on or not (its AlarmRecorder); a link
+        # built on its own (tests, benchmarks) stores them through one of its own.
+        (recorded or AlarmRecorder(alarms, store)).subscribe(self._on_alarm)
         store.add_commit_listener(self._on_commit)
         if store.on_backlog is None:
             store.on_backlog = self._on_backlog
 
     # -- callbacks: called from the control loop, so they only enqueue ---------------------
 
-    def _on_alarm(self, event: AlarmEvent) -> None:
-        """Store the event; if the store cannot commit it now, publish it live as well.
+    def _on_alarm(self, stored: AlarmEvent) -> None:
+        """An alarm event the recorder stored; if the store could not commit it now (id 0),
+        publish it live as well.
 
         The alarm that says the disk is full is exactly the one the store cannot keep: it
         goes out at once with id 0 ("not stored yet"), and again with its id once the store
         has written it (consumers dedupe by id; a live event is a notice, not a record).
         """
-        try:
-            stored = self.store.add_alarm(event)
-        except StoreError:
-            log.exception("cannot store alarm %s", event.code)
-            stored = event.model_copy(update={"id": 0, "machine_id": self.machine_id})
         if stored.id == 0:
             self._live_alarms.append(stored)
         self._alarms_wake.set()

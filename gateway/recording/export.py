@@ -31,8 +31,9 @@ import orjson
 
 from gateway.core.errors import GatewayError
 from gateway.core.records import SeedRecord, utc_to_us
+from gateway.recording.runs import stored_setting
 from gateway.recording.spacing_quality import RowQualityAccumulator, SpacingQuality
-from gateway.recording.store import STORED_SEED_COLUMNS, StoredSeedRow
+from gateway.recording.store import STORED_SEED_COLUMNS, RecordStore, StoredSeedRow
 
 ExportFormat = Literal["geojson", "csv"]
 CSV_FIELDS = [
@@ -71,10 +72,32 @@ FORMAT_BY_EXTENSION: dict[str, ExportFormat] = {
     ".json": "geojson",
 }
 QUALITY_SUFFIX = ".quality.csv"
+# Decimals of degrees written for a CSV coordinate: 1e-8 degree is about 1 mm, well below
+# what RTK resolves; the float's full 15 digits only made the file larger and harder to read.
+COORD_DECIMALS = 8
 
 
 class ExportError(GatewayError):
     """The export cannot be made (bad filter, no store, unwritable output)."""
+
+
+def target_spacing(
+    configured: float | None,
+    store: RecordStore,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> float | None:
+    """The target spacing the spacings are judged against: the config's, else the one the
+    daemon ran with (kept in its run marker, ``gateway.recording.runs``), so ``sowgate
+    export`` without ``--config`` gives the same per-row numbers as ``sowgate report`` and
+    the daemon. None (each row's median is the reference) when neither has one."""
+    if configured is not None:
+        return configured
+    stored = stored_setting(
+        store.runs(), "target_spacing_m",
+        None if since is None else utc_to_us(since), None if until is None else utc_to_us(until),
+    )
+    return float(stored) if isinstance(stored, int | float) and stored > 0 else None
 
 
 def quality_by_row(
@@ -251,7 +274,8 @@ def _csv(chunks: Iterable[Sequence[StoredSeedRow]], machine_id: str, out: TextIO
     utc = _UtcText()
     for chunk in chunks:
         w.writerows(
-            (i, machine_id, row, utc(us), lat, lon, fix, speed,
+            (i, machine_id, row, utc(us), f"{lat:.{COORD_DECIMALS}f}",
+             f"{lon:.{COORD_DECIMALS}f}", fix, speed,
              "" if heading is None else heading, source, bool(extrapolated), method,
              "" if spacing is None else spacing, attitude, "" if roll is None else roll,
              "" if pitch is None else pitch)

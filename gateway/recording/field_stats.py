@@ -20,10 +20,12 @@ in seeds/ha, and in kg/ha when a thousand-seed mass is given.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -348,23 +350,63 @@ def seed_classes(spacing: F64, ref: F64) -> npt.NDArray[np.int64]:
     return cls
 
 
+AlarmEnd = Literal["cleared", "stop", "open"]
+
+
+class AlarmInterval(NamedTuple):
+    """One alarm period: raised at ``from_us``, ended at ``to_us`` by ``end``: "cleared",
+    "stop" (still active when the daemon stopped: the period ends at that stop), or "open"
+    (still active at the end of the window)."""
+
+    code: str
+    severity: str
+    from_us: int
+    to_us: int
+    end: AlarmEnd
+
+    @property
+    def cleared(self) -> bool:
+        return self.end == "cleared"
+
+
 def alarm_intervals(
-    events: Sequence[tuple[int, str, bool, str]], start_us: int, end_us: int
-) -> list[tuple[str, str, int, int, bool]]:
+    events: Sequence[tuple[int, str, bool, str]],
+    start_us: int,
+    end_us: int,
+    runs: Sequence[tuple[int, int | None]] = (),
+) -> list[AlarmInterval]:
     """Raise/clear events (utc_us, code, active, severity) in time order paired into
-    intervals (code, severity, from_us, to_us, cleared). A clear with no raise in the window
-    was raised before it (starts at ``start_us``); a raise never cleared lasts to ``end_us``.
+    intervals. A clear with no raise in the window was raised before it (starts at
+    ``start_us``, or at the start of its daemon run if later); a raise never cleared lasts
+    to the first daemon stop after it (``runs``: (start_us, stop_us or None) of each run, see
+    ``gateway.recording.runs``), else to ``end_us``: an alarm active when the daemon stopped
+    is not drawn across the runs that followed.
     """
+    stops = sorted(stop for _start, stop in runs if stop is not None)
+    starts = sorted(start for start, _stop in runs)
     open_at: dict[str, tuple[int, str]] = {}
-    out: list[tuple[str, str, int, int, bool]] = []
+    out: list[AlarmInterval] = []
+    next_stop = 0
+
+    def close_open_at(stop_us: int) -> None:
+        for code, (began, sev) in open_at.items():
+            out.append(AlarmInterval(code, sev, began, max(stop_us, began), "stop"))
+        open_at.clear()
+
     for us, code, active, severity in events:
+        while next_stop < len(stops) and stops[next_stop] < us:
+            close_open_at(stops[next_stop])
+            next_stop += 1
         if active:
             open_at.setdefault(code, (us, severity))
         else:
-            began, sev = open_at.pop(code, (start_us, severity))
-            out.append((code, sev, began, us, True))
+            k = bisect.bisect_right(starts, us)
+            run_start = starts[k - 1] if k else start_us
+            began, sev = open_at.pop(code, (max(start_us, run_start), severity))
+            out.append(AlarmInterval(code, sev, began, us, "cleared"))
+    if open_at and next_stop < len(stops):
+        close_open_at(stops[next_stop])
     for code, (began, sev) in open_at.items():
-        out.append((code, sev, began, max(end_us, began), False))
-    out.sort(key=lambda i: (i[2], i[0]))
+        out.append(AlarmInterval(code, sev, began, max(end_us, began), "open"))
+    out.sort(key=lambda i: (i.from_us, i.code))
     return out
-

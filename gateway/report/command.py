@@ -20,7 +20,7 @@ from typing import Literal
 
 from gateway.config import EXIT_CONFIG, ConfigError, load_config, store_path
 from gateway.core.records import AlarmEvent, utc_to_us
-from gateway.recording.export import ExportError, parse_rows, parse_time
+from gateway.recording.export import ExportError, parse_rows, parse_time, target_spacing
 from gateway.recording.store import RecordStore, StoreError
 
 ReportFormat = Literal["html", "pdf"]
@@ -87,7 +87,8 @@ def main_report(args: argparse.Namespace) -> int:
     """Returns the exit status; every problem is one line on standard error."""
     # numpy and matplotlib only for this command, not for every ``sowgate`` start
     from gateway.recording.field_stats import FieldStats, SeedMap, alarm_intervals
-    from gateway.report.document import FieldReport, to_html, to_pdf
+    from gateway.report.document import FieldReport, to_html
+    from gateway.report.pdf import to_pdf
 
     try:
         settings = load_config(args.config)
@@ -122,7 +123,8 @@ def main_report(args: argparse.Namespace) -> int:
                       file=sys.stderr)
                 return EXIT_NO_RECORDS
             row_spacing = settings.machine.working_width_m / settings.machine.rows
-            stats = FieldStats(settings.positioning.target_spacing_m, row_spacing, span)
+            x_ref = target_spacing(settings.positioning.target_spacing_m, store, since, until)
+            stats = FieldStats(x_ref, row_spacing, span)
             for chunk in store.query_seed_rows(since, until, rows):
                 stats.add_rows(chunk)
             summary = stats.result()
@@ -133,6 +135,7 @@ def main_report(args: argparse.Namespace) -> int:
             seed_map = SeedMap(summary)
             for chunk in store.query_seed_rows(since, until, rows):
                 seed_map.add_rows(chunk)
+            runs = store.runs()
             alarms: list[AlarmEvent] = []
             total = 0
             for a in store.query_alarms(since, until):
@@ -148,6 +151,7 @@ def main_report(args: argparse.Namespace) -> int:
     intervals = alarm_intervals(
         [(utc_to_us(a.utc), a.code, a.active, a.severity) for a in alarms],
         summary.first_us, summary.last_us,
+        [(r.start_us, r.stop_us) for r in runs],
     )
     report = FieldReport(
         machine_id=settings.machine.id,
@@ -159,6 +163,7 @@ def main_report(args: argparse.Namespace) -> int:
         alarms=alarms,
         alarms_total=total,
         intervals=intervals,
+        runs=runs,
         since=since,
         until=until,
         rows=rows,

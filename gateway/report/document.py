@@ -4,7 +4,7 @@ HTML: inline CSS, every plot a base64 PNG in an ``<img src="data:...">``, no scr
 external reference of any kind, so it opens offline on the cab box, a laptop or a phone and
 can be mailed as one file. The numbers it shows are also embedded as JSON
 (``<script type="application/json" id="report-data">``) for scripts that want them.
-PDF: matplotlib's PdfPages, a page for the summary and the quality table, then one per plot.
+The PDF (same content, A4 pages to print) is laid out by ``gateway.report.pdf``.
 """
 
 from __future__ import annotations
@@ -13,17 +13,17 @@ import base64
 import html
 import io
 import json
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
-from matplotlib.backends.backend_pdf import PdfPages
-from matplotlib.figure import Figure
+from matplotlib.figure import Figure, FigureBase
 
-from gateway.core.records import AlarmEvent, us_to_utc
+from gateway.core.records import AlarmEvent, us_to_utc, utc_to_us
 from gateway.recording.export import quality_json
-from gateway.recording.field_stats import CLASS_NAMES, FieldSummary, MapResult
+from gateway.recording.field_stats import CLASS_NAMES, AlarmInterval, FieldSummary, MapResult
+from gateway.recording.runs import Run
 from gateway.report import figures
 
 PNG_DPI = 90
@@ -42,11 +42,12 @@ class FieldReport:
     seed_map: MapResult
     alarms: list[AlarmEvent]
     alarms_total: int
-    intervals: list[tuple[str, str, int, int, bool]]
+    intervals: list[AlarmInterval]
     since: datetime | None
     until: datetime | None
     rows: list[int] | None
     tsw_g: float | None
+    runs: list[Run] = field(default_factory=list)  # daemon starts and stops (recording.runs)
     created: datetime = field(default_factory=lambda: datetime.now(UTC))
 
     @property
@@ -73,7 +74,7 @@ class FieldReport:
         if target is not None:
             rate += f", target {target:,.0f} seeds/ha"
             if pop is not None:
-                rate += f" ({100 * (pop / target - 1):+.1f} %)"
+                rate += f" ({signed_pct(100 * (pop / target - 1))})"
         window = (
             f"{_when(self.since) if self.since else 'start of the store'} to "
             f"{_when(self.until) if self.until else 'end of the store'}"
@@ -118,34 +119,72 @@ class FieldReport:
             "map_classes": dict(zip(CLASS_NAMES, self.seed_map.class_counts,
                                     strict=True)),
             "alarm_events": self.alarms_total,
+            "alarm_periods": [
+                {"code": i.code, "severity": i.severity, "from_utc": _iso_us(i.from_us),
+                 "to_utc": _iso_us(i.to_us), "end": i.end}
+                for i in self.intervals
+            ],
+            "daemon_runs": [
+                {"start_utc": _iso_us(r.start_us),
+                 "stop_utc": None if r.stop_us is None else _iso_us(r.stop_us),
+                 "clean_stop": r.clean}
+                for r in self.runs
+            ],
         }
+
+    def plots(self) -> list[tuple[str, str, Callable[[FigureBase | None], FigureBase]]]:
+        """(heading, caption, draw) in the report's order: ``draw(None)`` makes a figure of
+        its own (the HTML's PNG), ``draw(part)`` draws into a part of a PDF page."""
+        s = self.summary
+        return [
+            ("Seed map", MAP_CAPTION,
+             lambda fig: figures.seed_map(self.seed_map, "Seed map by spacing class", fig)),
+            ("Spacing per row", HISTOGRAM_CAPTION,
+             lambda fig: figures.spacing_histograms(s, self.shown_rows(), fig)),
+            ("Applied rate along the drive", rate_note(s),
+             lambda fig: figures.rate_along_drive(s, self.tsw_g, fig)),
+            ("Applied rate against speed", SPEED_CAPTION,
+             lambda fig: figures.rate_against_speed(s, self.tsw_g, fig)),
+            ("Alarm timeline", TIMELINE_CAPTION,
+             lambda fig: figures.alarm_timeline(self.intervals, *self.timeline_span(),
+                                                stops=self.stops(), fig=fig)),
+        ]
 
     def figures(self) -> Iterator[tuple[str, str, Figure]]:
         """(heading, caption, figure) in the report's order, drawn one at a time."""
-        s = self.summary
-        yield ("Seed map", "Each seed where it landed, coloured by the spacing to the previous "
-               "seed of its row (ISO 7256-1: a multiple at ≤ 0.5 × the target, a miss at "
-               "> 1.5 ×).", figures.seed_map(self.seed_map, "Seed map by spacing class"))
-        yield ("Spacing per row", "How far apart the seeds of each row fell, against the "
-               "target spacing.", figures.spacing_histograms(s, self.shown_rows()))
-        yield ("Applied rate along the drive", _rate_note(s),
-               figures.rate_along_drive(s, self.tsw_g))
-        yield ("Applied rate against speed", "The same measured rate grouped by speed: a "
-               "line falling at high speed means the meter could not keep up.",
-               figures.rate_against_speed(s, self.tsw_g))
-        yield ("Alarm timeline", "Every alarm raised or cleared in the window.",
-               figures.alarm_timeline(self.intervals, *self.timeline_span()))
+        for heading, caption, draw in self.plots():
+            fig = draw(None)
+            assert isinstance(fig, Figure)
+            yield heading, caption, fig
+
+    def stops(self) -> list[int]:
+        return [r.stop_us for r in self.runs if r.stop_us is not None]
 
     def timeline_span(self) -> tuple[int, int]:
         """The seeds' time span, widened to alarms of the window outside it (raised before
         the first seed or after the last), so every period shows."""
         start, end = self.summary.first_us, self.summary.last_us
-        for _code, _sev, a, b, _cleared in self.intervals:
-            start, end = min(start, a), max(end, b)
+        for i in self.intervals:
+            start, end = min(start, i.from_us), max(end, i.to_us)
         return start, end
 
 
-def _rate_note(s: FieldSummary) -> str:
+MAP_CAPTION = (
+    "Each seed where it landed, coloured by the spacing to the previous seed of its row "
+    "(ISO 7256-1: a multiple at ≤ 0.5 × the target, a miss at > 1.5 ×).")
+HISTOGRAM_CAPTION = "How far apart the seeds of each row fell, against the target spacing."
+SPEED_CAPTION = ("The same measured rate grouped by speed: a line falling at high speed means "
+                 "the meter could not keep up.")
+TIMELINE_CAPTION = ("Every alarm raised or cleared in the window; an alarm still active when "
+                    "sowgate stopped ends at that stop.")
+QUALITY_NOTE = (
+    "Multiples: spacings ≤ 0.5 × the reference; misses: > 1.5 ×; quality of feed = 100 − "
+    "multiples − misses (the singles); precision: the spread of the singles relative to the "
+    "reference (lower is better). The reference is the target spacing, or each row's median "
+    "spacing without one. The same figures as sowgate export.")
+
+
+def rate_note(s: FieldSummary) -> str:
     note = ("The applied rate is the population the seed sensors counted: seeds per metre "
             "of row (from the stored spacings) over the row spacing. The controller's "
             "commanded rate is not in the record store.")
@@ -178,6 +217,13 @@ def _duration(seconds: float) -> str:
 
 def _rows_text(rows: Sequence[int]) -> str:
     return ",".join(str(r) for r in rows)
+
+
+def signed_pct(v: float) -> str:
+    """``+1.2 %``, ``-1.2 %``, and ``0.0 %`` for anything that rounds to zero (``:+.1f``
+    wrote ``-0.0 %`` for a rate a hair under the target)."""
+    text = f"{v:+.1f}"
+    return "0.0 %" if float(text) == 0 else f"{text} %"
 
 
 def _pct(v: float | None, digits: int = 1) -> str:
@@ -234,13 +280,7 @@ def to_html(report: FieldReport) -> bytes:
     heading, caption, fig = next(figs)
     parts.append(_figure_html(heading, caption, fig))
     parts.append("<h2>Spacing quality per row (ISO 7256-1)</h2>")
-    parts.append(
-        "<p class=\"note\">Multiples: spacings ≤ 0.5 × the reference; misses: > 1.5 ×; "
-        "quality of feed = 100 − multiples − misses (the singles); precision: the spread "
-        "of the singles relative to the reference (lower is better). The reference is the "
-        "target spacing, or each row's median spacing without one. The same figures as "
-        "<code>sowgate export</code>.</p>"
-    )
+    parts.append(f"<p class=\"note\">{html.escape(QUALITY_NOTE)}</p>")
     head, body = quality_table(report)
     parts.append("<table><tr>" + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>")
     for cells in body:
@@ -261,57 +301,53 @@ def _figure_html(heading: str, caption: str, fig: Figure) -> str:
             f"<img alt=\"{e(heading)}\" src=\"data:image/png;base64,{_png(fig)}\">")
 
 
+ALARM_TABLE_HEAD = ["time (UTC)", "alarm", "severity", "", "message"]
+
+
+def alarm_table(report: FieldReport) -> list[tuple[list[str], bool]]:
+    """The alarm events shown (the first ``ALARM_ROWS_SHOWN``), with the daemon's starts and
+    stops among them in time order: each row's cells and whether it is a critical raise.
+    A stop names the alarms still active then, which end there (``gateway.recording.runs``)."""
+    lo, hi = report.timeline_span()
+    rows: list[tuple[int, int, list[str], bool]] = []
+    for a in report.alarms[:ALARM_ROWS_SHOWN]:
+        rows.append((utc_to_us(a.utc), 1, [
+            a.utc.strftime("%Y-%m-%d %H:%M:%S"), a.code, a.severity,
+            "raised" if a.active else "cleared", a.message,
+        ], a.severity == "critical" and a.active))
+    for r in report.runs:
+        if lo <= r.start_us <= hi:
+            rows.append((r.start_us, 0, [_when_us(r.start_us)[:-4], "daemon", "", "started",
+                                         "sowgate started"], False))
+        if r.stop_us is not None and lo <= r.stop_us <= hi:
+            ended = sorted({i.code for i in report.intervals
+                            if i.end == "stop" and i.to_us == r.stop_us})
+            text = "sowgate stopped" if r.clean else (
+                "sowgate stopped without marking it (power cut or killed): the time of its "
+                "last record")
+            if ended:
+                text += "; alarms still active end here: " + ", ".join(ended)
+            rows.append((r.stop_us, 2, [_when_us(r.stop_us)[:-4], "daemon", "", "stopped",
+                                        text], False))
+    rows.sort(key=lambda row: (row[0], row[1]))
+    return [(cells, bad) for _us, _order, cells, bad in rows]
+
+
 def _alarm_table(report: FieldReport) -> str:
     e = html.escape
     if not report.alarms:
         return "<h2>Alarm events</h2><p>No alarm was raised or cleared in this window.</p>"
-    out = ["<h2>Alarm events</h2><table><tr><th>time (UTC)</th><th>alarm</th>"
-           "<th>severity</th><th></th><th>message</th></tr>"]
-    for a in report.alarms[:ALARM_ROWS_SHOWN]:
-        cls = " class=\"bad\"" if a.severity == "critical" and a.active else ""
+    out = ["<h2>Alarm events</h2><table><tr>"
+           + "".join(f"<th>{e(h)}</th>" for h in ALARM_TABLE_HEAD) + "</tr>"]
+    for cells, bad in alarm_table(report):
+        time, code, severity, what, message = cells
+        cls = " class=\"bad\"" if bad else ""
         out.append(
-            f"<tr><td>{e(a.utc.strftime('%Y-%m-%d %H:%M:%S'))}</td><td>{e(a.code)}</td>"
-            f"<td{cls}>{e(a.severity)}</td><td>{'raised' if a.active else 'cleared'}</td>"
-            f"<td>{e(a.message)}</td></tr>"
+            f"<tr><td>{e(time)}</td><td>{e(code)}</td><td{cls}>{e(severity)}</td>"
+            f"<td>{e(what)}</td><td>{e(message)}</td></tr>"
         )
     out.append("</table>")
     if report.alarms_total > ALARM_ROWS_SHOWN:
         out.append(f"<p class=\"note\">The first {ALARM_ROWS_SHOWN} of "
                    f"{report.alarms_total} events; all are in the timeline.</p>")
     return "".join(out)
-
-
-def to_pdf(report: FieldReport) -> bytes:
-    buf = io.BytesIO()
-    with PdfPages(buf) as pdf:
-        pdf.savefig(_summary_page(report))
-        for heading, caption, fig in report.figures():
-            own = fig.get_suptitle()  # the raster map explains itself there: keep it
-            fig.suptitle(f"{heading}\n{own}" if own else heading, fontsize=11 if own else 13,
-                         fontweight="bold")
-            fig.text(0.01, 0.002, caption, fontsize=7, va="bottom", color="#555", wrap=True)
-            pdf.savefig(fig)
-        info = pdf.infodict()
-        info["Title"] = report.title
-        info["Creator"] = "sowgate report"
-    return buf.getvalue()
-
-
-def _summary_page(report: FieldReport) -> Figure:
-    head, body = quality_table(report)
-    fig = Figure(figsize=(8.27, 11.69))  # A4
-    fig.text(0.06, 0.96, report.title, fontsize=15, fontweight="bold", va="top")
-    y = 0.92
-    for k, v in report.summary_lines():
-        fig.text(0.06, y, k, fontsize=8.5, fontweight="bold", va="top")
-        fig.text(0.26, y, v, fontsize=8.5, va="top", wrap=True)
-        y -= 0.03
-    fig.text(0.06, y - 0.01, "Spacing quality per row (ISO 7256-1)", fontsize=11,
-             fontweight="bold", va="top")
-    ax = fig.add_axes((0.06, 0.03, 0.88, max(0.05, y - 0.06)))
-    ax.axis("off")
-    table = ax.table(cellText=body or [["–"] * len(head)], colLabels=head, loc="upper center")
-    table.auto_set_font_size(False)
-    table.set_fontsize(7 if len(body) <= 24 else 5.5)
-    table.scale(1, 1.0 if len(body) <= 24 else 0.62)
-    return fig

@@ -17,7 +17,7 @@ matplotlib.use("Agg")
 
 import numpy as np
 from matplotlib.axes import Axes
-from matplotlib.figure import Figure
+from matplotlib.figure import Figure, FigureBase
 from matplotlib.patches import Patch
 from matplotlib.ticker import FixedLocator, FuncFormatter
 
@@ -27,6 +27,7 @@ from gateway.recording.field_stats import (
     MISS,
     MULTIPLE,
     UNRATED,
+    AlarmInterval,
     FieldSummary,
     MapResult,
 )
@@ -46,9 +47,15 @@ def _us_to_dt(us: float) -> datetime:
     return datetime.fromtimestamp(us / 1e6, UTC)
 
 
-def seed_map(m: MapResult, title: str) -> Figure:
+def seed_map(
+    m: MapResult, title: str, fig: FigureBase | None = None, *, stacked: bool | None = None
+) -> FigureBase:
     """Every seed as a dot coloured by its class, or (a raster, for many seeds) three maps
-    of the same squares: singles %, misses %, multiples %."""
+    of the same squares: singles %, misses %, multiples %, side by side for a field taller
+    than wide, else stacked (``stacked`` forces one, e.g. on a portrait page).
+
+    Drawn into ``fig`` (a part of a PDF page) when given, else into a figure of its own
+    (the HTML's PNG); so for every plot here."""
     x0, x1, y0, y1 = m.extent_m
     w, h = max(x1 - x0, 1.0), max(y1 - y0, 1.0)
     total = max(1, sum(m.class_counts))
@@ -59,7 +66,8 @@ def seed_map(m: MapResult, title: str) -> Figure:
     ]
     if m.points is not None:
         aspect = min(max(h / w, 0.4), 1.6)
-        fig = Figure(figsize=(10, 10 * aspect * 0.9 + 1.2), layout="constrained")
+        if fig is None:
+            fig = Figure(figsize=(10, 10 * aspect * 0.9 + 1.2), layout="constrained")
         ax = fig.add_subplot()
         x, y, cls = m.points
         size = float(np.clip(20_000 / max(1, x.size), 0.3, 12))
@@ -74,7 +82,7 @@ def seed_map(m: MapResult, title: str) -> Figure:
             strict=True)]
         ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=9,
                   title="seed by its spacing")
-        _map_axes(ax, f"every seed drawn ({x.size:,})")
+        _map_axes(ax, f"every seed drawn ({x.size:,})", adjustable="datalim")
         ax.set_title(title)
         return fig
     assert m.raster is not None
@@ -82,9 +90,11 @@ def seed_map(m: MapResult, title: str) -> Figure:
     rated = counts[GOOD] + counts[MULTIPLE] + counts[MISS]
     rated[rated < MIN_CELL_SEEDS] = 0  # the field's edges: a share of a handful means nothing
     cell = (x1 - x0) / max(1, counts.shape[2] - 1)
-    tall = h >= w
-    fig = Figure(figsize=(13, 9) if tall else (11, 13), layout="constrained")
-    axes = fig.subplots(1, 3, sharey=True) if tall else fig.subplots(3, 1, sharex=True)
+    side_by_side = h >= w if stacked is None else not stacked
+    if fig is None:
+        fig = Figure(figsize=(13, 9) if side_by_side else (11, 13), layout="constrained")
+    axes = (fig.subplots(1, 3, sharey=True) if side_by_side
+            else fig.subplots(3, 1, sharex=True))
     panels = [
         (GOOD, "singles (quality of feed) %", "RdYlGn", (80, 100)),
         (MISS, "misses %", "Reds", (0, 20)),
@@ -105,8 +115,11 @@ def seed_map(m: MapResult, title: str) -> Figure:
     return fig
 
 
-def _map_axes(ax: Axes, how: str) -> None:
-    ax.set_aspect("equal")
+def _map_axes(ax: Axes, how: str, adjustable: str = "box") -> None:
+    """Metres east and north at one scale. ``datalim``: the axes keep the size they were
+    given and show more ground around a narrow field (a 2 m strip 90 m long drew an axes a
+    few millimetres wide, its tick labels on top of each other)."""
+    ax.set_aspect("equal", adjustable=adjustable)  # type: ignore[arg-type]
     ax.set_xlabel("east (m from the field's centre)" + (f"\n{how}" if how else ""), fontsize=9)
     ax.set_ylabel("north (m)", fontsize=9)
     ax.grid(alpha=0.3)
@@ -118,17 +131,23 @@ def histogram_columns(rows: int) -> int:
     return max(1, min(rows, 3 if rows <= 9 else 4 if rows <= 24 else 6))
 
 
-def spacing_histograms(s: FieldSummary, rows: Sequence[int]) -> Figure:
-    cols = histogram_columns(len(rows))
+def spacing_histograms(
+    s: FieldSummary, rows: Sequence[int], fig: FigureBase | None = None,
+    cols: int | None = None, title_pt: float | None = None,
+) -> FigureBase:
+    """A histogram per row; ``cols`` panels a line (default ``histogram_columns``);
+    ``title_pt``: the panels' title size (a printed page's panels are narrower)."""
+    cols = cols or histogram_columns(len(rows))
     nrows = math.ceil(len(rows) / cols)
-    width = 11.0 if cols <= 4 else 2.6 * cols + 0.6
-    panel_h = 2.6 if cols <= 4 else 2.0
-    height = panel_h * nrows + 1.2
-    fig = Figure(figsize=(width, height))
-    # laid out by hand: constrained layout over 48 axes costs seconds
-    # top: room for the PDF page heading (document.to_pdf puts it in the suptitle)
-    fig.subplots_adjust(left=0.7 / width, right=0.99, top=1 - 0.8 / height,
-                        bottom=0.75 / height, hspace=0.5, wspace=0.2)
+    if fig is None:
+        width = 11.0 if cols <= 4 else 2.6 * cols + 0.6
+        panel_h = 2.6 if cols <= 4 else 2.0
+        height = panel_h * nrows + 1.2
+        fig = Figure(figsize=(width, height))
+        # laid out by hand: constrained layout over 48 axes costs seconds (a PDF page holds
+        # fewer, and its page's constrained layout places them)
+        fig.subplots_adjust(left=0.7 / width, right=0.99, top=1 - 0.4 / height,
+                            bottom=0.75 / height, hspace=0.5, wspace=0.2)
     axes = fig.subplots(nrows, cols, squeeze=False, sharex=True)
     edges_cm = s.hist_edges_m * 100
     for k, row in enumerate(rows):
@@ -146,12 +165,13 @@ def spacing_histograms(s: FieldSummary, rows: Sequence[int]) -> Figure:
             ax.axvline(r, color="black", ls="--", lw=1)
         a = "–" if q is None or q.quality_of_feed_index is None else (
             f"{q.quality_of_feed_index:.1f} %")
-        ax.set_title(f"row {row}: singles {a}", fontsize=10 if cols <= 4 else 9)
+        ax.set_title(f"row {row}: singles {a}",
+                     fontsize=title_pt or (10 if cols <= 4 else 9))
         ax.tick_params(labelsize=9 if cols <= 4 else 7, labelbottom=True)
     for k in range(len(rows), nrows * cols):
         axes[k // cols][k % cols].set_visible(False)
-    fig.supxlabel("spacing to the previous seed in the row (cm); dashed: target "
-                  "(or the row's median); purple: multiples, red: misses", fontsize=10)
+    fig.supxlabel("spacing to the previous seed in the row (cm)\ndashed: target "
+                  "(or the row's median); purple: multiples, red: misses", fontsize=9)
     fig.supylabel("% of the row's spacings", fontsize=10)
     return fig
 
@@ -218,8 +238,11 @@ def _rate_axis(ax: Axes, pop: np.ndarray, target: float | None) -> None:
     ax.set_ylim(lo - pad, hi + pad)
 
 
-def rate_along_drive(s: FieldSummary, tsw_g: float | None) -> Figure:
-    fig = Figure(figsize=(11, 6.5), layout="constrained")
+def rate_along_drive(
+    s: FieldSummary, tsw_g: float | None, fig: FigureBase | None = None
+) -> FigureBase:
+    if fig is None:
+        fig = Figure(figsize=(11, 6.5), layout="constrained")
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
     st = _drive_stretches(s)
     x, unit = st["km"], "km"
@@ -246,8 +269,11 @@ def rate_along_drive(s: FieldSummary, tsw_g: float | None) -> Figure:
     return fig
 
 
-def rate_against_speed(s: FieldSummary, tsw_g: float | None) -> Figure:
-    fig = Figure(figsize=(11, 4.5), layout="constrained")
+def rate_against_speed(
+    s: FieldSummary, tsw_g: float | None, fig: FigureBase | None = None
+) -> FigureBase:
+    if fig is None:
+        fig = Figure(figsize=(11, 4.5), layout="constrained")
     ax = fig.add_subplot()
     v = s.by_speed
     total = v["sp_n"].sum()
@@ -303,10 +329,16 @@ def time_tick_formatter(start_us: int, span_h: float) -> Callable[[float, object
 
 
 def alarm_timeline(
-    intervals: Sequence[tuple[str, str, int, int, bool]], start_us: int, end_us: int
-) -> Figure:
-    codes = sorted({i[0] for i in intervals})
-    fig = Figure(figsize=(11, 1.6 + 0.35 * max(1, len(codes))), layout="constrained")
+    intervals: Sequence[AlarmInterval], start_us: int, end_us: int,
+    stops: Sequence[int] = (),
+    fig: FigureBase | None = None,
+    most_ticks: int = 12,
+) -> FigureBase:
+    """A bar per alarm period; a period still active when the daemon stopped ends at that
+    stop (hatched), and each daemon stop in the window is a dotted line."""
+    codes = sorted({i.code for i in intervals})
+    if fig is None:
+        fig = Figure(figsize=(11, 1.6 + 0.35 * max(1, len(codes))), layout="constrained")
     ax = fig.add_subplot()
     span_h = max((end_us - start_us) / 3.6e9, 1 / 60)
 
@@ -317,21 +349,26 @@ def alarm_timeline(
         ax.text(0.5, 0.5, "no alarms in this window", ha="center", va="center",
                 transform=ax.transAxes, fontsize=12)
         ax.set_yticks([])
-    for code, severity, a, b, cleared in intervals:
-        y = codes.index(code)
-        width = max(hours(b) - hours(a), span_h / 400)  # a blip still shows
-        ax.barh(y, width, left=hours(a), height=0.6,
-                color=SEVERITY_COLOURS.get(severity, "#888"),
-                edgecolor="none" if cleared else "black")
+    for iv in intervals:
+        y = codes.index(iv.code)
+        width = max(hours(iv.to_us) - hours(iv.from_us), span_h / 400)  # a blip still shows
+        ax.barh(y, width, left=hours(iv.from_us), height=0.6,
+                color=SEVERITY_COLOURS.get(iv.severity, "#888"),
+                edgecolor="none" if iv.end == "cleared" else "black",
+                hatch="///" if iv.end == "stop" else None)
+    for stop in stops:
+        if start_us <= stop <= end_us:
+            ax.axvline(hours(stop), color="#555", ls=":", lw=1.2)
     if codes:
         ax.set_yticks(range(len(codes)), codes, fontsize=9)
         ax.invert_yaxis()
         ax.legend(handles=[Patch(color=c, label=k) for k, c in SEVERITY_COLOURS.items()],
                   loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8, title="severity")
     ax.set_xlim(0, span_h)
-    ax.xaxis.set_major_locator(FixedLocator(clock_ticks_h(start_us, span_h)))
+    ax.xaxis.set_major_locator(FixedLocator(clock_ticks_h(start_us, span_h, most_ticks)))
     ax.xaxis.set_major_formatter(FuncFormatter(time_tick_formatter(start_us, span_h)))
-    ax.set_xlabel("time (UTC); a bar runs from raised to cleared, outlined if still active")
+    ax.set_xlabel("time (UTC); a bar runs from raised to cleared, outlined if still active;\n"
+                  "hatched: ended by a daemon stop (dotted line)")
     ax.set_title("Alarms")
     ax.grid(alpha=0.3, axis="x")
     return fig

@@ -22,6 +22,7 @@ from simulator.machine import SimulatedMachine
 from simulator.plant import Drive, Leg
 from tests.helpers import eventually, run_sowgate, sowgate_env
 from tests.integration.conftest import running
+from tests.pdf_pages import A4_PT, overlapping_words, pages, words_off_the_page
 
 MACHINE_ID = "seeder-01"
 SEEDS = 600
@@ -126,8 +127,17 @@ def test_pdf_gives_the_same_report_as_a_valid_pdf(run: Run, tmp_path: Path) -> N
     assert report(run, out) == 0  # the extension picks the format
     data = out.read_bytes()
     assert data.startswith(b"%PDF-") and data.rstrip().endswith(b"%%EOF")
-    # a summary page with the quality table, then the five plots
-    assert len(re.findall(rb"/Type\s*/Page\b", data)) == 6
+    # A4 pages to print, nothing drawn over anything, every section of the HTML report
+    found = pages(out)
+    for page in found:
+        assert (page.width, page.height) == pytest.approx(A4_PT, abs=0.5)
+        assert not overlapping_words(page)
+        assert not words_off_the_page(page, margin_pt=14)
+    text = " ".join(p.text() for p in found)
+    for heading in ("Summary", "Seed map", "Spacing quality per row (ISO 7256-1)",
+                    "Spacing per row", "Applied rate along the drive",
+                    "Applied rate against speed", "Alarm timeline", "Alarm events"):
+        assert heading in text, heading
     forced = tmp_path / "report.bin"
     assert report(run, forced, "--format", "pdf") == 0
     assert forced.read_bytes().startswith(b"%PDF-")

@@ -224,7 +224,9 @@ function renderAlarms(s) {
     const cells = [
       `<span class="sev ${a.severity}">${a.severity}</span>`,
       `<code></code><br><span class="msg"></span>`,
-      time(a.raised), a.active ? "active" : time(a.cleared), "",
+      time(a.raised),
+      a.active ? "active" : time(a.cleared) + (a.ended === "offline" ? " (sowgate offline)" : ""),
+      "",
     ];
     tr.innerHTML = cells.map((c) => `<td>${c}</td>`).join("");
     tr.querySelector("code").textContent = a.code;

@@ -21,10 +21,12 @@ from datetime import UTC, datetime, timedelta
 from itertools import chain
 from operator import itemgetter
 from pathlib import Path
+from typing import Any
 
 from drivers.backoff import Backoff
 from drivers.ticks import next_tick
 from gateway.core.records import AlarmEvent, SeedDrop, SeedRecord, SeedRow, drop_row, utc_to_us
+from gateway.recording import runs as run_markers
 from gateway.recording.id_ranges import IdRanges
 from gateway.recording.store.ids import ID_BLOCK, IdReservation, reservation_path
 from gateway.recording.store.outbox import BacklogCallback, Outbox
@@ -142,6 +144,7 @@ class RecordStore(StoreQueries, Outbox):
         # set when this run started above ids the store does not have (see _continue_ids)
         self.unclean_stop: str | None = None
         self._ids: IdReservation | None = None
+        self._run_id: int | None = None  # the daemon run marked by start_run
         try:
             if readonly:
                 self._read_db = sqlite3.connect(
@@ -422,6 +425,27 @@ class RecordStore(StoreQueries, Outbox):
             replaced=self.replaced.describe() if self.replaced is not None else None,
             unclean_stop=self.unclean_stop,
         )
+
+    # -- daemon runs (gateway.recording.runs) ---------------------------------------------
+
+    def start_run(self, settings: dict[str, Any], now: datetime) -> None:
+        """Mark a daemon start (and close a previous run that never marked its stop)."""
+        if self.readonly or self._db is None:
+            return
+        with self._write_lock:
+            self._run_id = run_markers.start_run(self._db, utc_to_us(now), settings)
+
+    def stop_run(self, now: datetime) -> None:
+        """Mark the clean stop of the run ``start_run`` began."""
+        if self._run_id is None or self._db is None:
+            return
+        with self._write_lock:
+            run_markers.stop_run(self._db, self._run_id, utc_to_us(now))
+        self._run_id = None
+
+    def runs(self) -> list[run_markers.Run]:
+        """The daemon runs this store saw, oldest first ([] for an older store)."""
+        return run_markers.read_runs(self._reader)
 
     # -- writing (the writer thread, or the caller of flush) --------------------------------
 

@@ -15,6 +15,7 @@ from typing import Any
 
 from gateway.core.errors import GatewayError
 from gateway.core.records import SeedRecord
+from gateway.recording import runs as run_markers
 
 log = logging.getLogger(__name__)
 
@@ -189,6 +190,7 @@ def prepare_for_writing(db: sqlite3.Connection, path: Path) -> None:
     db.execute("PRAGMA journal_mode=WAL")
     db.execute("PRAGMA synchronous=NORMAL")
     db.executescript(SCHEMA)
+    db.executescript(run_markers.SCHEMA)  # the daemon's start and stop markers
     _convert_delivered_columns(db, path)
     _convert_time_index(db, path)
     _add_seed_columns(db, path)

@@ -159,7 +159,30 @@ def test_alarms_are_paired_into_periods_even_across_the_windows_edges() -> None:
         (400, "seed_sensors.unavailable", True, "warning"),  # still on at the end
     ]
     assert alarm_intervals(events, 50, 1000) == [
-        ("gnss.not_rtk_fixed", "warning", 50, 100, True),
-        ("radar.lost", "critical", 200, 300, True),
-        ("seed_sensors.unavailable", "warning", 400, 1000, False),
+        ("gnss.not_rtk_fixed", "warning", 50, 100, "cleared"),
+        ("radar.lost", "critical", 200, 300, "cleared"),
+        ("seed_sensors.unavailable", "warning", 400, 1000, "open"),
     ]
+
+
+def test_an_alarm_active_when_the_daemon_stopped_ends_at_that_stop() -> None:
+    # run 1: 0..500 (pwm lost at 100, never cleared); run 2: 600.. (clean, a radar blip);
+    # run 3 from 900 (no stop yet: running)
+    events = [
+        (100, "pwm.unavailable", True, "critical"),
+        (700, "radar.unavailable", True, "warning"),
+        (750, "radar.unavailable", False, "warning"),
+        (950, "gnss.not_rtk_fixed", False, "warning"),  # its raise was in the run before
+        (960, "speed.lost", True, "warning"),
+    ]
+    runs = [(0, 500), (600, 800), (900, None)]
+    got = alarm_intervals(events, 0, 2000, runs)
+    assert got == [
+        ("pwm.unavailable", "critical", 100, 500, "stop"),  # not across the later runs
+        ("radar.unavailable", "warning", 700, 750, "cleared"),
+        ("gnss.not_rtk_fixed", "warning", 900, 950, "cleared"),  # from its run's start
+        ("speed.lost", "warning", 960, 2000, "open"),
+    ]
+    assert not got[0].cleared and got[1].cleared
+    # without the run markers (an older store) it is drawn to the end of the window
+    assert alarm_intervals(events[:1], 0, 2000)[0].to_us == 2000

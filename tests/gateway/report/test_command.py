@@ -3,9 +3,12 @@ a store without a target spacing, and outputs that cannot be written."""
 
 from __future__ import annotations
 
+import csv
 import html
 import json
+import os
 import re
+import stat
 from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -17,6 +20,7 @@ from gateway.config import EXIT_CONFIG
 from gateway.core.records import AlarmEvent, SeedDrop
 from gateway.recording.store import RecordStore
 from gateway.report.command import EXIT_FAILED, EXIT_NO_RECORDS
+from gateway.report.document import signed_pct
 
 T0 = datetime(2026, 5, 2, 6, 0, tzinfo=UTC)
 
@@ -181,3 +185,58 @@ def test_degenerate_stores_still_give_a_whole_report(
         assert report(cfg, out) == 0
     assert embedded(tmp_path / "r.html")["seeds"] == len(seeds)
     assert (tmp_path / "r.pdf").read_bytes().startswith(b"%PDF-")
+
+
+def test_export_without_config_judges_spacings_against_the_runs_target_as_report_does(
+    tmp_path: Path,
+) -> None:
+    """The daemon keeps its target spacing in its run marker: ``sowgate export`` without
+    ``--config`` (as the demo prints it) gives the report's per-row numbers, not numbers
+    judged against each row's median."""
+    # spacings that vary, so the median and the 0.2 m target give different precisions
+    seeds = [d.model_copy(update={"spacing_m": None if d.spacing_m is None
+                                  else 0.17 + 0.01 * (i % 4)}) for i, d in enumerate(drops())]
+    path = tmp_path / "records.sqlite3"
+    with RecordStore(path, "seeder-01") as store:
+        store.start_run({"target_spacing_m": 0.2}, T0)
+        store.add_seeds(seeds)
+        store.flush()
+        store.stop_run(T0 + timedelta(minutes=1))
+    cfg = config(tmp_path, path, target=None)  # a config that does not say it
+    out = tmp_path / "r.html"
+    assert report(cfg, out) == 0
+    exported = tmp_path / "seeds.csv"
+    assert sowgate(["export", "--state-dir", str(tmp_path), "--output", str(exported)]) == 0
+    rows = list(csv.DictReader((tmp_path / "seeds.csv.quality.csv").open()))
+    quality = embedded(out)["quality"]
+    assert isinstance(quality, dict)
+    assert {r["row"] for r in rows} == set(quality) and len(rows) == 6
+    for r in rows:
+        assert float(r["x_ref_m"]) == quality[r["row"]]["x_ref_m"] == 0.2
+        assert float(r["precision"]) == pytest.approx(quality[r["row"]]["precision"], rel=1e-12)
+
+
+def test_a_rate_a_hair_off_the_target_reads_0_0_not_minus_0_0() -> None:
+    assert signed_pct(-0.04) == "0.0 %" and signed_pct(0.049) == "0.0 %"
+    assert signed_pct(-1.25) == "-1.2 %" and signed_pct(2.0) == "+2.0 %"
+
+
+def test_export_files_are_as_readable_as_the_report_and_coordinates_are_to_a_millimetre(
+    tmp_path: Path,
+) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, drops(50)))
+    old = os.umask(0o022)
+    try:
+        assert report(cfg, tmp_path / "r.html") == 0
+        assert sowgate(["export", "--config", str(cfg), "--output",
+                        str(tmp_path / "s.csv")]) == 0
+        assert sowgate(["export", "--config", str(cfg), "--output",
+                        str(tmp_path / "s.geojson")]) == 0
+    finally:
+        os.umask(old)
+    modes = {p.name: stat.S_IMODE(p.stat().st_mode)
+             for p in tmp_path.iterdir() if p.suffix in (".html", ".csv", ".geojson")}
+    assert modes == {"r.html": 0o644, "s.csv": 0o644, "s.csv.quality.csv": 0o644,
+                     "s.geojson": 0o644}
+    first = next(csv.DictReader((tmp_path / "s.csv").open()))
+    assert first["lat"] == "52.00000000" and first["lon"] == "13.00000000"
