@@ -19,7 +19,13 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from gateway.config._base import FieldProblem, OptionalPart, switch_on_present_parts
-from gateway.config.farm import CommandsSection, DashboardSection, MqttSection, TlsSection
+from gateway.config.farm import (
+    CommandsSection,
+    DashboardSection,
+    FarmServerSection,
+    MqttSection,
+    TlsSection,
+)
 from gateway.config.farm_task import FarmSection
 from gateway.config.machine import (
     ActuatorsSection,
@@ -78,6 +84,7 @@ __all__ = [
     "CropModel",
     "DashboardSection",
     "FarmSection",
+    "FarmServerSection",
     "GnssSection",
     "HitchSection",
     "HmiSection",
@@ -147,6 +154,8 @@ class Settings(BaseSettings):
     prescription: PrescriptionSection = Field(default_factory=PrescriptionSection)
     hopper_scale: HopperScaleSection = Field(default_factory=HopperScaleSection)
     farm: FarmSection = Field(default_factory=FarmSection)  # names for ISO-XML export
+    # `sowgate ingest` (the farm server) reads this table; the daemon does not
+    farm_server: FarmServerSection = Field(default_factory=FarmServerSection)
 
     @classmethod
     def settings_customise_sources(

@@ -554,6 +554,7 @@ def mqtt_client(
     will: aiomqtt.Will | None = None,
     clean_session: bool | None = None,
     max_inflight_messages: int | None = None,
+    protocol: aiomqtt.ProtocolVersion | None = None,
 ) -> aiomqtt.Client:
     """An aiomqtt client for the ``[mqtt]`` section (host, port, user, password file, TLS,
     keepalive). The daemon and the dashboard both connect with it, so a broker that takes one
@@ -580,6 +581,7 @@ def mqtt_client(
         max_inflight_messages=max_inflight_messages,
         tls_context=tls_context,
         tls_insecure=tls_insecure,
+        protocol=protocol,
     )
 
 
