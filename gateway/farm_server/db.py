@@ -27,6 +27,7 @@ from datetime import UTC, date, datetime
 
 import psycopg
 from psycopg import sql
+from psycopg.rows import TupleRow
 
 from gateway.core.records import AlarmEvent, SeedRecord
 from gateway.link.payloads import StatePayload
@@ -136,7 +137,7 @@ def migrate(url: str) -> int:
         return found
 
 
-def check_schema(conn: psycopg.Connection[object]) -> None:
+def check_schema(conn: psycopg.Connection[TupleRow]) -> None:
     """The ingest user's check at start: the schema is there and not newer than ours."""
     try:
         row = conn.execute("SELECT max(version) FROM sowgate_schema").fetchone()
@@ -177,7 +178,7 @@ class IngestDatabase:
 
     def __init__(self, url: str) -> None:
         self.url = url
-        self.conn: psycopg.Connection[object] = psycopg.connect(url, autocommit=False)
+        self.conn: psycopg.Connection[TupleRow] = psycopg.connect(url, autocommit=False)
         check_schema(self.conn)
         self.conn.commit()
         self._days: set[date] = set()
@@ -204,7 +205,7 @@ class IngestDatabase:
         self._ensure_days(r.utc for r in unique.values())
         with self.conn.transaction():
             self.conn.execute("SELECT pg_advisory_xact_lock(hashtext(%s))", (machine_id,))
-            covered = IdRanges(self.conn.execute(
+            covered = IdRanges((int(lo), int(hi)) for lo, hi in self.conn.execute(
                 "SELECT lo, hi FROM seed_coverage WHERE machine_id = %s ORDER BY lo",
                 (machine_id,),
             ).fetchall())

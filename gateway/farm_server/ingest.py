@@ -173,9 +173,10 @@ class Ingest:
                 self._states.append(state)
                 self._rows += 1
         except ValidationError as exc:
-            first = exc.errors(include_url=False)[0] if exc.error_count() else {}
-            where = ".".join(str(p) for p in first.get("loc", ()))[:80]
-            raise Rejected("invalid", f"{kind}: {where}: {first.get('msg', '')}"[:300]) from None
+            errors = exc.errors(include_url=False)
+            where = ".".join(str(p) for p in errors[0]["loc"])[:80] if errors else ""
+            what = errors[0]["msg"] if errors else "invalid"
+            raise Rejected("invalid", f"{kind}: {where}: {what}"[:300]) from None
         if self._rows >= self.farm.batch_rows:
             self._flush_now.set()
 

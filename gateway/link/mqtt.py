@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import aiomqtt
+import orjson
 
 from drivers.backoff import Backoff
 from gateway.config import MqttSection, Settings, TlsSection
@@ -82,6 +83,8 @@ class LinkStats:
     commands_ok: int = 0
     commands_rejected: int = 0
     last_error: str = ""
+    farm_server_through: int = 0  # the highest committed_through the farm server published
+    farm_server_resends: int = 0  # times records were published again (not confirmed in time)
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,11 @@ class Topics:
     @property
     def alarms(self) -> str:
         return f"{self.base}/alarms"
+
+    @property
+    def ingested(self) -> str:
+        """The farm server's retained watermark for this machine (``sowgate ingest``)."""
+        return f"{self.base}/ingested"
 
     @property
     def commands(self) -> str:
@@ -147,6 +155,9 @@ class MqttLink:
         self._live_alarms: collections.deque[AlarmEvent] = collections.deque(
             maxlen=MAX_LIVE_ALARMS
         )
+        # [mqtt] farm_server_ack: (when PUBACKed, last id) of batches published and not yet
+        # covered by the farm server's watermark, oldest first
+        self._unconfirmed: collections.deque[tuple[float, int]] = collections.deque()
         alarms.subscribe(self._on_alarm)
         store.add_commit_listener(self._on_commit)
         if store.on_backlog is None:
@@ -288,6 +299,8 @@ class MqttLink:
             # will, and the birth may already be retained on the broker before its PUBACK.
             try:
                 await client.subscribe(self.topics.commands, qos=1)
+                if self.cfg.farm_server_ack:
+                    await client.subscribe(self.topics.ingested, qos=1)
                 await client.publish(self.topics.status, b"online", qos=1, retain=True)
                 async with asyncio.TaskGroup() as tg:
                     tg.create_task(self._commands_loop(client), name="mqtt-commands")
@@ -332,6 +345,7 @@ class MqttLink:
         deadline: float | None = None
         while True:
             self._seeds_wake.clear()
+            cursor = self._rewind(cursor)
             waiting = self.store.count_pending_seeds(after_id=cursor, cap=limit)
             now = time.monotonic()
             if waiting:
@@ -342,6 +356,8 @@ class MqttLink:
                     if batch is not None:
                         return batch
             timeout = None if deadline is None else max(0.0, deadline - now)
+            if self._unconfirmed:  # wake to look at the farm server's timeout
+                timeout = min(timeout if timeout is not None else 1.0, 1.0)
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(timeout):
                     await self._seeds_wake.wait()
@@ -353,13 +369,60 @@ class MqttLink:
             await client.publish(
                 self.topics.seeds, batch.payload, qos=1, timeout=self.publish_timeout_s
             )
-            # PUBACK received: only now is the batch delivered.
-            self.store.mark_seeds_delivered(batch.ids)
+            if self.cfg.farm_server_ack:
+                # the broker has it; delivered only once the farm server's watermark says it
+                # is committed (``_on_watermark``), else published again (``_rewind``)
+                self._unconfirmed.append((time.monotonic(), batch.ids[-1]))
+            else:
+                # PUBACK received: only now is the batch delivered.
+                self.store.mark_seeds_delivered(batch.ids)
             self._progress.set()
             self.stats.batches_published += 1
             self.stats.seeds_published += len(batch.ids)
         finally:
             slots.release()
+
+    def _rewind(self, cursor: int) -> int:
+        """``[mqtt] farm_server_ack``: the cursor to publish from. Back to the oldest record
+        the watermark does not cover once a batch holding it was published more than
+        ``farm_server_ack_timeout_s`` ago: the broker or the farm server lost it."""
+        if not self._unconfirmed:
+            return cursor
+        oldest = self.store.oldest_pending_seed_id()
+        while self._unconfirmed and (oldest is None or self._unconfirmed[0][1] < oldest):
+            self._unconfirmed.popleft()  # covered by the watermark meanwhile
+        if not self._unconfirmed or oldest is None:
+            return cursor
+        if time.monotonic() - self._unconfirmed[0][0] < self.cfg.farm_server_ack_timeout_s:
+            return cursor
+        self._unconfirmed.clear()
+        self.stats.farm_server_resends += 1
+        log.warning("mqtt: the farm server has not confirmed seed records from id %d after "
+                    "%.0f s; publishing them again", oldest, self.cfg.farm_server_ack_timeout_s)
+        return min(cursor, oldest - 1)
+
+    def on_watermark(self, payload: bytes) -> None:
+        """The farm server's retained ``ingested``: ``{"committed_through": N, "committed":
+        [[lo, hi], ...]}``. Those ids are delivered; anything malformed is ignored (logged)."""
+        try:
+            data = orjson.loads(payload)
+            through = data["committed_through"]
+            ranges = data.get("committed", [])
+            if not isinstance(through, int) or isinstance(through, bool) or through < 0:
+                raise ValueError("committed_through is not a non-negative integer")
+            spans = [(1, through)] if through >= 1 else []
+            for item in ranges if isinstance(ranges, list) else []:
+                lo, hi = item
+                if isinstance(lo, int) and isinstance(hi, int) and 1 <= lo <= hi:
+                    spans.append((lo, hi))
+        except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
+            log.warning("mqtt: ignored a malformed farm server watermark on %s: %s",
+                        self.topics.ingested, exc)
+            return
+        if self.store.mark_seed_ranges_delivered(spans):
+            self._progress.set()
+            self._seeds_wake.set()
+        self.stats.farm_server_through = max(self.stats.farm_server_through, through)
 
     async def _alarms_loop(self, client: aiomqtt.Client) -> None:
         cursor = 0
@@ -435,6 +498,10 @@ class MqttLink:
         prefix = self.topics.base + "/cmd/"
         async for message in client.messages:
             topic = message.topic.value
+            if topic == self.topics.ingested:
+                raw = message.payload
+                self.on_watermark(raw if isinstance(raw, bytes) else str(raw or "").encode())
+                continue
             if not topic.startswith(prefix):
                 continue
             name = topic[len(prefix) :]

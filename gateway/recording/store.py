@@ -936,6 +936,35 @@ class RecordStore:
         self._pending_seeds -= self._mark("seeds", ids)
         self._check_backlog()
 
+    def mark_seed_ranges_delivered(self, ranges: Sequence[tuple[int, int]]) -> int:
+        """The farm server's watermark (``[mqtt] farm_server_ack``): these inclusive id ranges
+        are committed farm-side. Only ids this store has handed out count (a watermark from a
+        database that knew an older box with the same machine id must not mark ids to come).
+        Returns how many ids were newly marked."""
+        ceiling = self._visible_seed_id
+        new = 0
+        self._begin()
+        acked = self._acked["seeds"]
+        for lo, hi in ranges:
+            lo, hi = max(1, lo), min(hi, ceiling)
+            if lo <= hi:
+                new += acked.add(lo, hi)
+        if new:
+            self._acked_dirty.add("seeds")
+            done = acked.through() - self._tail_first + 1
+            if done > 0:
+                del self._tail[:done]
+                self._tail_first += done
+            self._pending_seeds -= new
+            self._check_backlog()
+        return new
+
+    def oldest_pending_seed_id(self) -> int | None:
+        """The lowest committed id not yet delivered (None when all are)."""
+        for lo, _hi in self._acked["seeds"].gaps(0, self._visible_seed_id):
+            return lo
+        return None
+
     def mark_alarms_delivered(self, ids: Sequence[int]) -> None:
         self._pending_alarms -= self._mark("alarms", ids)
 
