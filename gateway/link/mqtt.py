@@ -373,6 +373,7 @@ class MqttLink:
                 # the broker has it; delivered only once the farm server's watermark says it
                 # is committed (``_on_watermark``), else published again (``_rewind``)
                 self._unconfirmed.append((time.monotonic(), batch.ids[-1]))
+                self._seeds_wake.set()  # the batcher now waits with the ack timeout in view
             else:
                 # PUBACK received: only now is the batch delivered.
                 self.store.mark_seeds_delivered(batch.ids)
