@@ -14,6 +14,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import aiomqtt
+import pytest
 
 from gateway.config import Settings, parse_config
 from gateway.link.mqtt import MqttLink
@@ -179,3 +180,55 @@ def test_an_older_ingest_refuses_a_newer_schema(database: str, tmp_path: Path) -
         result = run_cli("--config", str(config), *extra)
         assert result.returncode == 65, result.stderr
         assert "schema version 99" in result.stderr and "upgrade sowgate" in result.stderr
+
+
+def documented_grants() -> list[str]:
+    """The GRANT statements docs/farm-server.md tells an administrator to run."""
+    text = (REPO / "docs" / "farm-server.md").read_text(encoding="utf-8")
+    statements, current = [], ""
+    for line in text.splitlines():
+        line = line.strip().split("--")[0].strip()
+        if line.startswith("GRANT") or current:
+            current += " " + line
+            if current.endswith(";"):
+                statements.append(current.strip())
+                current = ""
+    return statements
+
+
+async def test_the_ingest_user_works_with_only_the_documented_grants(
+    database: str, broker: Mosquitto
+) -> None:
+    import psycopg
+
+    grants = documented_grants()
+    assert len(grants) >= 4
+    with psycopg.connect(database, autocommit=True) as owner:
+        if owner.execute("SELECT 1 FROM pg_roles WHERE rolname = 'sowgate_ingest'").fetchone() \
+                is None:
+            with contextlib.suppress(psycopg.errors.DuplicateObject):
+                owner.execute("CREATE ROLE sowgate_ingest LOGIN")
+        for grant in grants:
+            owner.execute(grant.encode())
+    url = database.replace("postgres@", "sowgate_ingest@")
+    try:
+        async with running_ingest(url, broker) as ingest, \
+                contextlib.AsyncExitStack() as stack:
+            from tests.gateway.farm_server.test_ingest import batch, cab, through, watermarks
+
+            seen = await stack.enter_async_context(watermarks(broker))
+            client = await stack.enter_async_context(cab(broker, "seeder-08"))
+            await client.publish("sowgate/seeder-08/seeds", batch("seeder-08", 1, 50), qos=1)
+            await client.publish("sowgate/seeder-08/status", b"online", qos=1)
+            await client.publish("sowgate/seeder-08/status", b"offline", qos=1)
+            await eventually(lambda: through(seen, "seeder-08") == 50, 30, "committed",
+                             detail=lambda: ingest.stats)
+            await eventually(lambda: rows(database, "SELECT status FROM machine_status")
+                             == [("offline",)], 30, "status updated")
+        with psycopg.connect(url) as conn, pytest.raises(psycopg.errors.InsufficientPrivilege):
+            conn.execute("DELETE FROM seed_records")  # it cannot take a record back
+    finally:
+        with psycopg.connect(database, autocommit=True) as owner:
+            owner.execute("REVOKE ALL ON ALL TABLES IN SCHEMA public FROM sowgate_ingest")
+            owner.execute("REVOKE ALL ON SCHEMA public FROM sowgate_ingest")
+            owner.execute("REVOKE ALL ON FUNCTION sowgate_ensure_day(date) FROM sowgate_ingest")
