@@ -185,3 +185,6 @@ class FarmServerSection(Section):
     # machines accepted: further machine ids are counted, logged and dropped
     max_machines: int = Field(1000, ge=1, le=100_000)
     max_payload_bytes: int = Field(4_000_000, ge=1024, le=64_000_000)
+    # rows waiting for the database (it is away): past this, messages are dropped and counted
+    # (queue_full); safe, because the cabs publish again what no watermark covers
+    max_queued_rows: int = Field(1_000_000, ge=1000, le=50_000_000)

@@ -136,6 +136,10 @@ class Ingest:
             raise Rejected("machine_id", "machine id not [A-Za-z0-9_.-]{1,64}")
         if len(payload) > self.farm.max_payload_bytes:
             raise Rejected("too_large", f"{len(payload)} bytes")
+        if self._rows >= self.farm.max_queued_rows and kind != "status":
+            # the database is not keeping up (or away): not stored now, and not lost either,
+            # since no watermark covers these records and the cab publishes them again
+            raise Rejected("queue_full", f"{self._rows} rows wait for the database")
         known = machine_id in self._seeds or machine_id in self.committed
         if not known and len(set(self._seeds) | set(self.committed)) >= self.farm.max_machines:
             raise Rejected("too_many_machines", f"over farm_server.max_machines for {machine_id}")
