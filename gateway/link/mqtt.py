@@ -64,6 +64,8 @@ OFFLINE_PUBLISH_TIMEOUT_S = 2.0  # clean shutdown must not hang on a dead link
 # offline publish and the disconnect it stays well inside systemd's TimeoutStopSec (15 s).
 STOP_DRAIN_TIMEOUT_S = 2.0
 ERROR_TEXT_MAX_CHARS = 500
+# [mqtt] farm_server_ack: the resend wait grows to at most this many times the timeout
+MAX_RESEND_BACKOFF = 16
 ACK_TEXT_MAX_CHARS = 500  # an OK ack's result message
 BACKLOG_ALARM = "mqtt.backlog"
 # A session must last this long to reset the reconnect backoff. Otherwise a connection the
@@ -158,6 +160,10 @@ class MqttLink:
         # [mqtt] farm_server_ack: (when PUBACKed, last id) of batches published and not yet
         # covered by the farm server's watermark, oldest first
         self._unconfirmed: collections.deque[tuple[float, int]] = collections.deque()
+        # the wait before publishing uncovered records again: doubles after each resend that
+        # brought no watermark (a farm server away must not get the whole backlog each
+        # minute over 4G), back to farm_server_ack_timeout_s when a watermark covers more
+        self.resend_after_s = self.cfg.farm_server_ack_timeout_s
         alarms.subscribe(self._on_alarm)
         store.add_commit_listener(self._on_commit)
         if store.on_backlog is None:
@@ -394,12 +400,16 @@ class MqttLink:
             self._unconfirmed.popleft()  # covered by the watermark meanwhile
         if not self._unconfirmed or oldest is None:
             return cursor
-        if time.monotonic() - self._unconfirmed[0][0] < self.cfg.farm_server_ack_timeout_s:
+        waited = self.resend_after_s
+        if time.monotonic() - self._unconfirmed[0][0] < waited:
             return cursor
         self._unconfirmed.clear()
         self.stats.farm_server_resends += 1
+        self.resend_after_s = min(
+            waited * 2, self.cfg.farm_server_ack_timeout_s * MAX_RESEND_BACKOFF
+        )
         log.warning("mqtt: the farm server has not confirmed seed records from id %d after "
-                    "%.0f s; publishing them again", oldest, self.cfg.farm_server_ack_timeout_s)
+                    "%.0f s; publishing them again", oldest, waited)
         return min(cursor, oldest - 1)
 
     def on_watermark(self, payload: bytes) -> None:
@@ -421,6 +431,7 @@ class MqttLink:
                         self.topics.ingested, exc)
             return
         if self.store.mark_seed_ranges_delivered(spans):
+            self.resend_after_s = self.cfg.farm_server_ack_timeout_s
             self._progress.set()
             self._seeds_wake.set()
         self.stats.farm_server_through = max(self.stats.farm_server_through, through)

@@ -74,10 +74,14 @@ async def test_the_cab_publishes_again_what_the_watermark_does_not_cover(
         # ... and after the timeout they go out again
         await eventually(lambda: seen.count(1) >= 2 and cab.link.stats.farm_server_resends, 30,
                          "published again")
+        # with no farm server answering, each resend waits twice as long as the one before
+        await eventually(lambda: cab.link.stats.farm_server_resends >= 2, 30, "second resend")
+        assert cab.link.resend_after_s >= 4.0
         async with running_ingest(database, broker):
             await eventually(lambda: cab.store.backlog() == 0, 60, "watermark covers all",
                              detail=lambda: (cab.store.backlog(), cab.link.stats))
         assert cab.link.stats.farm_server_through == 300
+        assert cab.link.resend_after_s == 1.0  # a watermark that covered more: back to 1 s
     assert rows(database, "SELECT count(*), count(DISTINCT id) FROM seed_records")[0] == (300, 300)
 
 
