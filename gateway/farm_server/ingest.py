@@ -49,6 +49,7 @@ REJECT_LOG_INTERVAL_S = 10.0
 GAP_LOG_INTERVAL_S = 30.0
 WATERMARK_RANGES = 64  # the newest committed id ranges a watermark lists
 RECONNECT_S = 2.0
+SUMMARY_INTERVAL_S = 60.0  # an INFO line with the counters and the gaps
 
 
 class Rejected(Exception):
@@ -309,8 +310,22 @@ class Ingest:
                     payload = raw if isinstance(raw, bytes) else str(raw or "").encode()
                     self.accept(message.topic.value, payload)
 
+    def summary(self) -> str:
+        """One line for the journal: what came, what was committed, rejected, missing."""
+        st = self.stats
+        rejected = ", ".join(f"{k} {v}" for k, v in sorted(st.rejected.items())) or "none"
+        gaps = self.gaps()
+        missing = "; ".join(gap_text(m, g) for m, g in sorted(gaps.items())) or "no gaps"
+        return (f"ingest: {st.messages} messages, {st.seeds_committed} seeds committed "
+                f"({st.seeds_duplicate} repeats dropped), {st.alarms_committed} alarms, "
+                f"{st.states_committed} states; rejected: {rejected}; {missing}")
+
     async def _flush_loop(self, client: aiomqtt.Client) -> None:
+        next_summary = time.monotonic() + SUMMARY_INTERVAL_S
         while True:
+            if time.monotonic() >= next_summary:
+                next_summary = time.monotonic() + SUMMARY_INTERVAL_S
+                log.info("%s", self.summary())
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(self.farm.flush_interval_s):
                     await self._flush_now.wait()

@@ -134,6 +134,7 @@ async def test_gaps_are_known_per_machine_and_named(database: str, broker: Mosqu
         await client.publish("sowgate/seeder-03/seeds", batch("seeder-03", 1, 199), qos=1)
         await client.publish("sowgate/seeder-03/seeds", batch("seeder-03", 341, 400), qos=1)
         await eventually(lambda: ingest.gaps().get("seeder-03") == [(200, 340)], 30, "the gap")
+        assert "seeder-03: records 200–340 not received yet" in ingest.summary()
         # the watermark stops at the gap, and lists what is committed above it
         await eventually(lambda: seen.get("seeder-03", {}).get("committed") ==
                          [[1, 199], [341, 400]], 30, "watermark with the gap")
