@@ -272,3 +272,33 @@ async def test_the_database_away_loses_nothing_even_past_the_queue_cap(
                          detail=lambda: (cab.store.backlog(), ingest.stats, cab.link.stats))
     assert rows(database, "SELECT count(*), count(DISTINCT id), max(id) FROM seed_records")[0] \
         == (3500, 3500, 3500)
+
+
+@pytest.mark.slow
+async def test_the_real_daemon_on_the_simulator_ends_every_record_in_postgresql(
+    database: str, broker: Mosquitto, tmp_path: Path
+) -> None:
+    """`sowgate demo` (the daemon on the simulated planter) with farm_server_ack, through the
+    ACL'd broker, into ingest: after it stops, every record its store holds is in PostgreSQL
+    exactly once and the watermark it saw covers all of them."""
+    import sqlite3
+
+    from tests.gateway.farm_server.test_ingest import through, watermarks
+    from tests.helpers import sowgate_env, sowgate_process
+
+    env = sowgate_env(env={
+        "SOWGATE_MQTT__HOST": broker.host, "SOWGATE_MQTT__PORT": str(broker.port),
+        "SOWGATE_MQTT__USERNAME": "seeder-01", "SOWGATE_MQTT__FARM_SERVER_ACK": "true",
+    }, clean=True)
+    async with running_ingest(database, broker), watermarks(broker) as seen:
+        async with sowgate_process("demo", "--no-tui", "--duration", "8", "--state-dir",
+                                   str(tmp_path), env=env) as proc:
+            _, err = await asyncio.wait_for(proc.communicate(), 120.0)
+        assert proc.returncode == 0, err.decode()[-2000:]
+        with contextlib.closing(sqlite3.connect(tmp_path / "records.sqlite3")) as store:
+            count, last = store.execute("SELECT count(*), max(id) FROM seeds").fetchone()
+        assert count > 100 and count == last  # ids 1..last, none pruned
+        await eventually(lambda: through(seen, "seeder-01") == last, 60, "watermark = last id",
+                         detail=lambda: seen)
+    assert rows(database, "SELECT count(*), count(DISTINCT id), min(id), max(id) "
+                "FROM seed_records WHERE machine_id = 'seeder-01'")[0] == (last, last, 1, last)
