@@ -68,6 +68,7 @@ class IngestStats:
     states_thinned: int = 0
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     watermarks_published: int = 0
+    commit_failures: int = 0
 
 
 def gap_text(machine_id: str, gaps: list[tuple[int, int]]) -> str:
@@ -110,6 +111,7 @@ class Ingest:
         self._flush_now = asyncio.Event()
         self._reject_logged: dict[str, float] = {}
         self._gap_logged: dict[str, float] = {}
+        self._failure_logged = -1e9
         self._db: IngestDatabase | None = None
         self._db_lock = asyncio.Lock()
 
@@ -333,6 +335,11 @@ class Ingest:
             try:
                 await self.flush(client)
             except Exception as exc:  # the database is away: keep what is queued, retry
-                log.warning("ingest: commit failed, kept for the next try: %s: %s",
-                            type(exc).__name__, exc)
+                self.stats.commit_failures += 1
+                now = time.monotonic()
+                if now - self._failure_logged >= REJECT_LOG_INTERVAL_S:
+                    self._failure_logged = now
+                    log.warning("ingest: commit failed (%d so far), kept for the next try: "
+                                "%s: %s", self.stats.commit_failures, type(exc).__name__,
+                                str(exc).strip()[:300])
                 await asyncio.sleep(RECONNECT_S)

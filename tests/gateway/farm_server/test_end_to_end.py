@@ -266,6 +266,7 @@ async def test_the_database_away_loses_nothing_even_past_the_queue_cap(
             await eventually(lambda: ingest.stats.rejected["queue_full"] > 0, 60,
                              "the queue cap reached", detail=lambda: ingest.stats)
             assert cab.store.backlog() == 3000  # nothing confirmed while the database is away
+            await eventually(lambda: ingest.stats.commit_failures > 0, 60, "commit failed")
         finally:
             database_away(False)
         await eventually(lambda: cab.store.backlog() == 0, 120, "every record confirmed",
