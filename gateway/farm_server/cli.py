@@ -41,7 +41,7 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     )
     import psycopg
 
-    from gateway.farm_server.db import SchemaError, migrate
+    from gateway.farm_server.db import SCHEMA_VERSION, SchemaError, ensure_schema, migrate
     from gateway.farm_server.ingest import Ingest
 
     try:
@@ -49,10 +49,11 @@ def cmd_ingest(args: argparse.Namespace) -> int:
             found = migrate(url)
             print(f"sowgate ingest: schema ready (was version {found})", file=sys.stderr)
             return 0
+        found = ensure_schema(url)  # migrates itself when it may; refuses a newer schema
+        if found != SCHEMA_VERSION:
+            print(f"sowgate ingest: schema migrated from version {found} to {SCHEMA_VERSION}",
+                  file=sys.stderr)
         ingest = Ingest(farm, settings.mqtt)
-        from gateway.farm_server.db import IngestDatabase
-
-        IngestDatabase(url).close()  # the schema check, before the first message
     except SchemaError as exc:
         print(f"sowgate ingest: {exc}", file=sys.stderr)
         return EXIT_SCHEMA

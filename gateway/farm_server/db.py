@@ -137,6 +137,37 @@ def migrate(url: str) -> int:
         return found
 
 
+def schema_version(url: str) -> int:
+    """The sowgate schema version in this database (0: none yet)."""
+    with psycopg.connect(url) as conn:
+        try:
+            row = conn.execute("SELECT max(version) FROM sowgate_schema").fetchone()
+        except psycopg.errors.UndefinedTable:
+            return 0
+        return int(row[0]) if row and row[0] is not None else 0
+
+
+def ensure_schema(url: str) -> int:
+    """At ingest's start: migrate the schema itself when it is missing or older (possible when
+    ingest connects as the owner), refuse a newer one. With an ingest user that owns
+    nothing, a missing schema is a ``SchemaError`` telling to run ``--migrate`` as the owner.
+    Returns the version found before."""
+    found = schema_version(url)
+    if found == SCHEMA_VERSION:
+        return found
+    if found > SCHEMA_VERSION:
+        raise SchemaError(
+            f"the database has sowgate schema version {found}, this ingest knows up to "
+            f"{SCHEMA_VERSION}: upgrade sowgate before running ingest on it")
+    try:
+        return migrate(url)
+    except psycopg.errors.InsufficientPrivilege as exc:
+        raise SchemaError(
+            f"the database has sowgate schema version {found}, this ingest writes version "
+            f"{SCHEMA_VERSION}, and this user may not migrate it ({str(exc).strip()}): run "
+            "`sowgate ingest --migrate --database-url <the owner's URL>` once") from None
+
+
 def check_schema(conn: psycopg.Connection[TupleRow]) -> None:
     """The ingest user's check at start: the schema is there and not newer than ours."""
     try:

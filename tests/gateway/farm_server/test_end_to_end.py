@@ -303,3 +303,33 @@ async def test_the_real_daemon_on_the_simulator_ends_every_record_in_postgresql(
                          detail=lambda: seen)
     assert rows(database, "SELECT count(*), count(DISTINCT id), min(id), max(id) "
                 "FROM seed_records WHERE machine_id = 'seeder-01'")[0] == (last, last, 1, last)
+
+
+def test_ingest_migrates_a_fresh_database_itself_when_it_may(tmp_path: Path) -> None:
+    """As the owner it creates the schema at start; as a user that owns nothing it says what
+    to run instead (and never half-creates anything)."""
+    import uuid
+
+    import psycopg
+
+    from gateway.farm_server.db import SCHEMA_VERSION, SchemaError, ensure_schema, schema_version
+    from tests.gateway.farm_server.conftest import ADMIN_URL
+
+    name = f"sowgate_test_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(ADMIN_URL, autocommit=True) as admin:
+        admin.execute(f'CREATE DATABASE "{name}"'.encode())
+        if admin.execute("SELECT 1 FROM pg_roles WHERE rolname = 'sowgate_ingest'") \
+                .fetchone() is None:
+            with contextlib.suppress(psycopg.errors.DuplicateObject):
+                admin.execute("CREATE ROLE sowgate_ingest LOGIN")
+    url = f"postgresql://postgres@127.0.0.1:5432/{name}"
+    try:
+        with pytest.raises(SchemaError, match="--migrate"):
+            ensure_schema(url.replace("postgres@", "sowgate_ingest@"))
+        assert schema_version(url) == 0
+        assert ensure_schema(url) == 0
+        assert schema_version(url) == SCHEMA_VERSION
+        assert ensure_schema(url) == SCHEMA_VERSION  # and again: nothing to do
+    finally:
+        with psycopg.connect(ADMIN_URL, autocommit=True) as admin:
+            admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'.encode())
