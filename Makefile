@@ -4,8 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: mosquitto chromium poppler isoxml-js demo test reliability lint typecheck bench schemas \
-	dist clean lock system-test system-test-tools
+.PHONY: mosquitto postgis chromium poppler isoxml-js demo test reliability lint typecheck \
+	bench schemas dist clean lock system-test system-test-tools
 
 # Installs come from constraints.txt (every package pinned), so figures are reproducible;
 # `make lock` refreshes it within the ranges pyproject.toml allows.
@@ -29,6 +29,13 @@ mosquitto:
 	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || \
 	  { (apt-get update -qq && apt-get install -y -qq mosquitto) || \
 	    { echo "mosquitto is needed for the MQTT tests: apt-get install -y mosquitto" >&2; exit 1; }; }
+
+# the farm server's tests (tests/gateway/farm_server) use the PostgreSQL on 127.0.0.1:5432
+# (trust auth, user postgres) with PostGIS from Debian; each test makes its own database
+postgis:
+	@test -f /usr/share/postgresql/15/extension/postgis.control || \
+	  { (apt-get update -qq && apt-get install -y -qq postgresql-15-postgis-3) || \
+	    { echo "PostGIS is needed for the farm server tests: apt-get install -y postgresql-15-postgis-3" >&2; exit 1; }; }
 
 # the dashboard's browser tests drive Debian's chromium headless (Playwright, no browser download)
 chromium:
@@ -59,7 +66,7 @@ demo: $(STAMP)
 	  echo "note: without mosquitto (make mosquitto) the demo runs without its web dashboard" >&2
 	$(BIN)/sowgate demo --dashboard
 
-test: $(STAMP) mosquitto chromium poppler isoxml-js
+test: $(STAMP) mosquitto postgis chromium poppler isoxml-js
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/lint-imports

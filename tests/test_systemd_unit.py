@@ -19,10 +19,12 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 UNIT = REPO / "systemd" / "sowgate.service"
 DASHBOARD_UNIT = REPO / "systemd" / "sowgate-dashboard.service"
+INGEST_UNIT = REPO / "systemd" / "sowgate-ingest.service"
 UNITS = [
     pytest.param(UNIT, "sowgate run --config /etc/sowgate/sowgate.toml", id="daemon"),
     pytest.param(DASHBOARD_UNIT, "sowgate dashboard --config /etc/sowgate/sowgate.toml",
                  id="dashboard"),
+    pytest.param(INGEST_UNIT, "sowgate ingest --config /etc/sowgate/sowgate.toml", id="ingest"),
 ]
 UDEV = REPO / "systemd" / "99-sowgate.rules"
 MAX_EXPOSURE = 2.5
@@ -112,6 +114,7 @@ def test_exit_code_78_matches_the_config_error_exit() -> None:
 
     assert directives()["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
     assert directives(DASHBOARD_UNIT)["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
+    assert directives(INGEST_UNIT)["RestartPreventExitStatus"] == [f"{EXIT_CONFIG} 65"]
 
 
 def test_the_dashboard_unit_is_hardened_like_the_daemon_and_opens_no_device() -> None:
@@ -129,6 +132,23 @@ def test_the_dashboard_unit_is_hardened_like_the_daemon_and_opens_no_device() ->
     assert page["RestrictAddressFamilies"] == ["AF_UNIX AF_INET AF_INET6"]
     assert page["Restart"] == ["on-failure"]
     assert "StateDirectory" not in page  # it keeps nothing: the store is the daemon's
+
+
+def test_the_ingest_unit_is_hardened_like_the_dashboard_and_restarts_always() -> None:
+    """The farm server's writer: no device, no state, no port; the network for the broker and
+    PostgreSQL. A database or broker away is a restart (always), a bad config is not (78),
+    nor a schema newer than the code (65, gateway.farm_server.cli.EXIT_SCHEMA)."""
+    from gateway.farm_server.cli import EXIT_SCHEMA
+
+    page, ingest = directives(DASHBOARD_UNIT), directives(INGEST_UNIT)
+    for key in ("ProtectSystem", "ProtectHome", "PrivateTmp", "NoNewPrivileges", "DynamicUser",
+                "CapabilityBoundingSet", "MemoryDenyWriteExecute", "RestrictNamespaces",
+                "SystemCallFilter", "PrivateDevices", "PrivateUsers", "RestrictAddressFamilies",
+                "ConfigurationDirectory", "UMask"):
+        assert ingest.get(key) == page[key], key
+    assert "StateDirectory" not in ingest and "DeviceAllow" not in ingest
+    assert ingest["Restart"] == ["always"]
+    assert str(EXIT_SCHEMA) in ingest["RestartPreventExitStatus"][0].split()
 
 
 def test_udev_rule_names_every_device() -> None:

@@ -20,7 +20,13 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 
 from gateway.config._base import FieldProblem, OptionalPart, switch_on_present_parts
 from gateway.config.agopengps import AgOpenGpsSection
-from gateway.config.farm import CommandsSection, DashboardSection, MqttSection, TlsSection
+from gateway.config.farm import (
+    CommandsSection,
+    DashboardSection,
+    FarmServerSection,
+    MqttSection,
+    TlsSection,
+)
 from gateway.config.farm_task import FarmSection
 from gateway.config.machine import (
     ActuatorsSection,
@@ -80,6 +86,7 @@ __all__ = [
     "CropModel",
     "DashboardSection",
     "FarmSection",
+    "FarmServerSection",
     "GnssSection",
     "HitchSection",
     "HmiSection",
@@ -150,6 +157,8 @@ class Settings(BaseSettings):
     hopper_scale: HopperScaleSection = Field(default_factory=HopperScaleSection)
     farm: FarmSection = Field(default_factory=FarmSection)  # names for ISO-XML export
     agopengps: AgOpenGpsSection = Field(default_factory=AgOpenGpsSection)
+    # `sowgate ingest` (the farm server) reads this table; the daemon does not
+    farm_server: FarmServerSection = Field(default_factory=FarmServerSection)
 
     @classmethod
     def settings_customise_sources(

@@ -40,6 +40,12 @@ class MqttSection(OptionalPart):
     max_inflight_batches: int = Field(8, ge=1, le=64)
     reconnect_max_s: float = Field(30.0, gt=0, le=600)
     state_hz: float = Field(1.0, gt=0, le=10)
+    # End to end (docs/mqtt.md "The farm server's watermark"): a seed record counts as
+    # delivered only once `sowgate ingest` says it is committed in PostgreSQL (retained
+    # `ingested`), not on the broker's PUBACK; records not covered after this timeout are
+    # published again. Off: a cab without a farm server behaves as before (PUBACK = delivered).
+    farm_server_ack: bool = False
+    farm_server_ack_timeout_s: float = Field(60.0, ge=1, le=3600)
 
     @model_validator(mode="after")
     def _credentials(self) -> MqttSection:
@@ -156,3 +162,29 @@ class DashboardSection(Section):
             if hostname:
                 names.update((hostname, hostname.split(".")[0] + ".local"))
         return frozenset(names)
+
+
+class FarmServerSection(Section):
+    """``sowgate ingest``: the farm-side process that writes every machine's records into
+    PostgreSQL (gateway/farm_server, docs/farm-server.md). Read from the same file as the
+    daemon, so one config can serve both; the daemon ignores it."""
+
+    # postgresql://user@host/dbname (libpq URL or key=value string); None: ingest refuses to
+    # start, naming this key
+    database_url: str | None = Field(None, min_length=1)
+    # the MQTT 5 shared-subscription group: every ingest process of one farm uses the same
+    share_group: str = Field("sowgate-ingest", min_length=1, max_length=64,
+                             pattern=r"^[A-Za-z0-9_.-]+$")
+    topic_prefix: str = Field("sowgate", min_length=1, pattern=r"^[^#+]+$")
+    client_id: str | None = Field(None, min_length=1, max_length=128)  # default: host + pid
+    # records are committed at least this often, and at once when a batch reaches batch_rows
+    flush_interval_s: float = Field(0.5, gt=0, le=60)
+    batch_rows: int = Field(5000, ge=1, le=1_000_000)
+    # one state sample kept per machine per this many seconds (the rest are dropped)
+    state_sample_s: float = Field(10.0, ge=0, le=3600)
+    # machines accepted: further machine ids are counted, logged and dropped
+    max_machines: int = Field(1000, ge=1, le=100_000)
+    max_payload_bytes: int = Field(4_000_000, ge=1024, le=64_000_000)
+    # rows waiting for the database (it is away): past this, messages are dropped and counted
+    # (queue_full); safe, because the cabs publish again what no watermark covers
+    max_queued_rows: int = Field(1_000_000, ge=1000, le=50_000_000)

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import aiomqtt
+import orjson
 
 from drivers.backoff import Backoff
 from gateway.config import MqttSection, Settings, TlsSection
@@ -64,6 +65,8 @@ OFFLINE_PUBLISH_TIMEOUT_S = 2.0  # clean shutdown must not hang on a dead link
 # offline publish and the disconnect it stays well inside systemd's TimeoutStopSec (15 s).
 STOP_DRAIN_TIMEOUT_S = 2.0
 ERROR_TEXT_MAX_CHARS = 500
+# [mqtt] farm_server_ack: the resend wait grows to at most this many times the timeout
+MAX_RESEND_BACKOFF = 16
 ACK_TEXT_MAX_CHARS = 500  # an OK ack's result message
 BACKLOG_ALARM = "mqtt.backlog"
 # A session must last this long to reset the reconnect backoff. Otherwise a connection the
@@ -83,6 +86,8 @@ class LinkStats:
     commands_ok: int = 0
     commands_rejected: int = 0
     last_error: str = ""
+    farm_server_through: int = 0  # the highest committed_through the farm server published
+    farm_server_resends: int = 0  # times records were published again (not confirmed in time)
 
 
 @dataclass(frozen=True)
@@ -104,6 +109,11 @@ class Topics:
     @property
     def alarms(self) -> str:
         return f"{self.base}/alarms"
+
+    @property
+    def ingested(self) -> str:
+        """The farm server's retained watermark for this machine (``sowgate ingest``)."""
+        return f"{self.base}/ingested"
 
     @property
     def commands(self) -> str:
@@ -149,6 +159,13 @@ class MqttLink:
         self._live_alarms: collections.deque[AlarmEvent] = collections.deque(
             maxlen=MAX_LIVE_ALARMS
         )
+        # [mqtt] farm_server_ack: (when PUBACKed, last id) of batches published and not yet
+        # covered by the farm server's watermark, oldest first
+        self._unconfirmed: collections.deque[tuple[float, int]] = collections.deque()
+        # the wait before publishing uncovered records again: doubles after each resend that
+        # brought no watermark (a farm server away must not get the whole backlog each
+        # minute over 4G), back to farm_server_ack_timeout_s when a watermark covers more
+        self.resend_after_s = self.cfg.farm_server_ack_timeout_s
         # The daemon stores its alarms whether MQTT is on or not (its AlarmRecorder); a link
         # built on its own (tests, benchmarks) stores them through one of its own.
         (recorded or AlarmRecorder(alarms, store)).subscribe(self._on_alarm)
@@ -288,6 +305,8 @@ class MqttLink:
             # will, and the birth may already be retained on the broker before its PUBACK.
             try:
                 await client.subscribe(self.topics.commands, qos=1)
+                if self.cfg.farm_server_ack:
+                    await client.subscribe(self.topics.ingested, qos=1)
                 await client.publish(self.topics.status, b"online", qos=1, retain=True)
                 async with asyncio.TaskGroup() as tg:
                     tg.create_task(self._commands_loop(client), name="mqtt-commands")
@@ -332,6 +351,7 @@ class MqttLink:
         deadline: float | None = None
         while True:
             self._seeds_wake.clear()
+            cursor = self._rewind(cursor)
             waiting = self.store.count_pending_seeds(after_id=cursor, cap=limit)
             now = time.monotonic()
             if waiting:
@@ -347,6 +367,8 @@ class MqttLink:
                     if batch is not None:
                         return batch
             timeout = None if deadline is None else max(0.0, deadline - now)
+            if self._unconfirmed:  # wake to look at the farm server's timeout
+                timeout = min(timeout if timeout is not None else 1.0, 1.0)
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(timeout):
                     await self._seeds_wake.wait()
@@ -358,13 +380,66 @@ class MqttLink:
             await client.publish(
                 self.topics.seeds, batch.payload, qos=1, timeout=self.publish_timeout_s
             )
-            # PUBACK received: only now is the batch delivered.
-            self.store.mark_seeds_delivered(batch.ids)
+            if self.cfg.farm_server_ack:
+                # the broker has it; delivered only once the farm server's watermark says it
+                # is committed (``_on_watermark``), else published again (``_rewind``)
+                self._unconfirmed.append((time.monotonic(), batch.ids[-1]))
+                self._seeds_wake.set()  # the batcher now waits with the ack timeout in view
+            else:
+                # PUBACK received: only now is the batch delivered.
+                self.store.mark_seeds_delivered(batch.ids)
             self._progress.set()
             self.stats.batches_published += 1
             self.stats.seeds_published += len(batch.ids)
         finally:
             slots.release()
+
+    def _rewind(self, cursor: int) -> int:
+        """``[mqtt] farm_server_ack``: the cursor to publish from. Back to the oldest record
+        the watermark does not cover once a batch holding it was published more than
+        ``farm_server_ack_timeout_s`` ago: the broker or the farm server lost it."""
+        if not self._unconfirmed:
+            return cursor
+        oldest = self.store.oldest_pending_seed_id()
+        while self._unconfirmed and (oldest is None or self._unconfirmed[0][1] < oldest):
+            self._unconfirmed.popleft()  # covered by the watermark meanwhile
+        if not self._unconfirmed or oldest is None:
+            return cursor
+        waited = self.resend_after_s
+        if time.monotonic() - self._unconfirmed[0][0] < waited:
+            return cursor
+        self._unconfirmed.clear()
+        self.stats.farm_server_resends += 1
+        self.resend_after_s = min(
+            waited * 2, self.cfg.farm_server_ack_timeout_s * MAX_RESEND_BACKOFF
+        )
+        log.warning("mqtt: the farm server has not confirmed seed records from id %d after "
+                    "%.0f s; publishing them again", oldest, waited)
+        return min(cursor, oldest - 1)
+
+    def on_watermark(self, payload: bytes) -> None:
+        """The farm server's retained ``ingested``: ``{"committed_through": N, "committed":
+        [[lo, hi], ...]}``. Those ids are delivered; anything malformed is ignored (logged)."""
+        try:
+            data = orjson.loads(payload)
+            through = data["committed_through"]
+            ranges = data.get("committed", [])
+            if not isinstance(through, int) or isinstance(through, bool) or through < 0:
+                raise ValueError("committed_through is not a non-negative integer")
+            spans = [(1, through)] if through >= 1 else []
+            for item in ranges if isinstance(ranges, list) else []:
+                lo, hi = item
+                if isinstance(lo, int) and isinstance(hi, int) and 1 <= lo <= hi:
+                    spans.append((lo, hi))
+        except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
+            log.warning("mqtt: ignored a malformed farm server watermark on %s: %s",
+                        self.topics.ingested, exc)
+            return
+        if self.store.mark_seed_ranges_delivered(spans):
+            self.resend_after_s = self.cfg.farm_server_ack_timeout_s
+            self._progress.set()
+            self._seeds_wake.set()
+        self.stats.farm_server_through = max(self.stats.farm_server_through, through)
 
     async def _alarms_loop(self, client: aiomqtt.Client) -> None:
         cursor = 0
@@ -443,6 +518,10 @@ class MqttLink:
         prefix = self.topics.base + "/cmd/"
         async for message in client.messages:
             topic = message.topic.value
+            if topic == self.topics.ingested:
+                raw = message.payload
+                self.on_watermark(raw if isinstance(raw, bytes) else str(raw or "").encode())
+                continue
             if not topic.startswith(prefix):
                 continue
             name = topic[len(prefix) :]
@@ -562,6 +641,7 @@ def mqtt_client(
     will: aiomqtt.Will | None = None,
     clean_session: bool | None = None,
     max_inflight_messages: int | None = None,
+    protocol: aiomqtt.ProtocolVersion | None = None,
 ) -> aiomqtt.Client:
     """An aiomqtt client for the ``[mqtt]`` section (host, port, user, password file, TLS,
     keepalive). The daemon and the dashboard both connect with it, so a broker that takes one
@@ -588,6 +668,7 @@ def mqtt_client(
         max_inflight_messages=max_inflight_messages,
         tls_context=tls_context,
         tls_insecure=tls_insecure,
+        protocol=protocol,
     )
 
 

@@ -197,6 +197,37 @@ class Outbox:
             self._pending_seeds -= changed
         self._check_backlog()
 
+    def mark_seed_ranges_delivered(self, ranges: Sequence[tuple[int, int]]) -> int:
+        """The farm server's watermark (``[mqtt] farm_server_ack``): these inclusive id ranges
+        are committed farm-side. Only ids this store has handed out count (a watermark from a
+        database that knew an older box with the same machine id must not mark ids to come).
+        Returns how many ids were newly marked."""
+        new = 0
+        with self._lock:
+            ceiling, acked = self._visible_seed_id, self._acked["seeds"]
+            for lo, hi in ranges:
+                lo, hi = max(1, lo), min(hi, ceiling)
+                if lo <= hi:
+                    new += acked.add(lo, hi)
+            if new:
+                self._acked_version += 1
+                done = acked.through() - self._tail_first + 1
+                if done > 0:
+                    del self._tail[:done]
+                    self._tail_first += done
+                self._pending_seeds -= new
+        if new:
+            self._wake_writer()
+            self._check_backlog()
+        return new
+
+    def oldest_pending_seed_id(self) -> int | None:
+        """The lowest committed id not yet delivered (None when all are)."""
+        with self._lock:
+            for lo, _hi in self._acked["seeds"].gaps(0, self._visible_seed_id):
+                return lo
+        return None
+
     def mark_alarms_delivered(self, ids: Sequence[int]) -> None:
         changed = self._mark("alarms", ids)
         with self._lock:

@@ -1,0 +1,213 @@
+"""`sowgate ingest`: every record from the broker in PostgreSQL exactly once, the watermark
+says so, hostile input is counted and never stored (real mosquitto, real PostgreSQL)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+from collections.abc import AsyncIterator
+from datetime import UTC, datetime, timedelta
+
+import aiomqtt
+import pytest
+
+from gateway.config import FarmServerSection, MqttSection
+from gateway.core.records import SeedRecord
+from gateway.farm_server.ingest import Ingest, gap_text
+from gateway.link.payloads import SeedBatch, StatePayload
+from tests.gateway.farm_server.conftest import rows
+from tests.helpers import eventually
+from tests.mosquitto import Mosquitto
+
+T0 = datetime(2026, 4, 20, 23, 59, 58, tzinfo=UTC)  # the records cross midnight: two days
+
+
+def records(machine: str, first: int, last: int) -> list[SeedRecord]:
+    return [
+        SeedRecord(id=i, machine_id=machine, row=1 + i % 6,
+                   utc=T0 + timedelta(milliseconds=5 * i), lat=48.0 + i * 1e-7,
+                   lon=15.0, fix="rtk_fixed", speed_kmh=8.0, spacing_m=0.12)
+        for i in range(first, last + 1)
+    ]
+
+
+def batch(machine: str, first: int, last: int) -> bytes:
+    return SeedBatch(machine_id=machine, records=records(machine, first, last)) \
+        .model_dump_json().encode()
+
+
+@contextlib.asynccontextmanager
+async def running_ingest(url: str, broker: Mosquitto, **farm: object) -> AsyncIterator[Ingest]:
+    ingest = Ingest(
+        FarmServerSection(database_url=url, flush_interval_s=0.1, state_sample_s=0,
+                          **farm),  # type: ignore[arg-type]
+        MqttSection(host=broker.host, port=broker.port, username="sowgate-ingest"),
+    )
+    task = asyncio.create_task(ingest.run(), name="test-ingest")
+    try:
+        await eventually(ingest.connected.is_set, 20, "ingest subscribed", unless=task)
+        yield ingest
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        if ingest._db is not None:
+            ingest._db.close()
+
+
+@contextlib.asynccontextmanager
+async def cab(broker: Mosquitto, machine: str) -> AsyncIterator[aiomqtt.Client]:
+    """A simulated cab publisher, logged in as its machine id (the ACL's %u)."""
+    async with aiomqtt.Client(broker.host, broker.port, identifier=f"cab-{machine}",
+                              username=machine) as client:
+        yield client
+
+
+@contextlib.asynccontextmanager
+async def watermarks(broker: Mosquitto) -> AsyncIterator[dict[str, dict[str, object]]]:
+    """The latest `ingested` payload per machine, as a cab would see it."""
+    seen: dict[str, dict[str, object]] = {}
+
+    async def run() -> None:
+        async with aiomqtt.Client(broker.host, broker.port, username="sowgate-ingest") as c:
+            await c.subscribe("sowgate/+/ingested", qos=1)
+            async for m in c.messages:
+                assert isinstance(m.payload, bytes)
+                seen[m.topic.value.split("/")[1]] = json.loads(m.payload)
+
+    task = asyncio.create_task(run())
+    try:
+        yield seen
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
+def through(seen: dict[str, dict[str, object]], machine: str) -> object:
+    return seen.get(machine, {}).get("committed_through")
+
+
+async def test_records_from_a_cab_end_in_postgresql_exactly_once(
+    database: str, broker: Mosquitto
+) -> None:
+    async with running_ingest(database, broker) as ingest, watermarks(broker) as seen, \
+            cab(broker, "seeder-01") as client:
+        for first in range(1, 1001, 100):
+            await client.publish("sowgate/seeder-01/seeds", batch("seeder-01", first, first + 99),
+                                 qos=1)
+        # at-least-once: the cab sends a batch again after a lost PUBACK
+        await client.publish("sowgate/seeder-01/seeds", batch("seeder-01", 301, 400), qos=1)
+        await eventually(lambda: through(seen, "seeder-01") == 1000, 30, "watermark 1000",
+                         detail=lambda: (seen, ingest.stats))
+    count, distinct, days, srid, first_lat = rows(
+        database, "SELECT count(*), count(DISTINCT id), count(DISTINCT utc::date), "
+        "min(ST_SRID(geom)), min(ST_Y(geom)) FROM seed_records WHERE machine_id = 'seeder-01'"
+    )[0]
+    assert (count, distinct, days, srid) == (1000, 1000, 2, 4326)
+    assert first_lat == pytest.approx(48.0 + 1e-7)
+    # each day in its own partition, created on demand
+    parts = rows(database, "SELECT count(*) FROM pg_inherits WHERE inhparent = "
+                 "'seed_records'::regclass")[0][0]
+    assert parts == 2
+    assert ingest.stats.seeds_duplicate == 100
+
+
+async def test_a_duplicate_flood_makes_no_duplicate_row(database: str, broker: Mosquitto) -> None:
+    async with running_ingest(database, broker, batch_rows=500) as ingest, \
+            watermarks(broker) as seen, cab(broker, "seeder-02") as client:
+        payloads = [batch("seeder-02", f, f + 49) for f in range(1, 501, 50)]
+        for _ in range(20):  # a replay of the whole outbox, twenty times over
+            for p in payloads:
+                await client.publish("sowgate/seeder-02/seeds", p, qos=1)
+        await client.publish("sowgate/seeder-02/seeds", batch("seeder-02", 250, 520), qos=1)
+        await eventually(lambda: through(seen, "seeder-02") == 520, 60, "watermark 520",
+                         detail=lambda: ingest.stats)
+        await eventually(lambda: ingest.stats.seeds_committed + ingest.stats.seeds_duplicate
+                         == 20 * 500 + 271, 60, "every copy judged")
+    assert rows(database, "SELECT count(*), count(DISTINCT id) FROM seed_records")[0] == (520, 520)
+    assert ingest.stats.seeds_committed == 520
+
+
+async def test_gaps_are_known_per_machine_and_named(database: str, broker: Mosquitto) -> None:
+    async with running_ingest(database, broker) as ingest, watermarks(broker) as seen, \
+            cab(broker, "seeder-03") as client:
+        await client.publish("sowgate/seeder-03/seeds", batch("seeder-03", 1, 199), qos=1)
+        await client.publish("sowgate/seeder-03/seeds", batch("seeder-03", 341, 400), qos=1)
+        await eventually(lambda: ingest.gaps().get("seeder-03") == [(200, 340)], 30, "the gap")
+        assert "seeder-03: records 200–340 not received yet" in ingest.summary()
+        # the watermark stops at the gap, and lists what is committed above it
+        await eventually(lambda: seen.get("seeder-03", {}).get("committed") ==
+                         [[1, 199], [341, 400]], 30, "watermark with the gap")
+        assert through(seen, "seeder-03") == 199
+        await client.publish("sowgate/seeder-03/seeds", batch("seeder-03", 200, 340), qos=1)
+        await eventually(lambda: through(seen, "seeder-03") == 400, 30, "gap filled")
+        assert ingest.gaps() == {}
+    assert gap_text("seeder-03", [(18200, 18340)]) == \
+        "seeder-03: records 18 200–18 340 not received yet"
+
+
+async def test_alarms_state_and_status_are_kept_state_thinned(
+    database: str, broker: Mosquitto
+) -> None:
+    state = StatePayload(machine_id="seeder-04", utc=T0, work_state="seeding", speed_kmh=8.0)
+    alarm = {"id": 7, "machine_id": "seeder-04", "code": "radar.lost", "active": True,
+             "severity": "warning", "message": "radar silent", "utc": T0.isoformat()}
+    async with running_ingest(database, broker) as ingest, cab(broker, "seeder-04") as client:
+        ingest.farm.state_sample_s = 3600.0
+        for k in range(5):
+            s = state.model_copy(update={"utc": T0 + timedelta(seconds=k)})
+            await client.publish("sowgate/seeder-04/state", s.model_dump_json().encode(), qos=1)
+        for _ in range(3):
+            await client.publish("sowgate/seeder-04/alarms", json.dumps(alarm).encode(), qos=1)
+        await client.publish("sowgate/seeder-04/status", b"online", qos=1)
+        await eventually(lambda: ingest.stats.alarms_committed == 1
+                         and ingest.stats.states_thinned == 4, 30, "alarm and state committed")
+        await eventually(lambda: rows(database, "SELECT status FROM machine_status") ==
+                         [("online",)], 30, "status")
+    assert rows(database, "SELECT count(*) FROM state_samples")[0][0] == 1
+    assert rows(database, "SELECT code, active FROM alarm_events") == [("radar.lost", True)]
+
+
+HOSTILE = [
+    ("sowgate/seeder-05/seeds", b"not json"),
+    ("sowgate/seeder-05/seeds", b"[" * 100_000 + b"]" * 100_000),  # deep nesting
+    ("sowgate/seeder-05/seeds", b'{"machine_id": "seeder-05", "records": [{"id": -1}]}'),
+    ("sowgate/seeder-05/seeds", batch("seeder-09", 1, 3)),  # another machine's records
+    ("sowgate/seeder-05/alarms", b'{"id": 1}'),
+    ("sowgate/seeder-05/state", b"\xff\xfe"),
+    ("sowgate/seeder-05/status", b"maybe"),
+    ("sowgate/seeder-05/seeds", b"{" + b'"a":' * 1 + b"1" * 70_000 + b"}"),
+]
+
+
+async def test_hostile_payloads_are_counted_never_stored_never_fatal(
+    database: str, broker: Mosquitto
+) -> None:
+    async with running_ingest(database, broker, max_payload_bytes=1_000_000) as ingest, \
+            watermarks(broker) as seen, cab(broker, "seeder-05") as client:
+        for topic, payload in HOSTILE:
+            await client.publish(topic, payload, qos=1)
+        await client.publish("sowgate/seeder-05/seeds", b"x" * 1_000_001, qos=1)  # too large
+        await eventually(lambda: sum(ingest.stats.rejected.values()) == len(HOSTILE) + 1, 30,
+                         "every hostile message rejected", detail=lambda: ingest.stats)
+        # and it still works
+        await client.publish("sowgate/seeder-05/seeds", batch("seeder-05", 1, 10), qos=1)
+        await eventually(lambda: through(seen, "seeder-05") == 10, 30, "a good batch after")
+    assert ingest.stats.rejected["impersonation"] == 1
+    assert ingest.stats.rejected["too_large"] == 1
+    assert rows(database, "SELECT count(*) FROM seed_records")[0][0] == 10
+    assert rows(database, "SELECT count(*) FROM alarm_events")[0][0] == 0
+    assert rows(database, "SELECT count(*) FROM machine_status")[0][0] == 0
+
+
+async def test_the_acl_lets_a_machine_publish_only_as_itself(
+    database: str, broker: Mosquitto
+) -> None:
+    async with running_ingest(database, broker) as ingest, watermarks(broker) as seen, \
+            cab(broker, "seeder-06") as client:
+        # seeder-06 tries to write seeder-07's records: the broker drops it
+        await client.publish("sowgate/seeder-07/seeds", batch("seeder-07", 1, 5), qos=1)
+        await client.publish("sowgate/seeder-06/seeds", batch("seeder-06", 1, 5), qos=1)
+        await eventually(lambda: through(seen, "seeder-06") == 5, 30, "its own records")
+        assert ingest.stats.messages == 1
+    assert rows(database, "SELECT DISTINCT machine_id FROM seed_records") == [("seeder-06",)]
