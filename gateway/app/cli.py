@@ -6,6 +6,7 @@ import argparse
 import asyncio
 import logging
 import os
+import signal
 import sys
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -278,7 +279,20 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def take_ctrl_c() -> None:
+    """Let Ctrl-C (SIGINT) raise KeyboardInterrupt even if it was ignored when we were started.
+
+    A shell starts a background job (``make test &``, ``cmd &`` in a script) with SIGINT
+    ignored, and the ignore is inherited through exec: Python then leaves it ignored, and
+    asyncio.run only turns SIGINT into a cancel when the handler is Python's default. A
+    calibration that cannot be stopped by the signal meant to stop it leaves a meter running,
+    so every sowgate command takes SIGINT back (``run`` installs its own handlers on top).
+    """
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def main(argv: list[str] | None = None) -> int:
+    take_ctrl_c()
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
