@@ -796,8 +796,15 @@ def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
         con.print(f"[red]calibration {escape(why)}:[/red] the meter is off; nothing saved")
         return EXIT_SIGINT if isinstance(exc, KeyboardInterrupt) else EXIT_SIGTERM
     except EOFError:
-        con.print("[red]calibration stopped:[/red] no answer at the prompt (standard input "
-                  "closed; --mass and --rpm script it); the meter is off; nothing saved")
+        if args.calibrate_command == "tilt":
+            scripted = ("--readings scripts it, e.g. --readings 0.4 for --mode level, "
+                        f"{cal.LOWERED_READINGS} angles for --mode lowered")
+            after = "nothing saved"
+        else:
+            scripted = "--mass and --rpm script it"
+            after = "the meter is off; nothing saved"
+        con.print(f"[red]calibration stopped:[/red] no answer at the prompt (standard input "
+                  f"closed; {scripted}); {after}")
         return EXIT_FAILED
     except (GatewayError, DriverError, OSError) as exc:
         con.print(f"[red]calibration refused:[/red] {escape(str(exc))}")

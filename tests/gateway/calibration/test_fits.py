@@ -237,6 +237,19 @@ def test_cli_tilt_undo_and_show(tmp_path: Path) -> None:
     assert saved is not None and saved["result"]["critical_angle_deg"] == pytest.approx(5.3)
 
 
+def test_cli_tilt_with_no_one_at_the_prompt_talks_about_tilt(tmp_path: Path) -> None:
+    """Standard input closed (a script): the message says how to script a tilt calibration."""
+    def closed(_question: str) -> float:
+        raise EOFError
+
+    code, out = run(["calibrate", "--state-dir", str(tmp_path), "tilt", "--mode", "lowered"],
+                    ask=closed)
+    text = " ".join(out.split())
+    assert code == 1 and "--readings scripts it" in text and "nothing saved" in text, text
+    assert "--mass" not in text and "meter" not in text
+    assert cal.CalibrationStore(tmp_path).get("tilt.inclinometer") is None
+
+
 @pytest.mark.parametrize("order", ["zero_first", "critical_first"])
 def test_cli_zero_and_critical_angle_do_not_erase_each_other(tmp_path: Path, order: str) -> None:
     sd = ["calibrate", "--state-dir", str(tmp_path), "tilt"]
