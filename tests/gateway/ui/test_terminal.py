@@ -229,7 +229,7 @@ def test_rate_error_is_a_dash_until_something_has_been_sown() -> None:
     truth = Truth()
     truth.record(0.0, 0.004, 0.1, sowing=True, width_m=2.0)  # the first step off standstill
     text = "\n".join(_screen(100, 40, DEMO_STATE, truth_report(truth, 6.0)))
-    applied = _line(text, "applied")
+    applied = _line(text, "actually")
     assert "-100" not in applied and applied.count("–") == 2, applied
 
 
