@@ -53,10 +53,11 @@ def setup_logging(verbose: bool, quiet: bool = False) -> None:
     logging.basicConfig(
         level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
-    # pymodbus logs every server start ("Server listening."), its repeat marker
-    # ("Repeating....") and frame dumps at INFO/DEBUG: noise next to sowgate's own device
-    # messages (which name the device that failed). Only -v lets it through.
-    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.WARNING)
+    # pymodbus logs every server start ("Server listening."), frame dumps, its own view of
+    # each failed connect or request and a repeat marker ("Repeating....", at WARNING):
+    # noise next to sowgate's own device messages, which say the same once, naming the
+    # device and the port. Only -v lets it through.
+    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.CRITICAL)
 
 
 def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
