@@ -174,7 +174,23 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
                    help="e.g. rotation.seed, speed.radar, tilt.inclinometer, positions.survey")
 
     sub.add_parser("show", help="print the stored calibration")
+    for command in sub.choices.values():
+        _accept_common_options(command)
     return p
+
+
+def _accept_common_options(command: argparse.ArgumentParser) -> None:
+    """``--config`` and ``--state-dir`` after the sub-command as well as before it.
+
+    ``sowgate calibrate positions --survey s.csv --config FILE`` is how people type it (and
+    how the docs showed it); argparse only knew them before ``positions`` and refused the rest.
+    SUPPRESS: not given here, the value given before the sub-command (or its default) stays.
+    """
+    command.add_argument("--config", default=argparse.SUPPRESS,
+                         help="sowgate TOML config (also accepted before the sub-command)")
+    command.add_argument("--state-dir", default=argparse.SUPPRESS,
+                         help="where calibration.json lives (also accepted before the "
+                         "sub-command)")
 
 
 def _settings(args: argparse.Namespace) -> Settings | None:
