@@ -780,7 +780,7 @@ def _seed_lot(args: argparse.Namespace, console: Console, store: cal.Calibration
 def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
                     ask: Callable[[str], float] | None = None) -> int:
     """Run the chosen ``calibrate`` sub-command; 0 on success, 1 with a message otherwise."""
-    con = console or Console()
+    con = console or Console(soft_wrap=True)  # whole lines: a pipe or a log got them cut at 80
 
     def prompt(text: str) -> float:
         return float(FloatPrompt.ask(text, console=con))
