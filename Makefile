@@ -40,10 +40,11 @@ demo: $(STAMP)
 	  echo "note: without mosquitto (make mosquitto) the demo runs without its web dashboard" >&2
 	$(BIN)/sowgate demo --dashboard
 
-# The suite on TEST_WORKERS parallel pytest-xdist workers. 3 on a 2-core box: most tests wait
-# on real time (simulated drives, brokers, ptys, child processes), not on the CPU. loadgroup
+# The suite on TEST_WORKERS parallel pytest-xdist workers. 4 on a 2-core box: most tests wait
+# on real time (simulated drives, brokers, ptys, child processes), not on the CPU (tests/
+# integration serially: 757 s wall, 87 s CPU). loadgroup
 # keeps each xdist_group on one worker (the fault matrix, tests sharing a module fixture).
-TEST_WORKERS ?= 3
+TEST_WORKERS ?= 4
 test: $(STAMP) mosquitto chromium
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
