@@ -26,9 +26,6 @@ from tests.integration.conftest import running
 MACHINE_ID = "seeder-01"
 SEEDS = 600
 
-# the module's tests share one sowing run (a module fixture): one worker under pytest-xdist
-pytestmark = pytest.mark.xdist_group("field_report")
-
 
 @dataclass(frozen=True)
 class Run:

@@ -18,9 +18,6 @@ CAMPAIGN_TIMEOUT_S = 600
 
 @pytest.mark.slow
 @pytest.mark.timeout(CAMPAIGN_TIMEOUT_S)
-# one worker under pytest-xdist: the campaign is a session fixture (it would run once per
-# worker) and the table in build/reliability.md must hold every row
-@pytest.mark.xdist_group("fault_matrix")
 @pytest.mark.parametrize("row", [r.name for r in ROWS])
 def test_fault_matrix(row: str, fault_matrix: dict[str, RowResult]) -> None:
     result = fault_matrix[row]
