@@ -183,6 +183,11 @@ class ModbusBus(StartClose):
     def connected(self) -> bool:
         return self._client is not None and self._client.connected
 
+    @property
+    def port_error(self) -> str | None:
+        """Why the port is down (``"/dev/x does not exist"``), None while it is open."""
+        return None if self.connected else self._port_error
+
     async def start(self) -> None:
         """Open the port. A missing port is not an error here: the bus keeps trying in the
         background and requests fail with DeviceUnavailable until it appears."""
@@ -288,10 +293,12 @@ class ModbusBus(StartClose):
             client = self._client
             if client is None or not client.connected:
                 error: DriverError = DeviceUnavailable(
-                    f"{label}: cannot {what}, RS485 port {self.port} is down "
-                    f"({self._port_error}); reconnecting"
+                    f"{label}: cannot {what}: RS485 port {self.port} is down "
+                    f"({self._port_error})"
                 )
-                self._failed(stats, "port_errors", error)
+                # counted, not logged per device: the port's own line says it once, with
+                # what is retried (a line per device and register said "reconnecting" 4 times)
+                self._failed(stats, "port_errors", error, log_it=False)
                 if self._started and not self._closing:
                     self._ensure_reconnecting()
                 raise error
@@ -392,7 +399,9 @@ class ModbusBus(StartClose):
         stats.last_ok_monotonic = time.monotonic()
         stats._streak_logged = False
 
-    def _failed(self, stats: DeviceStats, kind: str, error: DriverError) -> None:
+    def _failed(
+        self, stats: DeviceStats, kind: str, error: DriverError, *, log_it: bool = True
+    ) -> None:
         """Count the failure; log it unless the same kind was logged for this device less
         than ``log_every_s`` ago (a dead or flapping device must not flood the journal)."""
         setattr(stats, kind, getattr(stats, kind) + 1)
@@ -400,7 +409,9 @@ class ModbusBus(StartClose):
         stats.consecutive_failures += 1
         stats.last_error = str(error)
         now = time.monotonic()
-        if kind != stats._last_kind or now - stats._last_logged >= self.log_every_s:
+        if not log_it:
+            log.debug("%s", error)
+        elif kind != stats._last_kind or now - stats._last_logged >= self.log_every_s:
             suffix = (
                 f" ({stats.consecutive_failures} consecutive failures)"
                 if stats.consecutive_failures > 1
@@ -459,7 +470,11 @@ class ModbusBus(StartClose):
         self._connected_event.clear()
         now = time.monotonic()
         if now - self._port_down_logged_at >= self.log_every_s:
-            log.warning("RS485 port %s is down: %s; reconnecting", self.port, reason)
+            log.warning(
+                "RS485 port %s is down (%s): sowgate retries opening it (every %g s at most); "
+                "until it opens, the devices on it do not answer",
+                self.port, reason, self._backoff.cap_s,
+            )
             self._port_down_logged_at = now
         self._ensure_reconnecting()
 

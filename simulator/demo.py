@@ -155,7 +155,11 @@ async def run_demo(
     state: Path | None = None,
     hopper_scale: bool = False,
     dashboard: bool = False,
+    status_on_stdout: bool = False,
 ) -> int:
+    """The demo; ``tui`` False: a status line every ``STATUS_EVERY_S``, logged to standard
+    error, or with ``status_on_stdout`` printed (and flushed) to standard output, where a live
+    view would have been had it been a terminal (``make demo | tee demo.log``)."""
     from simulator.machine import SimulatedMachine
 
     code = {"rapeseed": 1, "wheat": 2}[crop]
@@ -185,7 +189,8 @@ async def run_demo(
         daemon = Daemon(settings, state)
         assert machine.hmi is not None
         model = settings.control.crops[crop]
-        text = await start_text(machine, settings, state, duration_s, tui, channels)
+        text = await start_text(machine, settings, state, duration_s, tui, channels,
+                                status_on_stdout)
         print("\n".join([text, *dashboard_lines]), flush=True)
 
         async def operator() -> None:
@@ -203,7 +208,8 @@ async def run_demo(
 
         helpers = [asyncio.create_task(operator(), name="demo-operator")]
         if not tui:
-            helpers.append(asyncio.create_task(_log_status(daemon), name="demo-status"))
+            helpers.append(asyncio.create_task(_log_status(daemon, status_on_stdout),
+                                               name="demo-status"))
         try:
             if tui:
                 await run_with_live_view(daemon.state, daemon.run(), truth)
@@ -212,12 +218,12 @@ async def run_demo(
         finally:
             for task in helpers:
                 await cancel_and_wait(task)
-        print(summary(truth(), daemon.controller.rate_kg_ha))
+        print(summary(truth(), daemon.controller.rate_kg_ha), flush=True)
         area_ha = machine.truth.area_m2 / 1e4
         for name, _product, rate, _g in PAPER_B_CHANNELS if channels else ():
             mass_kg = plants[name].mass_g / 1000
             applied_ch = mass_kg / area_ha if area_ha > 0 else 0.0
-            print(f"channel {name}: applied {applied_ch:.1f} kg/ha (target {rate:g})")
+            print(f"channel {name}: applied {applied_ch:.1f} kg/ha (target {rate:g})", flush=True)
         print(end_text(machine, state, channels), flush=True)
     return 0
 
@@ -272,8 +278,13 @@ def _dashboard_overrides(
     conf = Path(scratch.name) / "mosquitto.conf"
     conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
                     "log_dest none\n", encoding="utf-8")
+    # its own session: Ctrl-C in the terminal signals the whole foreground process group, and
+    # a broker that went with it left the daemon's last records unacknowledged ("published
+    # after the next start", which the next demo's new broker never does). The demo stops it
+    # itself, after the daemon has drained (the exit stack unwinds after daemon.run()).
     proc = subprocess.Popen([mosquitto, "-c", str(conf)], stdin=subprocess.DEVNULL,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
     stack.callback(_stop_process, proc)
     _wait_listening(port, proc, "mosquitto")
     overrides["mqtt"] = {"enabled": True, "host": "127.0.0.1", "port": port,
@@ -306,6 +317,7 @@ def _start_dashboard(
             [sys.executable, "-m", "gateway.app.cli", "dashboard", "--config",
              str(state / CONFIG_FILE), "--listen", f"127.0.0.1:{port}"],
             stdin=subprocess.DEVNULL, stdout=out, stderr=out,
+            start_new_session=True,  # as the broker: stopped by the demo, not by Ctrl-C
         )
     stack.callback(_stop_process, proc)
     _wait_listening(port, proc, f"sowgate dashboard (see {log_path})")
@@ -345,6 +357,7 @@ async def start_text(
     duration_s: float | None,
     tui: bool,
     channels: bool,
+    status_on_stdout: bool = False,
 ) -> str:
     """What the demo tells the user before it starts: what runs where, and how to stop."""
     assert machine.rs485 is not None and machine.hmi is not None
@@ -371,8 +384,12 @@ async def start_text(
         f"record store: {_shown(state / 'records.sqlite3')} (kept after the demo; earlier "
         "demo runs stay in it, delete the folder to start afresh)",
         *await _mqtt_lines(settings),
-        "view: live in this terminal"
+        "view: live in this terminal; \"actually applied\" is what the simulated meter "
+        "really put on the ground (only a simulator knows it), against the target rate"
         if tui
+        else f"view: standard output is not a terminal, so a status line every "
+        f"{STATUS_EVERY_S:g} s here instead of the live view"
+        if status_on_stdout
         else "status: a line every few seconds on standard error",
         f"runs for {duration_s:g} s (Ctrl-C stops it sooner)"
         if duration_s is not None
@@ -457,10 +474,14 @@ def status_line(state: MachineState) -> str:
     return ", ".join(parts)
 
 
-async def _log_status(daemon: Daemon) -> None:
+async def _log_status(daemon: Daemon, on_stdout: bool = False) -> None:
     while True:
         await asyncio.sleep(STATUS_EVERY_S)
-        log.info("%s", status_line(daemon.state()))
+        line = status_line(daemon.state())
+        if on_stdout:
+            print(f"{time.strftime('%H:%M:%S')} {line}", flush=True)
+        else:
+            log.info("%s", line)
 
 
 async def _start_controllers(stack: contextlib.AsyncExitStack, can_channel: str) -> dict[str, Any]:
@@ -486,11 +507,15 @@ async def _start_controllers(stack: contextlib.AsyncExitStack, can_channel: str)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    # the live view redraws a terminal; into a pipe (`make demo | tee`) it would show nothing
+    # until the end, so there the demo prints plain status lines instead
+    live = not args.no_tui and sys.stdout.isatty()
     setup_logging(args.verbose, quiet=not args.no_tui)
     return asyncio.run(
         run_demo(
             duration_s=args.duration,
-            tui=not args.no_tui,
+            tui=live,
+            status_on_stdout=not args.no_tui and not live,
             crop=args.crop,
             channels=args.channels,
             state=args.state_dir,

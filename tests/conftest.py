@@ -11,11 +11,34 @@ import time
 from collections.abc import AsyncIterator, Iterator
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from simulator.modbus_devices import Rs485Simulator
 from tests.helpers import Plant
 
 LEAK_GRACE_S = 2.0
+
+# Property tests judge what the code does, not how fast: hypothesis's default 200 ms deadline
+# per example (and its too-slow health check) failed them on a loaded machine as "flaky".
+settings.register_profile(
+    "suite", deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.load_profile("suite")
+# pytest-xdist distributions that keep a test file on one worker (make test: loadfile)
+WHOLE_FILE_DISTRIBUTIONS = ("loadfile", "loadscope")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Parallel workers must get whole files: the fault matrix runs its campaign in a session
+    fixture (split over workers, every worker ran all of it, four at once on two cores) and
+    module fixtures (a daemon's sowing run) are shared by the tests of their file."""
+    workers = getattr(config.option, "numprocesses", None)
+    dist = getattr(config.option, "dist", "no")
+    if workers and dist not in WHOLE_FILE_DISTRIBUTIONS:
+        raise pytest.UsageError(
+            f"-n {workers} needs --dist loadfile (got --dist {dist}): the fault matrix and "
+            "module fixtures expect each test file on one worker"
+        )
 
 
 def _fd_targets() -> dict[int, str]:

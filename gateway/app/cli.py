@@ -6,6 +6,7 @@ import argparse
 import asyncio
 import logging
 import os
+import signal
 import sys
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -55,10 +56,11 @@ def setup_logging(verbose: bool, quiet: bool = False) -> None:
         level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
     use_journal_priorities()
-    # pymodbus logs every server start ("Server listening."), its repeat marker
-    # ("Repeating....") and frame dumps at INFO/DEBUG: noise next to sowgate's own device
-    # messages (which name the device that failed). Only -v lets it through.
-    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.WARNING)
+    # pymodbus logs every server start ("Server listening."), frame dumps, its own view of
+    # each failed connect or request and a repeat marker ("Repeating....", at WARNING):
+    # noise next to sowgate's own device messages, which say the same once, naming the
+    # device and the port. Only -v lets it through.
+    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.CRITICAL)
 
 
 def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
@@ -307,7 +309,20 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def take_ctrl_c() -> None:
+    """Let Ctrl-C (SIGINT) raise KeyboardInterrupt even if it was ignored when we were started.
+
+    A shell starts a background job (``make test &``, ``cmd &`` in a script) with SIGINT
+    ignored, and the ignore is inherited through exec: Python then leaves it ignored, and
+    asyncio.run only turns SIGINT into a cancel when the handler is Python's default. A
+    calibration that cannot be stopped by the signal meant to stop it leaves a meter running,
+    so every sowgate command takes SIGINT back (``run`` installs its own handlers on top).
+    """
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def main(argv: list[str] | None = None) -> int:
+    take_ctrl_c()
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -386,10 +386,13 @@ class Daemon:
                 f"(actuators.comm_timeout_s = {act.comm_timeout_s:g} s): switch the metering "
                 "motor and the fan off by hand"
             )
+        port_error = self.bus.port_error
+        # the port down says it all once; otherwise each register's own failure
+        why = (f"the port is down ({port_error})" if port_error is not None
+               else "; ".join(dict.fromkeys(failed.values())))
         self.safe_off_failure = (
             f"could not set motor and fan to 0 on exit: PWM module (id {self.pwm.device_id}) "
-            f"on RS485 port {self.bus.port}: {'; '.join(dict.fromkeys(failed.values()))}; "
-            f"{fallback}"
+            f"on RS485 port {self.bus.port}: {why}; {fallback}"
         )
         log.error("%s", self.safe_off_failure)
 

@@ -174,7 +174,23 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
                    help="e.g. rotation.seed, speed.radar, tilt.inclinometer, positions.survey")
 
     sub.add_parser("show", help="print the stored calibration")
+    for command in sub.choices.values():
+        _accept_common_options(command)
     return p
+
+
+def _accept_common_options(command: argparse.ArgumentParser) -> None:
+    """``--config`` and ``--state-dir`` after the sub-command as well as before it.
+
+    ``sowgate calibrate positions --survey s.csv --config FILE`` is how people type it (and
+    how the docs showed it); argparse only knew them before ``positions`` and refused the rest.
+    SUPPRESS: not given here, the value given before the sub-command (or its default) stays.
+    """
+    command.add_argument("--config", default=argparse.SUPPRESS,
+                         help="sowgate TOML config (also accepted before the sub-command)")
+    command.add_argument("--state-dir", default=argparse.SUPPRESS,
+                         help="where calibration.json lives (also accepted before the "
+                         "sub-command)")
 
 
 def _settings(args: argparse.Namespace) -> Settings | None:
@@ -764,7 +780,7 @@ def _seed_lot(args: argparse.Namespace, console: Console, store: cal.Calibration
 def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
                     ask: Callable[[str], float] | None = None) -> int:
     """Run the chosen ``calibrate`` sub-command; 0 on success, 1 with a message otherwise."""
-    con = console or Console()
+    con = console or Console(soft_wrap=True)  # whole lines: a pipe or a log got them cut at 80
 
     def prompt(text: str) -> float:
         return float(FloatPrompt.ask(text, console=con))
@@ -796,8 +812,15 @@ def run_calibration(args: argparse.Namespace, *, console: Console | None = None,
         con.print(f"[red]calibration {escape(why)}:[/red] the meter is off; nothing saved")
         return EXIT_SIGINT if isinstance(exc, KeyboardInterrupt) else EXIT_SIGTERM
     except EOFError:
-        con.print("[red]calibration stopped:[/red] no answer at the prompt (standard input "
-                  "closed; --mass and --rpm script it); the meter is off; nothing saved")
+        if args.calibrate_command == "tilt":
+            scripted = ("--readings scripts it, e.g. --readings 0.4 for --mode level, "
+                        f"{cal.LOWERED_READINGS} angles for --mode lowered")
+            after = "nothing saved"
+        else:
+            scripted = "--mass and --rpm script it"
+            after = "the meter is off; nothing saved"
+        con.print(f"[red]calibration stopped:[/red] no answer at the prompt (standard input "
+                  f"closed; {scripted}); {after}")
         return EXIT_FAILED
     except (GatewayError, DriverError, OSError) as exc:
         con.print(f"[red]calibration refused:[/red] {escape(str(exc))}")

@@ -479,7 +479,50 @@ def load_config(path: str | os.PathLike[str]) -> Settings:
         data = tomllib.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError([f"{p}: not valid TOML: {exc}"]) from None
-    return parse_config(data)
+    if not data:
+        # every table has defaults, so an empty file would validate as a demo seeder on
+        # /dev/ttyUSB0: almost certainly the wrong file, or one never filled in
+        raise ConfigError([
+            f"{p}: the config file is empty: it needs at least [machine] with this seeder's "
+            "id and rows, and the tables of the parts it has ([rs485] port, [gnss], "
+            "[mqtt], ...); examples/sowgate.toml shows every table"])
+    return parse_config(resolve_relative_paths(data, p.parent))
+
+
+# The keys that name files: a relative value is from the config file's directory (a config
+# that names its prescription map next to it works from any working directory, as a systemd
+# unit's does). Values from the environment stay as given (the caller's working directory).
+FILE_KEYS: tuple[tuple[str, ...], ...] = (
+    ("store", "path"),
+    ("prescription", "path"),
+    ("prescription", "as_applied_path"),
+    ("mqtt", "password_file"),
+    ("mqtt", "tls", "ca_file"),
+    ("mqtt", "tls", "cert_file"),
+    ("mqtt", "tls", "key_file"),
+    ("dashboard", "password_file"),
+)
+
+
+def resolve_relative_paths(data: dict[str, Any], base: Path) -> dict[str, Any]:
+    """A copy of a parsed config file with its relative ``FILE_KEYS`` made absolute against
+    ``base`` (the file's directory). Tables are copied on the way down, so the caller's document
+    stays as parsed; anything not a relative path (absolute, ``~``, not a string) is left for
+    validation to judge."""
+    out = dict(data)
+    for key in FILE_KEYS:
+        table = out
+        for name in key[:-1]:
+            inner = table.get(name)
+            if not isinstance(inner, dict):
+                break
+            table[name] = table = dict(inner)
+        else:
+            value = table.get(key[-1])
+            if (isinstance(value, str) and value and not value.startswith("~")
+                    and not Path(value).is_absolute()):
+                table[key[-1]] = str((base / value).absolute())
+    return out
 
 
 STORE_FILE = "records.sqlite3"

@@ -55,6 +55,10 @@ def page_config(settings: Settings) -> dict[str, Any]:
         "units": {"speed": "km/h", "rate": "kg/ha", "duty": "%", "tilt": "°",
                   "area": "ha", "mass": "kg", "distance": "m"},
         "machine_id": settings.machine.id,
+        # the rate form offers these, each with its rate range: a crop typed by hand came
+        # back as "unknown crop" from the machine
+        "crops": {name: [m.rate_min_kg_ha, m.rate_max_kg_ha]
+                  for name, m in sorted(settings.control.crops.items())},
     }
 
 

@@ -286,7 +286,10 @@ class MqttLink:
             # then close what it opened, then honour the cancel.
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(enter, timeout=client.timeout + 1.0)
-                await client.__aexit__(None, None, None)
+                # bounded as in _session: a DISCONNECT the broker never answers (a loaded
+                # machine, a broker going away) must not hold the cancel up indefinitely
+                async with asyncio.timeout(DISCONNECT_TIMEOUT_S):
+                    await client.__aexit__(None, None, None)
             _force_close(client)
             raise
         except Exception:

@@ -153,7 +153,7 @@ def _main_grid(state: MachineState, truth: dict[str, Any] | None) -> Table:
         sown = truth.get("sown_m")
         applied = truth.get("applied_kg_ha")
         main.add_row(
-            "applied (truth)",
+            "actually applied",
             _fmt(applied, ".2f", " kg/ha")
             + ("" if sown is None or applied is None else f" over {sown:.1f} m"),
             "rate error",

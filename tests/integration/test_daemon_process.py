@@ -141,3 +141,39 @@ async def test_sowgate_run_says_so_and_exits_1_when_the_pwm_module_is_silent_at_
     assert last.startswith("sowgate: could not set motor and fan to 0 on exit: PWM module"), text
     assert "actuators.comm_timeout_s = 2 s" in last
     assert "ERROR gateway.app.daemon: could not set motor and fan to 0 on exit" in text
+
+
+async def test_an_absent_rs485_port_is_one_clear_line_not_pymodbus_noise(tmp_path: Path) -> None:
+    """The adapter not plugged in: one line names the port, why it is down and what is retried;
+    no per-device, per-register repeats of it and nothing of pymodbus's own logging."""
+    port = tmp_path / "ttyRS485"  # never created
+    cfg = tmp_path / "sowgate.toml"
+    cfg.write_text(f'[machine]\nid = "m1"\n[rs485]\nport = "{port}"\n[hmi]\nenabled = false\n')
+    async with sowgate_process("run", "--config", str(cfg),
+                               env=sowgate_env(tmp_path / "state")) as proc:
+        assert proc.stderr is not None
+        seen: list[str] = []
+
+        async def until_the_port_line() -> None:
+            assert proc.stderr is not None
+            while "is down" not in "".join(seen):
+                line = await proc.stderr.readline()
+                assert line, "".join(seen)
+                seen.append(line.decode())
+
+        await asyncio.wait_for(until_the_port_line(), 30.0)
+        await asyncio.sleep(1.5)  # requests to radar, inclinometer and PWM module fail meanwhile
+        proc.send_signal(signal.SIGTERM)
+        _, rest = await asyncio.wait_for(proc.communicate(), 30.0)
+    lines = [*seen, *rest.decode().splitlines(keepends=True)]
+    text = "".join(lines)
+    down = [line for line in lines if "is down" in line and "WARNING" in line]
+    assert len(down) == 1, text
+    assert f"RS485 port {port} is down ({port} does not exist): sowgate retries opening it" in (
+        down[0]), text
+    assert "pymodbus" not in text and "Repeating" not in text, text
+    assert "reconnecting" not in text, text
+    # the stop cannot reach the PWM module: said once, with the port's reason, not per register
+    last = lines[-1]
+    assert last.startswith("sowgate: could not set motor and fan to 0 on exit"), text
+    assert last.count(str(port)) == 2 and len(last) - 2 * len(str(port)) < 280, last

@@ -162,49 +162,71 @@ def test_the_status_line_says_state_speed_outputs_and_what_was_sown() -> None:
     assert "no speed" in quiet and "alarms: none" in quiet and "seeds" not in quiet
 
 
-def test_pymodbus_logging_stays_at_warning_unless_verbose() -> None:
+def test_pymodbus_logging_is_silent_unless_verbose() -> None:
     from gateway.app.cli import setup_logging
 
     pymodbus = logging.getLogger("pymodbus")
     before = pymodbus.level
     try:
         setup_logging(verbose=False)
-        assert pymodbus.getEffectiveLevel() == logging.WARNING
+        assert pymodbus.getEffectiveLevel() == logging.CRITICAL
         setup_logging(verbose=True)
         assert pymodbus.getEffectiveLevel() == logging.DEBUG
     finally:
         pymodbus.setLevel(before)
 
 
-async def test_make_demo_serves_the_dashboard_on_a_private_broker_and_prints_its_url(
+async def test_make_demo_piped_serves_the_dashboard_and_stops_cleanly_on_ctrl_c(
     tmp_path: Path,
 ) -> None:
-    """``make demo`` (``sowgate demo --dashboard``): a private mosquitto, the dashboard process,
-    and a URL that shows the simulated seeder's seeds."""
+    """``make demo | tee demo.log`` (``sowgate demo --dashboard`` into a pipe): a private
+    mosquitto, the dashboard process and a URL that shows the simulated seeder's seeds; status
+    lines arrive while it runs (not at the end); and Ctrl-C, which the terminal sends to the
+    whole foreground process group, stops the daemon first: it drains into the broker, which
+    the demo stops after it, so no record is left unacknowledged and no traceback is shown."""
     import asyncio
     import json
+    import os
+    import signal
     import urllib.request
 
-    from tests.helpers import eventually, sowgate_process
+    from tests.helpers import eventually, sowgate_argv
 
     env = sowgate_env(env={"PYTHONPATH": str(ROOT)}, clean=True)
-    out = tmp_path / "out.txt"
-    with out.open("wb") as sink:
-        async with sowgate_process("demo", "--no-tui", "--dashboard", "--duration", "20",
-                                   "--state-dir", str(tmp_path / "demo"), env=env,
-                                   stdout=sink, stderr=asyncio.subprocess.DEVNULL) as proc:
-            await eventually(lambda: "dashboard: open http://" in out.read_text(), 30.0,
+    out, err = tmp_path / "out.txt", tmp_path / "err.txt"
+    with out.open("wb") as sink, err.open("wb") as errors:
+        proc = await asyncio.create_subprocess_exec(
+            *sowgate_argv("demo", "--dashboard", "--state-dir", str(tmp_path / "demo")),
+            env=env, stdin=asyncio.subprocess.DEVNULL, stdout=sink, stderr=errors,
+            start_new_session=True)  # its own process group, as a shell job has
+        try:
+            await eventually(lambda: "dashboard: open http://" in out.read_text(), 60.0,
                              "the dashboard's URL", detail=out.read_text)
-            url = re.search(r"dashboard: open (http://\S+)", out.read_text())
+            text = out.read_text()
+            url = re.search(r"dashboard: open (http://\S+)", text)
             assert url is not None
-            assert "MQTT: broker 127.0.0.1:" in out.read_text()  # the private one
+            assert "MQTT: broker 127.0.0.1:" in text  # the private one
+            assert "view: standard output is not a terminal" in text, text
 
             def seeds() -> int:
                 with urllib.request.urlopen(url.group(1) + "api/health", timeout=5) as resp:
                     return int(json.load(resp)["machines"].get("seeder-01", 0))
 
-            await eventually(lambda: seeds() > 0, 30.0, "seeds on the dashboard")
-            assert await asyncio.wait_for(proc.wait(), 40.0) == 0
+            await eventually(lambda: seeds() > 0, 60.0, "seeds on the dashboard")
+            # a progress line while it runs: flushed into the pipe, not held to the end
+            await eventually(lambda: re.search(r"\d\d:\d\d:\d\d (pre_seed|seeding|paused|"
+                                               r"turning), ", out.read_text()) is not None,
+                             60.0, "a status line on standard output", detail=out.read_text)
+            os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in the terminal
+            assert await asyncio.wait_for(proc.wait(), 60.0) == 0, err.read_text()
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+    text, errors_text = out.read_text(), err.read_text()
+    assert "demo finished: " in text and "motor and fan set to 0" in text, text
+    assert "Traceback" not in errors_text and "MqttError" not in errors_text, errors_text
+    assert "not acknowledged" not in errors_text, errors_text
 
     def reachable() -> bool:
         try:

@@ -182,7 +182,11 @@ function renderAll() {
   $("area").textContent = fmt(st.area_ha, st.area_ha < 10 ? 3 : 2, u.area || "ha");
   $("mass").textContent = fmt(st.seed_mass_kg, st.seed_mass_kg < 10 ? 3 : 1, u.mass || "kg");
   $("applied-rate").textContent = appliedText(m.rate || [], st, u.rate);
-  $("rate-crop").placeholder = st.crop || "crop";
+  const cropSelect = $("rate-crop");
+  if (st.crop && !cropSelect.dataset.chosen && cropSelect.value !== st.crop) {
+    cropSelect.value = st.crop;  // the machine's crop, until the user picks another
+    if (cropSelect.onchange) cropSelect.onchange();
+  }
   $("state-utc").textContent = st.utc ? time(st.utc) : "–";
   const dev = $("devices");
   const devices = Object.entries(st.devices || {});
@@ -281,7 +285,8 @@ function renderChart(rate) {
       // values only in the labels: "--" under every series until hovered read as "no data"
       legend: { live: false },
       series: [{}, { label: `target (${unit})`, stroke: "#2e7d32", width: 2 },
-        { label: `commanded (${unit})`, stroke: "#1565c0", dash: [4, 4] },
+        // 0 on headlands and stops: said in the label and under the chart
+        { label: `commanded (${unit}; 0 = not sowing)`, stroke: "#1565c0", dash: [4, 4] },
         // a point every ~50 g of seed, on top of the target when all is well: big enough to see
         { label: `applied (${unit})`, stroke: "#ef6c00", width: 2, spanGaps: true,
           points: { show: true, size: 9, fill: "#ef6c00" } }],
@@ -304,11 +309,25 @@ function setupControls() {
   $("rate-form").hidden = !cmds.includes("rate");
   $("cmd-start").onclick = () => sendCommand("start", {});
   $("cmd-stop").onclick = () => sendCommand("stop", {});
+  // the crops the config knows, each with its rate range: no free text to misspell
+  const crops = app.config.crops || {};
+  const select = $("rate-crop");
+  select.replaceChildren(...Object.keys(crops).map((name) => {
+    const option = document.createElement("option");
+    option.value = name;
+    option.textContent = name;
+    return option;
+  }));
+  select.onchange = () => {
+    const range = crops[select.value];
+    // the range as a hint; the machine judges the value (and says why it refuses one)
+    $("rate-value").placeholder = range ? `${range[0]}–${range[1]}` : "";
+  };
+  select.addEventListener("input", () => { select.dataset.chosen = "1"; });
+  select.onchange();
   $("rate-form").onsubmit = (ev) => {
     ev.preventDefault();
-    const m = app.selected && app.machines.get(app.selected);
-    const crop = $("rate-crop").value.trim() || (m && m.summary && m.summary.state && m.summary.state.crop) || "";
-    sendCommand("rate", { crop, rate_kg_ha: Number($("rate-value").value) });
+    sendCommand("rate", { crop: select.value, rate_kg_ha: Number($("rate-value").value) });
   };
 }
 

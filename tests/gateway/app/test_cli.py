@@ -83,7 +83,7 @@ def test_run_exits_78_on_a_config_error_found_while_building_the_daemon(
     monkeypatch.setattr(gateway.app.daemon, "Daemon", Refusing)
     monkeypatch.setenv("SOWGATE_STATE_DIR", str(tmp_path / "state"))
     f = tmp_path / "ok.toml"
-    f.write_text("")
+    f.write_text("[machine]\n")
     assert main(["run", "--config", str(f)]) == 78
     assert "prescription.path: required" in capsys.readouterr().err
 

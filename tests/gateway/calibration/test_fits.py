@@ -237,6 +237,35 @@ def test_cli_tilt_undo_and_show(tmp_path: Path) -> None:
     assert saved is not None and saved["result"]["critical_angle_deg"] == pytest.approx(5.3)
 
 
+def test_cli_tilt_with_no_one_at_the_prompt_talks_about_tilt(tmp_path: Path) -> None:
+    """Standard input closed (a script): the message says how to script a tilt calibration."""
+    def closed(_question: str) -> float:
+        raise EOFError
+
+    code, out = run(["calibrate", "--state-dir", str(tmp_path), "tilt", "--mode", "lowered"],
+                    ask=closed)
+    text = " ".join(out.split())
+    assert code == 1 and "--readings scripts it" in text and "nothing saved" in text, text
+    assert "--mass" not in text and "meter" not in text
+    assert cal.CalibrationStore(tmp_path).get("tilt.inclinometer") is None
+
+
+def test_a_message_piped_to_a_file_is_not_cut_mid_sentence(tmp_path: Path) -> None:
+    """Output to a pipe or a log: one line per message, however long (a console without a
+    terminal used to break them at 80 columns)."""
+    import subprocess
+
+    from tests.helpers import sowgate_argv, sowgate_env
+
+    got = subprocess.run(
+        sowgate_argv("calibrate", "--state-dir", str(tmp_path), "tilt", "--mode", "lowered"),
+        stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=60,
+        env=sowgate_env(tmp_path))
+    assert got.returncode == 1, got.stdout + got.stderr
+    (line,) = [ln for ln in got.stdout.splitlines() if "calibration stopped" in ln]
+    assert len(line) > 80 and line.rstrip().endswith("nothing saved"), got.stdout
+
+
 @pytest.mark.parametrize("order", ["zero_first", "critical_first"])
 def test_cli_zero_and_critical_angle_do_not_erase_each_other(tmp_path: Path, order: str) -> None:
     sd = ["calibrate", "--state-dir", str(tmp_path), "tilt"]

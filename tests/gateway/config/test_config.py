@@ -64,6 +64,52 @@ def test_bad_toml_is_an_error(tmp_path: Path) -> None:
         load_config(f)
 
 
+@pytest.mark.parametrize("content", ["", "\n", "# nothing yet\n"])
+def test_an_empty_file_is_an_error_that_says_what_it_needs(tmp_path: Path, content: str) -> None:
+    """Every table has defaults, so an empty file would pass as a demo seeder: refused."""
+    f = tmp_path / "sowgate.toml"
+    f.write_text(content)
+    with pytest.raises(ConfigError) as err:
+        load_config(f)
+    (problem,) = err.value.problems
+    assert problem.startswith(f"{f}: the config file is empty")
+    assert "[machine]" in problem and "[rs485] port" in problem
+
+
+def test_relative_file_paths_are_from_the_config_files_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A config names its files next to itself; where the daemon is started does not matter."""
+    conf = tmp_path / "etc"
+    conf.mkdir()
+    f = conf / "sowgate.toml"
+    f.write_text(
+        '[store]\npath = "data/records.sqlite3"\n'
+        '[prescription]\npath = "field.geojson"\nas_applied_path = "/abs/applied.csv"\n'
+        '[mqtt]\nusername = "seeder"\npassword_file = "../secrets/mqtt"\n'
+        '[mqtt.tls]\nca_file = "ca.pem"\ncert_file = "~/client.pem"\n'
+        '[dashboard]\npassword_file = "dash"\n'
+    )
+    monkeypatch.chdir(tmp_path / "..")
+    s = load_config(f)
+    assert s.store.path == str(conf / "data" / "records.sqlite3")
+    assert s.prescription.path == str(conf / "field.geojson")
+    assert s.prescription.as_applied_path == "/abs/applied.csv"  # absolute: as written
+    assert s.mqtt.password_file == str(conf / ".." / "secrets" / "mqtt")
+    assert s.mqtt.tls is not None and s.mqtt.tls.ca_file == str(conf / "ca.pem")
+    assert s.mqtt.tls.cert_file == "~/client.pem"  # the home directory is not the file's
+    assert s.dashboard.password_file == str(conf / "dash")
+
+
+def test_a_relative_path_from_the_environment_stays_the_callers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    f = tmp_path / "sowgate.toml"
+    f.write_text('[store]\npath = "records.sqlite3"\n')
+    monkeypatch.setenv("SOWGATE_STORE__PATH", "here.sqlite3")
+    assert load_config(f).store.path == "here.sqlite3"
+
+
 def test_each_problem_names_its_key_and_value() -> None:
     with pytest.raises(ConfigError) as info:
         parse_config({"rs485": {"baudrate": 5, "prity": "N"}, "radar": {"unit": "mph"}})

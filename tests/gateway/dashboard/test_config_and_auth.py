@@ -30,6 +30,10 @@ def test_defaults_listen_on_localhost_without_a_password() -> None:
     assert d.tile_url is None and d.password_file is None
     assert dashboard_problems(settings) == []
     assert page_config(settings)["commands"] == []  # commands off: the page has no controls
+    crops = page_config(settings)["crops"]  # the rate form's choices, with their ranges
+    assert list(crops) == sorted(settings.control.crops) and "wheat" in crops
+    wheat = settings.control.crops["wheat"]
+    assert crops["wheat"] == [wheat.rate_min_kg_ha, wheat.rate_max_kg_ha]
 
 
 @pytest.mark.parametrize("listen", ["8080", "host:", ":8080", "a b:1", "0.0.0.0:0",

@@ -96,6 +96,9 @@ class Running:
     sink: StubController
 
 
+LINK_STOP_S = 30.0  # cancel to stopped, on a loaded machine
+
+
 @contextlib.asynccontextmanager
 async def running_link(
     settings: Settings, db: Path, state: Callable[[], StatePayload] = state_now
@@ -109,11 +112,14 @@ async def running_link(
     try:
         yield Running(link, store, alarms, sink)
     finally:
+        # bounded, and said: a link that does not stop on cancel is a bug to see by name, not
+        # a pytest-timeout of the whole test with its tasks leaked
         link_task.cancel()
-        await asyncio.gather(link_task, return_exceptions=True)
+        _done, pending = await asyncio.wait({link_task}, timeout=LINK_STOP_S)
         store_task.cancel()
         await asyncio.gather(store_task, return_exceptions=True)
         store.close()
+        assert not pending, f"the link still runs {LINK_STOP_S:g} s after its cancel"
 
 
 

@@ -184,7 +184,7 @@ DEMO_STATE = replace(  # what `sowgate demo --channels` shows after ~10 s (trimm
 DEMO_TRUTH = {"sown_m": 6.25, "applied_kg_ha": 5.70, "rate_error_pct": -4.92,
               "settled_m": 2.65, "settled_kg_ha": 6.11, "settled_rate_error_pct": 1.78}
 ROW_LABELS = ("state", "crop", "speed", "commanded", "tilt", "motor / fan", "GNSS",
-              "speed source", "area", "seed", "applied (truth)", "rate error", "after start-up",
+              "speed source", "area", "seed", "actually applied", "rate error", "after start-up",
               "devices", "alarms", "seeds", "channels")
 
 
@@ -229,7 +229,7 @@ def test_rate_error_is_a_dash_until_something_has_been_sown() -> None:
     truth = Truth()
     truth.record(0.0, 0.004, 0.1, sowing=True, width_m=2.0)  # the first step off standstill
     text = "\n".join(_screen(100, 40, DEMO_STATE, truth_report(truth, 6.0)))
-    applied = _line(text, "applied")
+    applied = _line(text, "actually")
     assert "-100" not in applied and applied.count("–") == 2, applied
 
 
