@@ -134,7 +134,8 @@ class HopperScaleSection(OptionalPart):
     capacity_kg: float = Field(3000.0, gt=0, le=100000)
     # seconds of steady seeding per regression window (evidence is pooled across windows)
     window_s: float = Field(120.0, ge=5, le=3600)
-    # the correction is kept within 1 +/- this (alarm hopper_scale.at_bound when it is held)
+    # the correction is kept within 1 +/- this (alarm hopper_scale.at_bound when it is held,
+    # hopper_scale.out_of_range when the drill is found beyond it: it sows off target)
     max_correction_pct: float = Field(20.0, gt=0, le=50)
     # a window whose scale-measured factor is this far from the applied one (and beyond its
     # own noise) raises hopper_scale.disagrees

@@ -85,6 +85,15 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "do a rotation test (`sowgate calibrate rotation`) for this crop and seed lot",
     ),
     AlarmCode(
+        "hopper_scale.out_of_range", ("warning", "critical"),
+        "the hopper scale finds the drill's discharge outside the correction range (beyond "
+        "1 ± `hopper_scale.max_correction_pct` of its model by 2 standard errors, applied yet "
+        "or not): the drill sows off target by what the bound leaves (in the message); "
+        "critical from 5 % off",
+        "do a rotation test for this crop and seed lot; check the meter's setting (flap, "
+        "roller) and the crop selected",
+    ),
+    AlarmCode(
         "hopper_scale.disagrees", ("warning",),
         "over the last window the scale's discharge differs from the corrected model by more "
         "than `hopper_scale.disagree_pct` and beyond its noise (a blocked outlet, a bridged "
