@@ -26,7 +26,7 @@ from gateway.control.hopper_correction import (
     time_to_empty_min,
 )
 from gateway.control.hopper_store import DEFAULT_SEED_LOT, HopperStore, Identity, rotation_saved_at
-from gateway.core.alarms import AlarmBoard
+from gateway.core.alarms import AlarmBoard, AlarmSeverity
 
 log = logging.getLogger(__name__)
 
@@ -209,7 +209,7 @@ class HopperLoop:
             self.alarms.clear("hopper_scale.out_of_range")
             return
         bound = self.section.max_correction_pct
-        severity = ("critical" if abs(st.residual_pct) >= OUT_OF_RANGE_CRITICAL_PCT
+        severity: AlarmSeverity = ("critical" if abs(st.residual_pct) >= OUT_OF_RANGE_CRITICAL_PCT
                     else "warning")
         self.alarms.set(
             "hopper_scale.out_of_range", True,
