@@ -26,7 +26,8 @@ from gateway.control.hopper_correction import (
     time_to_empty_min,
 )
 from gateway.control.hopper_store import DEFAULT_SEED_LOT, HopperStore, Identity, rotation_saved_at
-from gateway.core.alarms import AlarmBoard, AlarmSeverity
+from gateway.core.alarms import AlarmBoard
+from gateway.core.records import AlarmSeverity
 
 log = logging.getLogger(__name__)
 
