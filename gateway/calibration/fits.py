@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from gateway.core.errors import GatewayError
+from gateway.core.monotone import MonotoneCurve
 
 CALIBRATION_FILE = "calibration.json"
 FILE_VERSION = 1
@@ -149,6 +150,94 @@ def fit_meter_quadratic(rpm: Sequence[float], rate_g_min: Sequence[float],
             f"{slopes[0]:.2f} .. {slopes[1]:.2f}); narrow the range or repeat the weighings"
         )
     return fit
+
+
+# A rotation test with at least this many distinct set points is fitted with the drill's own
+# monotone shape (``fit_monotone``) instead of paper A's line and quadratic (issue 25).
+MIN_POINTS_MONOTONE = 5
+# The weighing noise assumed when no set point was repeated: paper B's repeated runs agree
+# within 2 % (its table 2: CV < 2 %). Repeats give the test's own noise instead.
+DEFAULT_RUN_CV = 0.02
+# A fall between neighbouring set points beyond this many standard errors of the difference
+# is not noise: the readings are inconsistent and those set points are to be repeated.
+MONOTONE_FALL_SIGMAS = 3.0
+
+
+@dataclass(frozen=True)
+class MonotoneFit:
+    """The drill's own curve: monotone piecewise cubic through the set points' means (knots),
+    with falls within the noise pooled (isotonic regression) rather than refused."""
+
+    points: tuple[tuple[float, float], ...]  # knots, both coordinates strictly rising
+    residuals: tuple[float, ...]  # each run against the curve, in y units
+    pooled: tuple[tuple[float, ...], ...]  # groups of set-point x merged as within noise
+    run_cv: float  # the relative noise used (from repeats, or DEFAULT_RUN_CV)
+    model: str = "monotone_cubic"
+
+    def predict(self, x: float) -> float:
+        return MonotoneCurve.through(self.points)(x)
+
+
+def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
+                 groups: Sequence[float] | None = None) -> MonotoneFit:
+    """Paper A's rotation test fitted with the drill's own shape (issue 25).
+
+    Runs of one set point (``groups``: the set point of each run, e.g. its duty; default the
+    x value) are averaged into one knot. Where a knot is lower than the one before it the
+    fall is compared with the noise of the two means (the runs' own scatter when set points
+    were repeated, else ``DEFAULT_RUN_CV``): within ``MONOTONE_FALL_SIGMAS`` it is noise and
+    the two are pooled (pool-adjacent-violators, the least-squares monotone fit); beyond, the
+    readings are inconsistent and CalibrationError names the set points to repeat. The knots
+    left carry a monotone piecewise cubic (``gateway.core.monotone``), which the controller
+    inverts exactly.
+    """
+    x, y = _arrays(xs, ys, 2, what)
+    keys = list(groups) if groups is not None else x.tolist()
+    if len(keys) != len(x):
+        raise CalibrationError(f"{what}: {len(keys)} set points for {len(x)} runs")
+    by_key: dict[float, list[int]] = {}
+    for i, k in enumerate(keys):
+        by_key.setdefault(float(k), []).append(i)
+    if len(by_key) < MIN_POINTS_MONOTONE:
+        raise CalibrationError(
+            f"{what}: the drill's own curve needs at least {MIN_POINTS_MONOTONE} distinct set "
+            f"points (got {len(by_key)})")
+    rel = [float(y[i] / np.mean(y[idx])) for idx in by_key.values() if len(idx) > 1
+           for i in idx if np.mean(y[idx]) > 0]
+    n_rep = sum(len(idx) - 1 for idx in by_key.values() if len(idx) > 1)
+    run_cv = DEFAULT_RUN_CV
+    if n_rep >= 3:  # enough repeats to measure the test's own noise (never below 0.5 %)
+        run_cv = max(0.005, math.sqrt(sum((r - 1.0) ** 2 for r in rel) / n_rep))
+    # blocks: (set points, weight n, mean x, mean y), in order of mean x
+    blocks = sorted(
+        ([k], float(len(idx)), float(np.mean(x[idx])), float(np.mean(y[idx])))
+        for k, idx in by_key.items())
+    merged: list[tuple[list[float], float, float, float]] = []
+    for blk in blocks:
+        merged.append(blk)
+        while len(merged) > 1 and merged[-1][3] <= merged[-2][3]:
+            (k1, n1, x1, y1), (k2, n2, x2, y2) = merged[-2], merged[-1]
+            level = max(abs(y1), abs(y2), 1e-9)
+            se = run_cv * level * math.sqrt(1.0 / n1 + 1.0 / n2)
+            if y1 - y2 > MONOTONE_FALL_SIGMAS * se:
+                raise CalibrationError(
+                    f"{what}: falls from {y1:.4g} at set point(s) {_names(k1)} to {y2:.4g} at "
+                    f"{_names(k2)}, {(y1 - y2) / se:.1f} times the weighing noise "
+                    f"({run_cv * 100:.1f} %): the readings are inconsistent; repeat set "
+                    f"point(s) {_names(k1 + k2)}")
+            n = n1 + n2
+            merged[-2:] = [(k1 + k2, n, (n1 * x1 + n2 * x2) / n, (n1 * y1 + n2 * y2) / n)]
+    points = tuple((b[2], b[3]) for b in merged)
+    if len(points) < 2 or any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
+        raise CalibrationError(f"{what}: the set points do not spread over a range")
+    curve = MonotoneCurve.through(points)
+    resid = tuple(float(yi - curve(float(xi))) for xi, yi in zip(x, y, strict=True))
+    return MonotoneFit(points, resid, tuple(tuple(b[0]) for b in merged if len(b[0]) > 1),
+                       run_cv)
+
+
+def _names(keys: Sequence[float]) -> str:
+    return ", ".join(f"{k:g}" for k in sorted(keys))
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ from pydantic import (
 from pydantic_settings import NoDecode
 
 from gateway.config._base import FieldProblem, OptionalPart, Section, check_unique, source_chain
+from gateway.core.monotone import MonotoneCurve
 from protocol.registers import PWM_COMM_TIMEOUT_REGISTER
 
 MAX_WORKING_SPEED_KMH = 40.0  # as speed.max_plausible_kmh's upper bound
@@ -264,9 +265,25 @@ class CropModel(Section):
     omega_max_rpm: float = Field(gt=0)
     fan_high_pct: float = Field(ge=0, le=100)
     fan_low_pct: float = Field(ge=0, le=100)
+    # The drill's own shape from a rotation test of >= 5 set points (issue 25): monotone
+    # piecewise cubics through [r/min, g/min] and [duty %, r/min] points, used instead of
+    # meter_a/b/c and motor_slope/intercept when given (calibration.json's rotation entry
+    # sets them; a config may too). Both coordinates must rise strictly.
+    meter_curve: list[tuple[float, float]] | None = None
+    motor_curve: list[tuple[float, float]] | None = None
 
     @model_validator(mode="after")
     def _ranges(self) -> CropModel:
+        for key in ("meter_curve", "motor_curve"):
+            points = getattr(self, key)
+            if points is None:
+                continue
+            if len(points) < 2:
+                raise FieldProblem(key, "needs at least 2 [x, y] points", points)
+            try:
+                MonotoneCurve.through(points)
+            except ValueError as exc:
+                raise FieldProblem(key, str(exc), points) from None
         if self.rate_min_kg_ha >= self.rate_max_kg_ha:
             raise FieldProblem(
                 "rate_max_kg_ha",
