@@ -131,11 +131,16 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
                     "meter_c": result["meter"]["c"],
                     "omega_min_rpm": lo,
                     "omega_max_rpm": hi,
+                    # the drill's own curves (rotation tests of >= 5 set points); older
+                    # files hold none and sow on the line and quadratic above
+                    "meter_curve": result.get("meter_curve"),
+                    "motor_curve": result.get("motor_curve"),
                 }
             )
             settings.control.crops = {**settings.control.crops, crop: new}
             via = "" if crop == name else f" (channel {name})"
-            return f"{crop} metering model refitted{via}"
+            shape = " (its own monotone curve)" if result.get("meter_curve") else ""
+            return f"{crop} metering model refitted{shape}{via}"
         if model == "grams_per_rev":
             for channel in settings.channel:
                 if channel.name == name:

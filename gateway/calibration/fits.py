@@ -221,8 +221,9 @@ def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
             se = run_cv * level * math.sqrt(1.0 / n1 + 1.0 / n2)
             if y1 - y2 > MONOTONE_FALL_SIGMAS * se:
                 raise CalibrationError(
-                    f"{what}: falls from {y1:.4g} at set point(s) {_names(k1)} to {y2:.4g} at "
-                    f"{_names(k2)}, {(y1 - y2) / se:.1f} times the weighing noise "
+                    f"{what} is not increasing: falls from {y1:.4g} at set point(s) "
+                    f"{_names(k1)} to {y2:.4g} at {_names(k2)}, {(y1 - y2) / se:.1f} times the "
+                    "weighing noise "
                     f"({run_cv * 100:.1f} %): the readings are inconsistent; repeat set "
                     f"point(s) {_names(k1 + k2)}")
             n = n1 + n2
@@ -237,7 +238,7 @@ def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
 
 
 def _names(keys: Sequence[float]) -> str:
-    return ", ".join(f"{k:g}" for k in sorted(keys))
+    return ", ".join(f"{k:.4g}" for k in sorted(keys))
 
 
 @dataclass(frozen=True)
@@ -344,6 +345,54 @@ def paper_a_problems(line: LineFit, quad: QuadFit, duties: Sequence[float],
                 "spread the runs over the working range"
             )
     return problems
+
+
+@dataclass(frozen=True)
+class PaperAFit:
+    """A paper-A rotation test fitted: eq. 5 and eq. 6 always (shown, and read by older
+    versions), the drill's own curves from ``MIN_POINTS_MONOTONE`` set points on."""
+
+    line: LineFit
+    quad: QuadFit
+    motor_own: MonotoneFit | None
+    meter_own: MonotoneFit | None
+    problems: list[str]
+    working_range: tuple[float, float]
+
+    def predict_flow(self, rpm: float) -> float:
+        return self.meter_own.predict(rpm) if self.meter_own else self.quad.predict(rpm)
+
+    def result(self) -> dict[str, Any]:
+        """The calibration entry's ``result``: new files say their model."""
+        out: dict[str, Any] = {"motor": asdict(self.line), "meter": asdict(self.quad),
+                               "omega_range": list(self.working_range),
+                               "meter_model": "quadratic"}
+        if self.meter_own is not None and self.motor_own is not None:
+            out.update(meter_model=self.meter_own.model, motor_model=self.motor_own.model,
+                       meter_curve=[list(p) for p in self.meter_own.points],
+                       motor_curve=[list(p) for p in self.motor_own.points],
+                       pooled_set_points=[list(g) for g in self.meter_own.pooled])
+        return out
+
+
+def fit_paper_a(duties: Sequence[float], rpm: Sequence[float], rates: Sequence[float],
+                working_range: tuple[float, float]) -> PaperAFit:
+    """Paper A's rotation test: with ``MIN_POINTS_MONOTONE`` distinct duties or more, the
+    drill's own monotone curves (its quadratic is then only shown: a monotonic drill with a
+    knee is not refused because a parabola through it turns over); fewer, eq. 5 and eq. 6 as
+    the paper fits them, refused unless increasing. CalibrationError when it cannot fit."""
+    line = fit_motor_line(duties, rpm)
+    if len(set(duties)) >= MIN_POINTS_MONOTONE:
+        motor_own = fit_monotone(duties, rpm, "duty -> r/min")
+        meter_own = fit_monotone(rpm, rates, "r/min -> g/min", groups=duties)
+        quad = fit_quadratic(rpm, rates)
+        # the R² gates judge the line and the quadratic, which the own curves replace
+        problems = paper_a_problems(line, quad, duties, rpm, min_motor_r2=-math.inf,
+                                    min_meter_r2=-math.inf)
+        return PaperAFit(line, quad, motor_own, meter_own, problems, working_range)
+    quad = fit_meter_quadratic(rpm, rates, working_range)
+    return PaperAFit(line, quad, None, None, paper_a_problems(line, quad, duties, rpm),
+                     working_range)
 
 
 def change_pct(new: float, old: float) -> float:

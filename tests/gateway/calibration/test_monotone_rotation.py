@@ -15,13 +15,16 @@ import math
 import random
 import statistics
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
 from gateway.calibration import fits as cal
+from gateway.calibration.apply import apply_calibrations
 from gateway.config import parse_config
 from gateway.control.rate_model import duty_for_omega, omega_for_flow
 from gateway.core.errors import RateError
+from tests.gateway.calibration.test_fits import run as run_cli
 
 WEIGHING_CV = 0.01  # 60 s runs: paper A's discharge CV is below 1.2 %
 RPM_CV = 0.002  # shaft turns counted over 60 s
@@ -189,3 +192,44 @@ def test_repeated_set_points_give_the_tests_own_noise() -> None:
 def test_fewer_than_5_set_points_keep_paper_a_s_quadratic() -> None:
     with pytest.raises(cal.CalibrationError, match="at least 5 distinct set points"):
         cal.fit_monotone([20, 30, 40, 45], [1, 2, 3, 4], "meter")
+
+
+def test_the_cli_saves_the_drills_own_curves_and_the_daemon_sows_on_them(
+        tmp_path: Path) -> None:
+    """``sowgate calibrate rotation`` with 8 set points on a knee drill: the entry says its
+    model and keeps the line and quadratic for older readers; applied, the crop sows on the
+    curves (within 1 % of the truth where the quadratic was 2 % off)."""
+    rng = random.Random(7)
+    drill = knee_drill("wheat", rng)
+    duties, rpm, flows = rotation_test(drill, "wheat", rng)
+    code, out = run_cli(["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel",
+                         "wheat", "--model", "paper_a", "--no-wait", "--seconds", "60",
+                         "--duties", ",".join(f"{d:.3f}" for d in duties),
+                         "--rpm", ",".join(f"{w:.4f}" for w in rpm),
+                         "--mass", ",".join(f"{q:.2f}" for q in flows)])
+    assert code == 0, out
+    entry = cal.CalibrationStore(tmp_path).get("rotation.wheat")
+    assert entry is not None
+    result = entry["result"]
+    assert result["meter_model"] == "monotone_cubic"
+    assert len(result["meter_curve"]) == SET_POINTS
+    assert {"a", "b", "c"} <= set(result["meter"])  # older readers still find eq. 6
+    settings = parse_config({"control": {"crop": "wheat"}})
+    assert apply_calibrations(settings, tmp_path) == [
+        "wheat metering model refitted (its own monotone curve)"]
+    model = settings.control.crops["wheat"]
+    assert sowing_error_pct(drill, model, rpm) < 1.0
+
+
+def test_an_older_calibration_file_without_curves_still_loads_on_the_quadratic(
+        tmp_path: Path) -> None:
+    store = cal.CalibrationStore(tmp_path)
+    store.save("rotation.wheat", {"saved_at": "2026-05-01T08:00:00+00:00", "model": "paper_a",
+                                  "result": {"motor": {"slope": 0.7, "intercept": -19.0},
+                                             "meter": {"a": -0.6, "b": 130.0, "c": -390.0},
+                                             "omega_range": [20.0, 45.0]}})
+    settings = parse_config({"control": {"crop": "wheat"}})
+    assert apply_calibrations(settings, tmp_path) == ["wheat metering model refitted"]
+    model = settings.control.crops["wheat"]
+    assert model.meter_curve is None and model.motor_curve is None
+    assert omega_for_flow(-0.6 * 900 + 130.0 * 30 - 390.0, model) == pytest.approx(30.0)
