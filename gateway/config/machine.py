@@ -222,6 +222,21 @@ def _radar_only() -> list[SpeedSourceName]:
     return ["radar"]
 
 
+class RadarScaleSection(Section):
+    """Learning the radar's scale against an RTK-fixed GNSS (``gateway.control.radar_scale``):
+    on straight passes at steady speed, the median of GNSS / raw radar over ``window_s``
+    replaces the radar's calibrated factor; ``radar.scale_drift`` while it is more than
+    ``alarm_pct`` from that factor. Needs ``[gnss]``; without an RTK-fixed fix it learns
+    nothing and the calibrated factor stays."""
+
+    enabled: bool = True
+    window_s: float = Field(180.0, ge=20, le=3600)  # seconds of fair comparison kept
+    alarm_pct: float = Field(2.0, gt=0, le=20)
+    min_speed_kmh: float = Field(2.0, gt=0, le=20)
+    max_turn_deg_s: float = Field(2.0, gt=0, le=30)  # course change counted as straight
+    steady_span: float = Field(0.05, gt=0, le=0.5)  # GNSS speed within ±this over 3 s
+
+
 class SpeedSection(Section):
     # priority order, first fresh source wins: ["isobus", "gnss", "radar"], or as one string
     # "isobus_then_gnss_then_radar" ("radar", "radar_then_gnss", ... as before)
@@ -243,6 +258,7 @@ class SpeedSection(Section):
     # light, quick machine; a value too low makes the filter lag real speed changes.
     max_accel_mps2: float = Field(1.5, ge=0.2, le=10)
     correction: dict[str, float] = Field(default_factory=dict)
+    radar_scale: RadarScaleSection = Field(default_factory=RadarScaleSection)
 
     _chain = field_validator("source", mode="before")(source_chain)
     _unique = field_validator("source")(check_unique)

@@ -73,6 +73,13 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "check the inclinometer's cable, power and Modbus address",
     ),
     AlarmCode(
+        "radar.scale_drift", ("warning",),
+        "the radar's scale learnt against the RTK-fixed GNSS on straight passes at steady "
+        "speed is more than `speed.radar_scale.alarm_pct` from its speed calibration (the "
+        "surface or the mounting changed): the learnt scale is used",
+        "check the radar's mounting; repeat `sowgate calibrate speed` on this surface",
+    ),
+    AlarmCode(
         "hopper_scale.unavailable", ("warning",),
         "the hopper scale does not answer on RS485: the rate runs on the discharge model with "
         "the last correction (kept), hopper mass and time to empty are not known",
