@@ -145,6 +145,10 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
             for channel in settings.channel:
                 if channel.name == name:
                     channel.grams_per_rev = float(result["grams_per_rev"])
+                    # g/rev against shaft speed (>= 5 speeds); older files: none, constant
+                    curve = result.get("grams_per_rev_curve")
+                    channel.grams_per_rev_curve = (
+                        None if curve is None else [(float(n), float(g)) for n, g in curve])
                     return f"{name} {channel.grams_per_rev:.2f} g/rev"
         raise ValueError(f"no crop or channel named {name!r} in the config")
     if kind == "positions":

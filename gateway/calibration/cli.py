@@ -28,7 +28,7 @@ import logging
 import signal
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -604,6 +604,10 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         console.print(f"g/rev = {fit.grams_per_rev:.2f}  CV {fit.cv_pct:.2f} %  R² {fit.r2:.4f}")
         console.print(f"{fit.grams_per_rev:.2f} g/rev per outlet ({outlets.describe()})")
         problems = cal.grams_per_rev_problems(fit)
+        by_speed = cal.grams_per_rev_by_speed(runs)
+        if by_speed is not None:
+            console.print("g/rev per outlet by shaft speed (used instead of the mean): "
+                          + ", ".join(f"{g:.2f} at {n:.0f} r/min" for n, g in by_speed))
         _check_quality(problems, args, console)
         previous = _previous_gpr(store, settings, args.channel, lot)
         large = False
@@ -612,8 +616,12 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
                                   previous[1], args, console)
         replaces = (None if previous is None
                     else {"grams_per_rev": previous[0], "from": previous[1]})
+        result = asdict(fit)
+        if by_speed is not None:  # new files say their model; older readers use the mean
+            result.update(gpr_model="per_speed_curve",
+                          grams_per_rev_curve=[list(p) for p in by_speed])
         store.save(key, cal.to_entry(
-            fit, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
+            result, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
             outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
             replaces=replaces, accepted_poor_fit=problems,
             accepted_large_change=large))

@@ -298,6 +298,24 @@ def grams_per_rev(runs: Sequence[RotationRun],
                           tuple((q - fitted).tolist()))
 
 
+def grams_per_rev_by_speed(runs: Sequence[RotationRun]) -> list[tuple[float, float]] | None:
+    """Paper B's g/rev as a function of shaft speed: [r/min, g/rev] knots, or None with fewer
+    than ``MIN_POINTS_MONOTONE`` set speeds (then the constant ``grams_per_rev`` is used).
+
+    Paper B runs its test at 10..60 r/min: a meter whose cells fill less at speed delivers
+    fewer grams per turn there (20 % less from 10 to 60 r/min: a constant g/rev errs by
+    +8.5 / +6.9 / -3.9 % across the range, issue 25). Every run counts here, the slow ones
+    too (their speed is what the curve is about; repeats average their scatter). The
+    delivered g/min must rise with speed (``fit_monotone``: a fall beyond the weighing noise
+    is refused naming the speeds to repeat); the channel inverts that curve."""
+    keys = [r.stability_rpm for r in runs]
+    if len(set(keys)) < MIN_POINTS_MONOTONE:
+        return None
+    fit = fit_monotone([r.rpm for r in runs], [r.mass_g / (r.seconds / 60.0) for r in runs],
+                       "delivered g/min against r/min", groups=keys)
+    return [(n, q / n) for n, q in fit.points]
+
+
 def grams_per_rev_problems(fit: GramsPerRevFit, *, max_cv_pct: float = MAX_GPR_CV_PCT,
                            min_r2: float = MIN_GPR_R2) -> list[str]:
     """Why a g/rev fit should not be trusted (empty: it passes every gate)."""
