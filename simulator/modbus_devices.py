@@ -171,6 +171,7 @@ class Rs485Simulator(StartClose):
         self.replies_pending = 0  # delayed replies not on the line yet
         self._held_replies: list[bytes] = []  # what the server sent since, queued behind them
         self._radar_held: float | None = None
+        self.radar_scale = 1.0  # the surface under the radar (see set_radar_scale)
         self._corrupt_left = 0
         self._garbage: bytes = b""
         self.duty_pct: dict[str, float] = {"motor": 0.0, "fan": 0.0}
@@ -327,6 +328,13 @@ class Rs485Simulator(StartClose):
             ) > 0
             if next_slow:
                 break
+
+    def set_radar_scale(self, scale: float) -> None:
+        """The radar reads ``scale`` × the plant's speed from now on: the surface changed
+        since its calibration (stubble to a seedbed, wet soil) or its mounting was knocked."""
+        if not scale > 0.0:
+            raise ValueError("radar scale must be above 0")
+        self.radar_scale = scale
 
     def hold_radar(self, kmh: float | None) -> None:
         """The radar reads ``kmh`` whatever the plant does (e.g. 0 while it loses its echo);
@@ -504,7 +512,8 @@ class Rs485Simulator(StartClose):
     ) -> ExcCodes | None:
         if self.radar.device_id in self._silent or set_values is not None:
             return None
-        kmh = self._radar_kmh() if self._radar_held is None else self._radar_held
+        kmh = (self._radar_kmh() * self.radar_scale if self._radar_held is None
+               else self._radar_held)
         radar_format = self._radar_format
         return _answer_encoded(
             registers, start_address, self.radar.address,

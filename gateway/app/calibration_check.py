@@ -26,7 +26,7 @@ from gateway.control.rate_model import (
     omega_for_flow,
 )
 from gateway.core.errors import OutsideCalibrationError
-from gateway.metering.channels import target_shaft_rpm
+from gateway.metering.channels import channel_target_rpm
 
 SPEED_SAMPLES = 9  # speeds checked across the working range (its ends included)
 # The config value must work with this margin at a speed for a calibration failing there to be
@@ -54,7 +54,7 @@ def _speeds(settings: Settings) -> list[float]:
 
 def _channel_verdict(settings: Settings, ch: ChannelSection, speed: float) -> Command:
     width = settings.machine.working_width_m
-    rpm = target_shaft_rpm(ch.target_rate_kg_ha, speed, width, ch.grams_per_rev * ch.outlets)
+    rpm = channel_target_rpm(ch, ch.target_rate_kg_ha, speed, width)
     low = settings.can.min_target_rpm
     if rpm < low:
         return Command("zero", (

@@ -57,6 +57,7 @@ def _take(live: Settings, candidate: Settings) -> None:
     live.control.crops = candidate.control.crops
     for mine, theirs in zip(live.channel, candidate.channel, strict=True):
         mine.grams_per_rev = theirs.grams_per_rev
+        mine.grams_per_rev_curve = theirs.grams_per_rev_curve
     live.speed.correction = dict(candidate.speed.correction)
     live.inclinometer.zero_offset_deg = candidate.inclinometer.zero_offset_deg
     live.inclinometer.critical_angle_deg = candidate.inclinometer.critical_angle_deg

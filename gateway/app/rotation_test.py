@@ -120,15 +120,14 @@ class RotationTestSession:
         rates = [m / (seconds / 60.0) for m in masses]  # whole machine: every outlet weighed
         wr = (min(rpm), max(rpm))
         try:
-            line = cal.fit_motor_line(duties, rpm)
-            quad = cal.fit_meter_quadratic(rpm, rates, wr)
+            fit = cal.fit_paper_a(duties, rpm, rates, wr)
         except cal.CalibrationError as exc:
             raise CommandError(f"not saved: {exc}") from None
-        problems = cal.paper_a_problems(line, quad, duties, rpm)
+        line, quad, problems = fit.line, fit.quad, fit.problems
         if problems:
             raise CommandError("not saved, repeat the runs: " + "; ".join(problems))
         lot = self.live.lot_of(crop)
-        change, replaces = self._change(crop, lot, line, quad, duties, wr)
+        change, replaces = self._change(crop, lot, line, fit, duties, wr)
         large = abs(change) > cal.LARGE_CHANGE_PCT
         if large and not confirmed:
             raise CommandError(
@@ -137,7 +136,7 @@ class RotationTestSession:
             )
         key = lots.rotation_key(crop, lot)
         entry = cal.to_entry(
-            {"motor": line.__dict__, "meter": quad.__dict__, "omega_range": list(wr)},
+            fit.result(),
             channel=crop, crop=crop, seed_lot=lot, model="paper_a", source="hmi",
             outlets_weighed=self.settings.machine.rows, outlets=self.settings.machine.rows,
             weighed_mass_g=masses, replaces=replaces, accepted_poor_fit=[],
@@ -154,7 +153,7 @@ class RotationTestSession:
         return (f"saved {key}: R = {line.slope:.4f}K {line.intercept:+.2f}, R2 {line.r2:.3f}/"
                 f"{quad.r2:.3f}; {'; '.join(mine) or 'applied'}")
 
-    def _change(self, crop: str, lot: str, line: cal.LineFit, quad: cal.QuadFit,
+    def _change(self, crop: str, lot: str, line: cal.LineFit, fit: cal.PaperAFit,
                 duties: list[float], wr: tuple[float, float]) -> tuple[float, dict[str, Any]]:
         """The largest change in % against what it replaces (eq. 5 at mid duty, eq. 6 at mid
         speed), and that value as the entry's ``replaces``."""
@@ -171,7 +170,7 @@ class RotationTestSession:
         old_w = motor["slope"] * mid_duty + motor["intercept"]
         old_q = meter["a"] * mid_w * mid_w + meter["b"] * mid_w + meter["c"]
         change = max((cal.change_pct(line.predict(mid_duty), old_w),
-                      cal.change_pct(quad.predict(mid_w), old_q)), key=abs)
+                      cal.change_pct(fit.predict_flow(mid_w), old_q)), key=abs)
         return change, {"motor": dict(motor), "meter": dict(meter), "from": source}
 
     def stop(self) -> None:

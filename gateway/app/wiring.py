@@ -293,6 +293,9 @@ def _attach_gnss(daemon: Daemon) -> None:
     epoch_listeners = daemon.epoch_listeners
 
     def on_epoch(epoch: GnssEpoch) -> None:
+        # every epoch, any fix: the radar's scale is learnt against the RTK-fixed ones
+        daemon.controller.on_gnss_epoch(epoch.t_mono, epoch.fix, epoch.speed_kmh,
+                                        epoch.course_deg)
         if epoch.fix != "none" and epoch.speed_kmh is not None:
             daemon.controller.on_speed("gnss", epoch.speed_kmh, epoch.t_mono)
         for listener in epoch_listeners:

@@ -131,15 +131,24 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
                     "meter_c": result["meter"]["c"],
                     "omega_min_rpm": lo,
                     "omega_max_rpm": hi,
+                    # the drill's own curves (rotation tests of >= 5 set points); older
+                    # files hold none and sow on the line and quadratic above
+                    "meter_curve": result.get("meter_curve"),
+                    "motor_curve": result.get("motor_curve"),
                 }
             )
             settings.control.crops = {**settings.control.crops, crop: new}
             via = "" if crop == name else f" (channel {name})"
-            return f"{crop} metering model refitted{via}"
+            shape = " (its own monotone curve)" if result.get("meter_curve") else ""
+            return f"{crop} metering model refitted{shape}{via}"
         if model == "grams_per_rev":
             for channel in settings.channel:
                 if channel.name == name:
                     channel.grams_per_rev = float(result["grams_per_rev"])
+                    # g/rev against shaft speed (>= 5 speeds); older files: none, constant
+                    curve = result.get("grams_per_rev_curve")
+                    channel.grams_per_rev_curve = (
+                        None if curve is None else [(float(n), float(g)) for n, g in curve])
                     return f"{name} {channel.grams_per_rev:.2f} g/rev"
         raise ValueError(f"no crop or channel named {name!r} in the config")
     if kind == "positions":

@@ -28,7 +28,7 @@ import logging
 import signal
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -620,6 +620,10 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         console.print(f"g/rev = {fit.grams_per_rev:.2f}  CV {fit.cv_pct:.2f} %  R² {fit.r2:.4f}")
         console.print(f"{fit.grams_per_rev:.2f} g/rev per outlet ({outlets.describe()})")
         problems = cal.grams_per_rev_problems(fit)
+        by_speed = cal.grams_per_rev_by_speed(runs)
+        if by_speed is not None:
+            console.print("g/rev per outlet by shaft speed (used instead of the mean): "
+                          + ", ".join(f"{g:.2f} at {n:.0f} r/min" for n, g in by_speed))
         _check_quality(problems, args, console)
         previous = _previous_gpr(store, settings, args.channel, lot)
         large = False
@@ -628,8 +632,12 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
                                   previous[1], args, console)
         replaces = (None if previous is None
                     else {"grams_per_rev": previous[0], "from": previous[1]})
+        result = asdict(fit)
+        if by_speed is not None:  # new files say their model; older readers use the mean
+            result.update(gpr_model="per_speed_curve",
+                          grams_per_rev_curve=[list(p) for p in by_speed])
         store.save(key, cal.to_entry(
-            fit, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
+            result, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
             outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
             replaces=replaces, accepted_poor_fit=problems,
             accepted_large_change=large))
@@ -673,8 +681,8 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     wr = tuple(args.working_range) if args.working_range else (min(rpm), max(rpm))
     if len(wr) != 2:
         raise cal.CalibrationError("--working-range takes two numbers: lo,hi r/min")
-    line = cal.fit_motor_line(duties, rpm)
-    quad = cal.fit_meter_quadratic(rpm, rates, (wr[0], wr[1]))
+    pfit = cal.fit_paper_a(duties, rpm, rates, (wr[0], wr[1]))
+    line, quad, meter_own = pfit.line, pfit.quad, pfit.meter_own
     console.print(_table(f"rotation test {args.channel} (paper A)",
                          ("duty %", "r/min", "g/min whole machine", "speed resid.",
                           "rate resid."),
@@ -682,7 +690,14 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
                                   strict=True))))
     console.print(f"R = {line.slope:.4f}·K {line.intercept:+.4f}  (R² {line.r2:.4f})")
     console.print(f"Q = {quad.a:.4f}·ω² {quad.b:+.4f}·ω {quad.c:+.4f}  (R² {quad.r2:.4f})")
-    problems = cal.paper_a_problems(line, quad, duties, rpm)
+    if meter_own is not None:
+        console.print(
+            f"the drill's own curve: {len(meter_own.points)} knots through the set points "
+            f"(weighing noise {meter_own.run_cv * 100:.1f} %"
+            + "".join(f"; set points {', '.join(f'{k:g}' for k in grp)} pooled: their "
+                      "difference is within the noise" for grp in meter_own.pooled)
+            + ")")
+    problems = pfit.problems
     _check_quality(problems, args, console)
     previous_a = _previous_paper_a(store, settings, args.channel, lot)
     large = False
@@ -697,12 +712,12 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         large = _check_change([
             (f"r/min at {mid_duty:.0f} % duty (eq. 5)",
              motor["slope"] * mid_duty + motor["intercept"], line.predict(mid_duty)),
-            (f"g/min at {mid_w:.0f} r/min (eq. 6)", q(meter, mid_w), quad.predict(mid_w)),
+            (f"g/min at {mid_w:.0f} r/min (eq. 6)", q(meter, mid_w), pfit.predict_flow(mid_w)),
         ], source, args, console)
     replaces_a = None if previous_a is None else {
         "motor": previous_a[0], "meter": previous_a[1], "from": previous_a[2]}
     store.save(key, cal.to_entry(
-        {"motor": line.__dict__, "meter": quad.__dict__, "omega_range": list(wr)},
+        pfit.result(),
         channel=args.channel, crop=crop or args.channel, seed_lot=lot, model="paper_a",
         outlets_weighed=outlets.weighed,
         outlets=outlets.total, weighed_mass_g=weighed, replaces=replaces_a,

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from gateway.core.errors import GatewayError
+from gateway.core.monotone import MonotoneCurve
 
 CALIBRATION_FILE = "calibration.json"
 FILE_VERSION = 1
@@ -151,6 +152,95 @@ def fit_meter_quadratic(rpm: Sequence[float], rate_g_min: Sequence[float],
     return fit
 
 
+# A rotation test with at least this many distinct set points is fitted with the drill's own
+# monotone shape (``fit_monotone``) instead of paper A's line and quadratic (issue 25).
+MIN_POINTS_MONOTONE = 5
+# The weighing noise assumed when no set point was repeated: paper B's repeated runs agree
+# within 2 % (its table 2: CV < 2 %). Repeats give the test's own noise instead.
+DEFAULT_RUN_CV = 0.02
+# A fall between neighbouring set points beyond this many standard errors of the difference
+# is not noise: the readings are inconsistent and those set points are to be repeated.
+MONOTONE_FALL_SIGMAS = 3.0
+
+
+@dataclass(frozen=True)
+class MonotoneFit:
+    """The drill's own curve: monotone piecewise cubic through the set points' means (knots),
+    with falls within the noise pooled (isotonic regression) rather than refused."""
+
+    points: tuple[tuple[float, float], ...]  # knots, both coordinates strictly rising
+    residuals: tuple[float, ...]  # each run against the curve, in y units
+    pooled: tuple[tuple[float, ...], ...]  # groups of set-point x merged as within noise
+    run_cv: float  # the relative noise used (from repeats, or DEFAULT_RUN_CV)
+    model: str = "monotone_cubic"
+
+    def predict(self, x: float) -> float:
+        return MonotoneCurve.through(self.points)(x)
+
+
+def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
+                 groups: Sequence[float] | None = None) -> MonotoneFit:
+    """Paper A's rotation test fitted with the drill's own shape (issue 25).
+
+    Runs of one set point (``groups``: the set point of each run, e.g. its duty; default the
+    x value) are averaged into one knot. Where a knot is lower than the one before it the
+    fall is compared with the noise of the two means (the runs' own scatter when set points
+    were repeated, else ``DEFAULT_RUN_CV``): within ``MONOTONE_FALL_SIGMAS`` it is noise and
+    the two are pooled (pool-adjacent-violators, the least-squares monotone fit); beyond, the
+    readings are inconsistent and CalibrationError names the set points to repeat. The knots
+    left carry a monotone piecewise cubic (``gateway.core.monotone``), which the controller
+    inverts exactly.
+    """
+    x, y = _arrays(xs, ys, 2, what)
+    keys = list(groups) if groups is not None else x.tolist()
+    if len(keys) != len(x):
+        raise CalibrationError(f"{what}: {len(keys)} set points for {len(x)} runs")
+    by_key: dict[float, list[int]] = {}
+    for i, k in enumerate(keys):
+        by_key.setdefault(float(k), []).append(i)
+    if len(by_key) < MIN_POINTS_MONOTONE:
+        raise CalibrationError(
+            f"{what}: the drill's own curve needs at least {MIN_POINTS_MONOTONE} distinct set "
+            f"points (got {len(by_key)})")
+    rel = [float(y[i] / np.mean(y[idx])) for idx in by_key.values() if len(idx) > 1
+           for i in idx if np.mean(y[idx]) > 0]
+    n_rep = sum(len(idx) - 1 for idx in by_key.values() if len(idx) > 1)
+    run_cv = DEFAULT_RUN_CV
+    if n_rep >= 3:  # enough repeats to measure the test's own noise (never below 0.5 %)
+        run_cv = max(0.005, math.sqrt(sum((r - 1.0) ** 2 for r in rel) / n_rep))
+    # blocks: (set points, weight n, mean x, mean y), in order of mean x
+    blocks = sorted(
+        ([k], float(len(idx)), float(np.mean(x[idx])), float(np.mean(y[idx])))
+        for k, idx in by_key.items())
+    merged: list[tuple[list[float], float, float, float]] = []
+    for blk in blocks:
+        merged.append(blk)
+        while len(merged) > 1 and merged[-1][3] <= merged[-2][3]:
+            (k1, n1, x1, y1), (k2, n2, x2, y2) = merged[-2], merged[-1]
+            level = max(abs(y1), abs(y2), 1e-9)
+            se = run_cv * level * math.sqrt(1.0 / n1 + 1.0 / n2)
+            if y1 - y2 > MONOTONE_FALL_SIGMAS * se:
+                raise CalibrationError(
+                    f"{what} is not increasing: falls from {y1:.4g} at set point(s) "
+                    f"{_names(k1)} to {y2:.4g} at {_names(k2)}, {(y1 - y2) / se:.1f} times the "
+                    "weighing noise "
+                    f"({run_cv * 100:.1f} %): the readings are inconsistent; repeat set "
+                    f"point(s) {_names(k1 + k2)}")
+            n = n1 + n2
+            merged[-2:] = [(k1 + k2, n, (n1 * x1 + n2 * x2) / n, (n1 * y1 + n2 * y2) / n)]
+    points = tuple((b[2], b[3]) for b in merged)
+    if len(points) < 2 or any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
+        raise CalibrationError(f"{what}: the set points do not spread over a range")
+    curve = MonotoneCurve.through(points)
+    resid = tuple(float(yi - curve(float(xi))) for xi, yi in zip(x, y, strict=True))
+    return MonotoneFit(points, resid, tuple(tuple(b[0]) for b in merged if len(b[0]) > 1),
+                       run_cv)
+
+
+def _names(keys: Sequence[float]) -> str:
+    return ", ".join(f"{k:.4g}" for k in sorted(keys))
+
+
 @dataclass(frozen=True)
 class RotationRun:
     """One timed run of the rotation test: shaft speed, duration, weighed mass."""
@@ -208,6 +298,24 @@ def grams_per_rev(runs: Sequence[RotationRun],
                           tuple((q - fitted).tolist()))
 
 
+def grams_per_rev_by_speed(runs: Sequence[RotationRun]) -> list[tuple[float, float]] | None:
+    """Paper B's g/rev as a function of shaft speed: [r/min, g/rev] knots, or None with fewer
+    than ``MIN_POINTS_MONOTONE`` set speeds (then the constant ``grams_per_rev`` is used).
+
+    Paper B runs its test at 10..60 r/min: a meter whose cells fill less at speed delivers
+    fewer grams per turn there (20 % less from 10 to 60 r/min: a constant g/rev errs by
+    +8.5 / +6.9 / -3.9 % across the range, issue 25). Every run counts here, the slow ones
+    too (their speed is what the curve is about; repeats average their scatter). The
+    delivered g/min must rise with speed (``fit_monotone``: a fall beyond the weighing noise
+    is refused naming the speeds to repeat); the channel inverts that curve."""
+    keys = [r.stability_rpm for r in runs]
+    if len(set(keys)) < MIN_POINTS_MONOTONE:
+        return None
+    fit = fit_monotone([r.rpm for r in runs], [r.mass_g / (r.seconds / 60.0) for r in runs],
+                       "delivered g/min against r/min", groups=keys)
+    return [(n, q / n) for n, q in fit.points]
+
+
 def grams_per_rev_problems(fit: GramsPerRevFit, *, max_cv_pct: float = MAX_GPR_CV_PCT,
                            min_r2: float = MIN_GPR_R2) -> list[str]:
     """Why a g/rev fit should not be trusted (empty: it passes every gate)."""
@@ -255,6 +363,54 @@ def paper_a_problems(line: LineFit, quad: QuadFit, duties: Sequence[float],
                 "spread the runs over the working range"
             )
     return problems
+
+
+@dataclass(frozen=True)
+class PaperAFit:
+    """A paper-A rotation test fitted: eq. 5 and eq. 6 always (shown, and read by older
+    versions), the drill's own curves from ``MIN_POINTS_MONOTONE`` set points on."""
+
+    line: LineFit
+    quad: QuadFit
+    motor_own: MonotoneFit | None
+    meter_own: MonotoneFit | None
+    problems: list[str]
+    working_range: tuple[float, float]
+
+    def predict_flow(self, rpm: float) -> float:
+        return self.meter_own.predict(rpm) if self.meter_own else self.quad.predict(rpm)
+
+    def result(self) -> dict[str, Any]:
+        """The calibration entry's ``result``: new files say their model."""
+        out: dict[str, Any] = {"motor": asdict(self.line), "meter": asdict(self.quad),
+                               "omega_range": list(self.working_range),
+                               "meter_model": "quadratic"}
+        if self.meter_own is not None and self.motor_own is not None:
+            out.update(meter_model=self.meter_own.model, motor_model=self.motor_own.model,
+                       meter_curve=[list(p) for p in self.meter_own.points],
+                       motor_curve=[list(p) for p in self.motor_own.points],
+                       pooled_set_points=[list(g) for g in self.meter_own.pooled])
+        return out
+
+
+def fit_paper_a(duties: Sequence[float], rpm: Sequence[float], rates: Sequence[float],
+                working_range: tuple[float, float]) -> PaperAFit:
+    """Paper A's rotation test: with ``MIN_POINTS_MONOTONE`` distinct duties or more, the
+    drill's own monotone curves (its quadratic is then only shown: a monotonic drill with a
+    knee is not refused because a parabola through it turns over); fewer, eq. 5 and eq. 6 as
+    the paper fits them, refused unless increasing. CalibrationError when it cannot fit."""
+    line = fit_motor_line(duties, rpm)
+    if len(set(duties)) >= MIN_POINTS_MONOTONE:
+        motor_own = fit_monotone(duties, rpm, "duty -> r/min")
+        meter_own = fit_monotone(rpm, rates, "r/min -> g/min", groups=duties)
+        quad = fit_quadratic(rpm, rates)
+        # the R² gates judge the line and the quadratic, which the own curves replace
+        problems = paper_a_problems(line, quad, duties, rpm, min_motor_r2=-math.inf,
+                                    min_meter_r2=-math.inf)
+        return PaperAFit(line, quad, motor_own, meter_own, problems, working_range)
+    quad = fit_meter_quadratic(rpm, rates, working_range)
+    return PaperAFit(line, quad, None, None, paper_a_problems(line, quad, duties, rpm),
+                     working_range)
 
 
 def change_pct(new: float, old: float) -> float:

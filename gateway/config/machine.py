@@ -15,6 +15,7 @@ from pydantic import (
 from pydantic_settings import NoDecode
 
 from gateway.config._base import FieldProblem, OptionalPart, Section, check_unique, source_chain
+from gateway.core.monotone import MonotoneCurve
 from protocol.registers import PWM_COMM_TIMEOUT_REGISTER
 
 MAX_WORKING_SPEED_KMH = 40.0  # as speed.max_plausible_kmh's upper bound
@@ -134,7 +135,8 @@ class HopperScaleSection(OptionalPart):
     capacity_kg: float = Field(3000.0, gt=0, le=100000)
     # seconds of steady seeding per regression window (evidence is pooled across windows)
     window_s: float = Field(120.0, ge=5, le=3600)
-    # the correction is kept within 1 +/- this (alarm hopper_scale.at_bound when it is held)
+    # the correction is kept within 1 +/- this (alarm hopper_scale.at_bound when it is held,
+    # hopper_scale.out_of_range when the drill is found beyond it: it sows off target)
     max_correction_pct: float = Field(20.0, gt=0, le=50)
     # a window whose scale-measured factor is this far from the applied one (and beyond its
     # own noise) raises hopper_scale.disagrees
@@ -220,6 +222,21 @@ def _radar_only() -> list[SpeedSourceName]:
     return ["radar"]
 
 
+class RadarScaleSection(Section):
+    """Learning the radar's scale against an RTK-fixed GNSS (``gateway.control.radar_scale``):
+    on straight passes at steady speed, the median of GNSS / raw radar over ``window_s``
+    replaces the radar's calibrated factor; ``radar.scale_drift`` while it is more than
+    ``alarm_pct`` from that factor. Needs ``[gnss]``; without an RTK-fixed fix it learns
+    nothing and the calibrated factor stays."""
+
+    enabled: bool = True
+    window_s: float = Field(180.0, ge=20, le=3600)  # seconds of fair comparison kept
+    alarm_pct: float = Field(2.0, gt=0, le=20)
+    min_speed_kmh: float = Field(2.0, gt=0, le=20)
+    max_turn_deg_s: float = Field(2.0, gt=0, le=30)  # course change counted as straight
+    steady_span: float = Field(0.05, gt=0, le=0.5)  # GNSS speed within ±this over 3 s
+
+
 class SpeedSection(Section):
     # priority order, first fresh source wins: ["isobus", "gnss", "radar"], or as one string
     # "isobus_then_gnss_then_radar" ("radar", "radar_then_gnss", ... as before)
@@ -241,6 +258,7 @@ class SpeedSection(Section):
     # light, quick machine; a value too low makes the filter lag real speed changes.
     max_accel_mps2: float = Field(1.5, ge=0.2, le=10)
     correction: dict[str, float] = Field(default_factory=dict)
+    radar_scale: RadarScaleSection = Field(default_factory=RadarScaleSection)
 
     _chain = field_validator("source", mode="before")(source_chain)
     _unique = field_validator("source")(check_unique)
@@ -263,9 +281,25 @@ class CropModel(Section):
     omega_max_rpm: float = Field(gt=0)
     fan_high_pct: float = Field(ge=0, le=100)
     fan_low_pct: float = Field(ge=0, le=100)
+    # The drill's own shape from a rotation test of >= 5 set points (issue 25): monotone
+    # piecewise cubics through [r/min, g/min] and [duty %, r/min] points, used instead of
+    # meter_a/b/c and motor_slope/intercept when given (calibration.json's rotation entry
+    # sets them; a config may too). Both coordinates must rise strictly.
+    meter_curve: list[tuple[float, float]] | None = None
+    motor_curve: list[tuple[float, float]] | None = None
 
     @model_validator(mode="after")
     def _ranges(self) -> CropModel:
+        for key in ("meter_curve", "motor_curve"):
+            points = getattr(self, key)
+            if points is None:
+                continue
+            if len(points) < 2:
+                raise FieldProblem(key, "needs at least 2 [x, y] points", points)
+            try:
+                MonotoneCurve.through(points)
+            except ValueError as exc:
+                raise FieldProblem(key, str(exc), points) from None
         if self.rate_min_kg_ha >= self.rate_max_kg_ha:
             raise FieldProblem(
                 "rate_max_kg_ha",

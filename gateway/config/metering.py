@@ -8,6 +8,7 @@ from pydantic import Field, field_validator, model_validator
 from pydantic_settings import NoDecode
 
 from gateway.config._base import FieldProblem, OptionalPart, Section, check_unique, source_chain
+from gateway.core.monotone import MonotoneCurve
 
 # the most any product is sown or spread at (a channel's target, a prescription's rate): a
 # map's 1e308 kg/ha is a broken export, not a rate
@@ -36,11 +37,26 @@ class ChannelSection(Section):
     max_shaft_rpm: float = Field(60.0, gt=0, le=1000)
     prescription_attribute: str | None = None
     outlets: int = Field(1, ge=1, le=128)  # m_total = grams_per_rev * outlets
+    # g/rev as a function of shaft speed (issue 25): [r/min, g/rev per outlet] points from
+    # paper B's runs at 10..60 r/min, used instead of grams_per_rev when given (a rotation
+    # test at >= 5 speeds sets it); r/min rising and the delivered g/min (r/min x g/rev)
+    # rising with it, else exit 78
+    grams_per_rev_curve: list[tuple[float, float]] | None = None
     outlet_behind_m: float = Field(0.0, ge=-50, le=50)  # outlets behind the GNSS antenna
     outlet_lateral_m: float = Field(0.0, ge=-50, le=50)  # to the right of the antenna
 
     @model_validator(mode="after")
     def _can_node(self) -> ChannelSection:
+        if self.grams_per_rev_curve is not None:
+            pts = self.grams_per_rev_curve
+            if len(pts) < 2 or any(n <= 0 or g <= 0 for n, g in pts):
+                raise FieldProblem("grams_per_rev_curve",
+                                   "needs at least 2 [r/min, g/rev] points, both above 0", pts)
+            try:
+                MonotoneCurve.through([(0.0, 0.0), *((n, n * g) for n, g in pts)])
+            except ValueError as exc:
+                raise FieldProblem("grams_per_rev_curve",
+                                   f"as r/min -> g/min (r/min x g/rev): {exc}", pts) from None
         if self.drive == "can_pid" and not 1 <= self.node_id <= 15:
             raise FieldProblem(
                 "node_id", "a can_pid channel needs node_id 1..15 (0 is not addressable)",

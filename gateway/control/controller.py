@@ -17,6 +17,7 @@ from gateway.config import ChannelSection, CropModel, Settings
 from gateway.control.attitude import Attitude as AttitudeBand
 from gateway.control.attitude import zeroed_tilt
 from gateway.control.hopper_loop import HopperLoop
+from gateway.control.radar_scale import RadarScaleLearner, RadarScaleSettings
 from gateway.control.rate_model import flow_at, omega_for_duty, plan_duty, rate_for_flow
 from gateway.control.speed import Hysteresis, MovingAverage, TrendFilter
 from gateway.control.work_state import (
@@ -151,6 +152,14 @@ class Controller:
                 MovingAverage(OTHER_SOURCE_FILTER_SAMPLES), corr.get("agopengps", 1.0)
             ),
         }
+        # the radar's scale learnt against an RTK-fixed GNSS (issue 25), with a GNSS only
+        rs = s.speed.radar_scale
+        self.radar_scale: RadarScaleLearner | None = None
+        if rs.enabled and s.gnss.enabled and "radar" in s.speed.source:
+            self.radar_scale = RadarScaleLearner(
+                RadarScaleSettings(rs.window_s, rs.alarm_pct, rs.min_speed_kmh,
+                                   rs.max_turn_deg_s, rs.steady_span),
+                calibrated=corr.get("radar", 1.0))
         thr, hyst = s.speed.moving_threshold_kmh, s.speed.moving_hysteresis_kmh
         self._moving = Hysteresis(thr + hyst, thr, initial=False)
         self._attitude = AttitudeBand(
@@ -223,8 +232,32 @@ class Controller:
         if last_bad is not None and t - last_bad >= speed.stale_after_s:
             del self._implausible_t[source]
             self.alarms.clear(code)
+        if source == "radar" and self.radar_scale is not None:
+            self._learn_radar_scale(kmh, t)
         self.sources[source].add(kmh, t, speed.stale_after_s)
         return True
+
+    def on_gnss_epoch(self, t: float, fix: str, speed_kmh: float | None,
+                      course_deg: float | None) -> None:
+        """Each GNSS epoch (any fix): what the radar's scale is learnt against."""
+        if self.radar_scale is not None:
+            self.radar_scale.on_gnss(t, fix, speed_kmh, course_deg)
+
+    def _learn_radar_scale(self, raw_kmh: float, t: float) -> None:
+        learner = self.radar_scale
+        assert learner is not None
+        learner.on_radar(t, raw_kmh)
+        scale = learner.scale
+        if scale is None:
+            return
+        self.sources["radar"].correction = scale  # the corrected speed is what is sown on
+        drift = learner.drift_pct() or 0.0
+        self.alarms.set(
+            "radar.scale_drift", learner.drifted(),
+            f"radar reads {-drift:+.1f} % against the RTK GNSS since its calibration "
+            f"(x{learner.calibrated:.4f} -> x{scale:.4f}, learnt on straight passes and "
+            "used): the surface or the mounting changed; check the radar's mounting",
+            "warning")
 
     def on_tilt(self, raw_deg: float, t: float) -> None:
         self._tilt_raw = raw_deg
@@ -275,6 +308,10 @@ class Controller:
         s = self.settings
         for name, source in self.sources.items():
             source.correction = s.speed.correction.get(name, 1.0)
+        if self.radar_scale is not None:  # a new speed calibration: the drift is from it
+            self.radar_scale.calibrated = s.speed.correction.get("radar", 1.0)
+            if self.radar_scale.scale is not None:
+                self.sources["radar"].correction = self.radar_scale.scale
         incl = s.inclinometer
         band = (incl.zero_offset_deg, incl.critical_angle_deg)
         if band != self._band:

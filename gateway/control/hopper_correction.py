@@ -65,6 +65,12 @@ How much evidence before it is applied
     moves 74 % of the way, at 1 % 96 % (about 10 minutes of continuous wheat at σ 2 kg and
     3 Hz give an SE of 0.8 %), at 0.3 % (20 minutes) 99.6 %. Clamped to
     1 ± ``max_correction_pct``.
+    An estimate further from 1 than the prior's 5 % is its own prior spread (a drill 26 % off
+    is corrected fully once the SE allows, not shrunk towards the 5 % of typical drills).
+    An estimate beyond the clamp by ``OUT_OF_RANGE_SES`` standard errors is flagged
+    ``out_of_range`` (alarm ``hopper_scale.out_of_range``), applied yet or not: the drill
+    then sows off target by what the clamp leaves, and only a rotation test (or a check of
+    the drill) brings it back.
 
     Rapeseed (a few hundred g/min) moves 2–5 kg in 10 minutes: at σ 2 kg the SE stays above
     3 % for tens of minutes, so a hopper scale rarely corrects rapeseed, and says so with
@@ -92,6 +98,11 @@ JUMP_MEDIAN_N = 10  # readings in each median of the jump (refill) detector: a k
 REFILL_MIN_KG = 10.0  # no jump below this counts as a refill, whatever the noise
 JUMP_SIGMAS = 5.0  # ... nor below this many σ of the difference of the two medians
 DEFAULT_SIGMA_KG = 2.0  # the noise assumed until the residuals give it
+# The estimate is "outside the correction range" (alarm hopper_scale.out_of_range) once it is
+# beyond 1 ± max_correction by this many standard errors, applied or not yet: a drill 26 %
+# off its model is known to be off minutes before its SE reaches APPLY_MAX_SE, and sows
+# uncorrected (or held at the bound) all that time.
+OUT_OF_RANGE_SES = 2.0
 # No usable reading for this long (the scale silent, or every reading rejected: the device is
 # alarmed after 2 s) ends the line like a refill: the factor stays frozen through the silence
 # and until a whole window of steady seeding after it. A window fitted across the gap joined
@@ -308,6 +319,10 @@ class CorrectionState:
     last_window: WindowFit | None  # the newest window, fitted alone (for disagreement)
     dispersion: float = 1.0  # the SE's inflation² for correlated noise (1: independent)
     jumps: int = 0  # downward jumps: a load cell, not seed (the line restarts, nothing fitted)
+    # the estimate is beyond 1 ± max_correction by OUT_OF_RANGE_SES standard errors (applied
+    # or not yet): the drill sows ``residual_pct`` off target and the correction cannot reach
+    out_of_range: bool = False
+    residual_pct: float = 0.0  # estimate / applied factor - 1, in % (when out of range)
 
 
 class HopperCorrection:
@@ -442,7 +457,11 @@ class HopperCorrection:
         k, se = ev.slope(), ev.standard_error()
         if k is None or se is None or se > APPLY_MAX_SE:
             return  # not enough evidence: the factor stays (1.0, or what was restored)
-        weight = PRIOR_SIGMA**2 / (PRIOR_SIGMA**2 + se**2)
+        # the prior's spread is PRIOR_SIGMA, or the offset found when that is larger: a drill
+        # found 26 % off (many SE away from 1) is corrected fully, not shrunk as if drills
+        # spread only 5 % (which left it ~7 % short at SE 3 %)
+        prior_var = max(PRIOR_SIGMA**2, (k - 1.0) ** 2)
+        weight = prior_var / (prior_var + se**2)
         self.factor = self._clamp(1.0 + (k - 1.0) * weight)
 
     def state(self) -> CorrectionState:
@@ -450,10 +469,14 @@ class HopperCorrection:
         k, se = ev.slope(), ev.standard_error()
         applied = k is not None and se is not None and se <= APPLY_MAX_SE
         at_bound = applied and k is not None and abs(k - 1.0) >= self.bound
+        out = (k is not None and se is not None
+               and abs(k - 1.0) - OUT_OF_RANGE_SES * se > self.bound)
+        residual = (k / self.factor - 1.0) if out and k is not None else 0.0
         return CorrectionState(
             factor=self.factor, estimate=k, standard_error=se, sigma_kg=ev.sigma(),
             at_bound=at_bound, applied=applied, windows=self.windows, refills=self.refills,
             last_window=self.last_window, dispersion=ev.dispersion(), jumps=self.jumps,
+            out_of_range=out, residual_pct=residual * 100.0,
         )
 
     def disagreement(self, disagree_pct: float) -> float | None:

@@ -20,12 +20,14 @@ from gateway.calibration.fits import CalibrationStore
 from gateway.calibration.lots import rotation_key
 from gateway.config import HopperScaleSection
 from gateway.control.hopper_correction import (
+    CorrectionState,
     HopperCorrection,
     SteadyGate,
     time_to_empty_min,
 )
 from gateway.control.hopper_store import DEFAULT_SEED_LOT, HopperStore, Identity, rotation_saved_at
 from gateway.core.alarms import AlarmBoard
+from gateway.core.records import AlarmSeverity
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +36,9 @@ MASS_FRESH_S = 5.0  # a mass older than this is not shown
 # calibration.json is looked at this often for a new rotation test (saved by the CLI or the
 # touchscreen while the daemon runs): the old correction must not stay on a new fit
 IDENTITY_CHECK_S = 10.0
+# hopper_scale.out_of_range is critical when the drill sows this far (%) off target after the
+# clamped correction, a warning below (the bound itself is `hopper_scale.max_correction_pct`)
+OUT_OF_RANGE_CRITICAL_PCT = 5.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -181,6 +186,7 @@ class HopperLoop:
             f"hopper scale finds the discharge x{st.estimate or 1.0:.3f} of the model: "
             f"correction held at its {bound:g} % bound; do a rotation test", "warning",
         )
+        self._range_alarm(st)
         diff = self.estimator.disagreement(self.section.disagree_pct)
         self.alarms.set(
             "hopper_scale.disagrees", diff is not None,
@@ -195,6 +201,24 @@ class HopperLoop:
                 log.error("hopper correction not saved: %s", exc)
         if self.calibrations is not None:
             self._check_identity(self.identity.crop)  # a rotation test saved meanwhile
+
+    def _range_alarm(self, st: CorrectionState) -> None:
+        """The drill is off its model beyond what the correction may apply: it sows
+        ``residual_pct`` off target, silently otherwise. Critical from
+        ``OUT_OF_RANGE_CRITICAL_PCT`` of residual error (a tenth of the seed off)."""
+        if not st.out_of_range:
+            self.alarms.clear("hopper_scale.out_of_range")
+            return
+        bound = self.section.max_correction_pct
+        severity: AlarmSeverity = ("critical" if abs(st.residual_pct) >= OUT_OF_RANGE_CRITICAL_PCT
+                    else "warning")
+        self.alarms.set(
+            "hopper_scale.out_of_range", True,
+            f"hopper scale finds the discharge x{st.estimate or 1.0:.3f} of the model "
+            f"(SE {(st.standard_error or 0.0) * 100:.1f} %), outside the correction range "
+            f"±{bound:g} %: sowing {st.residual_pct:+.1f} % off target; do a rotation test",
+            severity,
+        )
 
     def mass_kg(self, now: float) -> float | None:
         fresh = [kg for t, kg in self._readings if now - t <= MASS_FRESH_S]

@@ -4,7 +4,9 @@
     Q = a·ω² + b·ω + c        eq. (6)  per crop, ω r/min, fitted on the machine
     ω = slope·K + intercept   eq. (5)  per crop, K duty %
 
-The controller needs the inverse of (6) and (5). Eq. (6) is a parabola; only the branch on the
+The controller needs the inverse of (6) and (5). A rotation test of >= 5 set points replaces
+both with the drill's own monotone curves (``CropModel.meter_curve`` / ``motor_curve``,
+``gateway.core.monotone``), inverted exactly. Eq. (6) is a parabola; only the branch on the
 rising side of its vertex is physical (more shaft speed, more seed), so the inverse takes that
 root and reports anything past the vertex or outside the fitted ω range instead of guessing.
 """
@@ -16,6 +18,7 @@ from dataclasses import dataclass
 
 from gateway.config import CropModel
 from gateway.core.errors import OutsideCalibrationError, RateError, TooFastError
+from gateway.core.monotone import MonotoneCurve, cached_curve
 
 MAX_DUTY_PCT = 100.0
 
@@ -32,14 +35,21 @@ def rate_for_flow(flow_g_min: float, width_m: float, speed_kmh: float) -> float:
     return 3.0 * flow_g_min / (5.0 * width_m * speed_kmh)
 
 
+def _curve(points: list[tuple[float, float]]) -> MonotoneCurve:
+    return cached_curve(tuple((float(x), float(y)) for x, y in points))
+
+
 def flow_at(omega_rpm: float, crop: CropModel) -> float:
-    """Eq. (6): discharge at a shaft speed."""
+    """Eq. (6) (or the drill's own monotone curve, when calibrated): discharge at a speed."""
+    if crop.meter_curve is not None:
+        return _curve(crop.meter_curve)(omega_rpm)
     return crop.meter_a * omega_rpm**2 + crop.meter_b * omega_rpm + crop.meter_c
 
 
 def omega_peak(crop: CropModel) -> float:
-    """The shaft speed where eq. (6) stops rising (inf for a straight line or a convex fit)."""
-    if crop.meter_a >= 0.0:
+    """The shaft speed where eq. (6) stops rising (inf for a straight line, a convex fit or
+    a monotone curve, which rises everywhere)."""
+    if crop.meter_curve is not None or crop.meter_a >= 0.0:
         return math.inf
     return -crop.meter_b / (2.0 * crop.meter_a)
 
@@ -48,7 +58,13 @@ def omega_for_flow(flow_g_min: float, crop: CropModel) -> float:
     """Exact inverse of eq. (6) on its rising branch.
 
     Raises OutsideCalibrationError when no shaft speed on that branch delivers the flow.
+    A monotone curve has one shaft speed for each flow: its inverse.
     """
+    if crop.meter_curve is not None:
+        try:
+            return _curve(crop.meter_curve).inverse(flow_g_min)
+        except ValueError as exc:
+            raise OutsideCalibrationError(f"flow {flow_g_min:.0f} g/min: {exc}") from None
     a, b, c = crop.meter_a, crop.meter_b, crop.meter_c
     if a == 0.0:
         if b <= 0.0:
@@ -67,11 +83,19 @@ def omega_for_flow(flow_g_min: float, crop: CropModel) -> float:
 
 
 def duty_for_omega(omega_rpm: float, crop: CropModel) -> float:
-    """Inverse of eq. (5): the PWM duty (%) that turns the shaft at ``omega_rpm``."""
+    """Inverse of eq. (5) (or of the motor's own monotone curve): the PWM duty (%) that
+    turns the shaft at ``omega_rpm``."""
+    if crop.motor_curve is not None:
+        try:
+            return _curve(crop.motor_curve).inverse(omega_rpm)
+        except ValueError:
+            return MAX_DUTY_PCT + 1.0 if omega_rpm > crop.motor_curve[-1][1] else 0.0
     return (omega_rpm - crop.motor_intercept) / crop.motor_slope
 
 
 def omega_for_duty(duty_pct: float, crop: CropModel) -> float:
+    if crop.motor_curve is not None:
+        return _curve(crop.motor_curve)(duty_pct)
     return crop.motor_slope * duty_pct + crop.motor_intercept
 
 

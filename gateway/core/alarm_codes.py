@@ -86,6 +86,13 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "check the inclinometer's cable, power and Modbus address",
     ),
     AlarmCode(
+        "radar.scale_drift", ("warning",),
+        "the radar's scale learnt against the RTK-fixed GNSS on straight passes at steady "
+        "speed is more than `speed.radar_scale.alarm_pct` from its speed calibration (the "
+        "surface or the mounting changed): the learnt scale is used",
+        "check the radar's mounting; repeat `sowgate calibrate speed` on this surface",
+    ),
+    AlarmCode(
         "hopper_scale.unavailable", ("warning",),
         "the hopper scale does not answer on RS485: the rate runs on the discharge model with "
         "the last correction (kept), hopper mass and time to empty are not known",
@@ -96,6 +103,15 @@ REGISTRY: tuple[AlarmCode, ...] = (
         "the hopper scale finds the drill's discharge more than `hopper_scale."
         "max_correction_pct` off its model: the correction is held at that bound",
         "do a rotation test (`sowgate calibrate rotation`) for this crop and seed lot",
+    ),
+    AlarmCode(
+        "hopper_scale.out_of_range", ("warning", "critical"),
+        "the hopper scale finds the drill's discharge outside the correction range (beyond "
+        "1 ± `hopper_scale.max_correction_pct` of its model by 2 standard errors, applied yet "
+        "or not): the drill sows off target by what the bound leaves (in the message); "
+        "critical from 5 % off",
+        "do a rotation test for this crop and seed lot; check the meter's setting (flap, "
+        "roller) and the crop selected",
     ),
     AlarmCode(
         "hopper_scale.disagrees", ("warning",),

@@ -27,6 +27,7 @@ from drivers.can_bus import CanBus, MeteringCanLink
 from drivers.errors import DriverError
 from gateway.config import ChannelSection, Settings
 from gateway.core.errors import CommandError, RateError
+from gateway.core.monotone import MonotoneCurve, cached_curve
 from gateway.metering.prescription import AsAppliedLog, Pose, PrescriptionMap
 from protocol.can_metering import MeterStatus
 
@@ -57,6 +58,37 @@ def rate_from_shaft(rpm: float, speed_kmh: float, width_m: float,
     if speed_kmh <= 0 or width_m <= 0:
         return None
     return HA_FACTOR * rpm * grams_per_rev_total / (width_m * speed_kmh)
+
+
+def _flow_curve(ch: ChannelSection) -> MonotoneCurve | None:
+    """Delivered g/min of the whole channel against r/min, from its g/rev curve (through 0)."""
+    if ch.grams_per_rev_curve is None:
+        return None
+    return cached_curve(((0.0, 0.0), *((float(n), float(n) * float(g) * ch.outlets)
+                                       for n, g in ch.grams_per_rev_curve)))
+
+
+def channel_target_rpm(ch: ChannelSection, rate_kg_ha: float, speed_kmh: float,
+                       width_m: float) -> float:
+    """``target_shaft_rpm`` with the channel's own g/rev: constant, or its curve against
+    shaft speed (a meter whose g/rev falls 20 % from 10 to 60 r/min, issue 25)."""
+    curve = _flow_curve(ch)
+    if curve is None:
+        return target_shaft_rpm(rate_kg_ha, speed_kmh, width_m, ch.grams_per_rev * ch.outlets)
+    if rate_kg_ha < 0 or speed_kmh < 0 or width_m <= 0:
+        raise RateError("rate and speed must not be negative, width positive")
+    return max(0.0, curve.inverse(rate_kg_ha * width_m * speed_kmh / HA_FACTOR))
+
+
+def channel_rate(ch: ChannelSection, rpm: float, speed_kmh: float,
+                 width_m: float) -> float | None:
+    """``rate_from_shaft`` with the channel's own g/rev (constant or its curve)."""
+    curve = _flow_curve(ch)
+    if curve is None:
+        return rate_from_shaft(rpm, speed_kmh, width_m, ch.grams_per_rev * ch.outlets)
+    if speed_kmh <= 0 or width_m <= 0:
+        return None
+    return HA_FACTOR * max(0.0, curve(rpm)) / (width_m * speed_kmh)
 
 
 @dataclass(frozen=True, slots=True)
@@ -419,7 +451,6 @@ class MeteringComponent:
             st = self.state[ch.name]
             rate = self.target_rate(ch, pose)
             st.target_rate_kg_ha = rate
-            m_total = ch.grams_per_rev * ch.outlets
             rpm = 0.0
             too_fast = None
             gate = self.channel_gate
@@ -428,9 +459,10 @@ class MeteringComponent:
             if speed is not None and self.speed_factor is not None:
                 speed *= self.speed_factor(ch.name, now)
             if working and section_on and speed is not None and speed > 0:
-                rpm = target_shaft_rpm(rate, speed, width, m_total)
+                rpm = channel_target_rpm(ch, rate, speed, width)
                 if rpm > ch.max_shaft_rpm:
-                    max_kmh = 0.6 * ch.max_shaft_rpm * m_total / (rate * width)
+                    at_max = channel_rate(ch, ch.max_shaft_rpm, 1.0, width) or 0.0
+                    max_kmh = at_max / rate
                     too_fast = f"{ch.name}: too fast for {rate:g} kg/ha, max {max_kmh:.1f} km/h"
                     rpm = ch.max_shaft_rpm
                 if rpm < self.settings.can.min_target_rpm:
@@ -442,7 +474,7 @@ class MeteringComponent:
             trusted = not any(a.kind == "impossible_speed"
                               for a in self.supervisor.active(ch.name))
             st.applied_rate_kg_ha = (
-                rate_from_shaft(st.measured_rpm, speed, width, m_total)
+                channel_rate(ch, st.measured_rpm, speed, width)
                 if st.measured_rpm is not None and speed is not None and trusted else None
             )
             if self._link is not None:

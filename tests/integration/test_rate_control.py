@@ -237,3 +237,25 @@ async def test_pulling_away_in_work_leaves_no_outside_calibration_alarm_in_the_l
         await asyncio.sleep(1.0)
         log = [(e.code, e.active) for e in rig.daemon.alarm_log]
     assert [e for e in log if e[0] == "rate.outside_calibration"] == [], log
+
+
+async def test_a_radar_whose_surface_changed_is_rescaled_against_the_rtk_gnss(
+    tmp_path: Path, make_machine: Callable[..., SimulatedMachine]
+) -> None:
+    """Issue 25: the radar reads +4 % (the surface changed since its calibration); with the
+    RTK-fixed GNSS on a straight pass at steady speed the daemon learns the scale, sows on
+    the corrected speed and says the radar drifted."""
+    async with metering(tmp_path, make_machine(with_gnss=True)) as (rig, sim):
+        sim.set_radar_scale(1.04)
+        learner = rig.daemon.controller.radar_scale
+        assert learner is not None
+        await rig.until(lambda: rig.daemon.alarms.is_active("radar.scale_drift"),
+                        timeout=150.0, what="radar.scale_drift")
+        assert learner.scale == pytest.approx(1 / 1.04, rel=0.01)
+        await rig.until(lambda: rig.daemon.outputs.speed_source == "radar", what="radar speed")
+        speeds = []
+        for _ in range(30):  # 9 s of the daemon's speed: the radar's 3 % scatter averaged
+            speeds.append(rig.daemon.outputs.speed_kmh or 0.0)
+            await asyncio.sleep(0.3)
+        assert sum(speeds) / len(speeds) == pytest.approx(rig.machine.pose().speed_kmh,
+                                                          rel=0.015)

@@ -377,3 +377,15 @@ async def test_a_module_without_the_watchdog_refuses_its_register(plant: Plant) 
             assert rr.isError() and rr.exception_code == 2
         finally:
             client.close()
+
+
+async def test_a_changed_surface_scales_the_radar_reading(
+    sim: Rs485Simulator, master: AsyncModbusSerialClient
+) -> None:
+    """Issue 25: the radar's scale moves with the surface after its calibration."""
+    sim.set_radar_scale(1.04)
+    assert (await master.read_holding_registers(0, count=1, device_id=1)).registers == [546]
+    sim.set_radar_scale(1.0)
+    assert (await master.read_holding_registers(0, count=1, device_id=1)).registers == [525]
+    with pytest.raises(ValueError, match="above 0"):
+        sim.set_radar_scale(0.0)

@@ -332,7 +332,7 @@ def test_paper_a_fit_of_a_pwm_channel_refits_its_crop(tmp_path: Path) -> None:
     settings = parse_config({"channel": [{"name": "seed", "drive": "pwm_modbus",
                                           "product": "wheat", "target_rate_kg_ha": 200.0}]})
     notes = apply_calibrations(settings, tmp_path)
-    assert notes == ["wheat metering model refitted (channel seed)"]
+    assert notes == ["wheat metering model refitted (its own monotone curve) (channel seed)"]
     assert settings.control.crops["wheat"].motor_slope == pytest.approx(0.7)
     assert settings.control.crops["wheat"].meter_b == pytest.approx(130.0)
 

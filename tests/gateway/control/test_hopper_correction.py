@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import random
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -482,3 +483,68 @@ def test_the_loop_alarms_a_jump_down(tmp_path: Path) -> None:
         t += POLL_S
     assert alarms.is_active("hopper_scale.jump")
     assert "300 kg" in next(a for a in alarms.active if a.code == "hopper_scale.jump").message
+
+
+# ---- outside the correction range (issue 25 §3) ----------------------------------------------
+
+
+def _closed_loop(loop: HopperLoop, minutes: float, k: float, sigma_kg: float,
+                 seed: int) -> list[tuple[float, str | None]]:
+    """The controller's side of the loop: it asks for 3 kg/min of *true* seed, so the model
+    discharge it commands is that over the applied factor, and the drill (the truth, ``k``
+    times its model) sows ``k`` × that. Returns (minute, out_of_range severity) per window."""
+    rng = random.Random(seed)
+    t, hopper = 0.0, 2000.0
+    seen: list[tuple[float, str | None]] = []
+    windows = 0
+    while t < minutes * 60.0:
+        q_model = WHEAT_KG_S * 60_000.0 / loop.factor
+        loop.on_weight(hopper + rng.gauss(0.0, sigma_kg), t)
+        loop.tick(t, q_model_g_min=q_model, seeding=True, speed_kmh=5.0, modelled=True)
+        hopper -= k * q_model / 60_000.0 * POLL_S
+        t += POLL_S
+        if loop.estimator.windows != windows:
+            windows = loop.estimator.windows
+            alarm = next((a for a in loop.alarms.active
+                          if a.code == "hopper_scale.out_of_range"), None)
+            seen.append((t / 60.0, None if alarm is None else alarm.severity))
+    return seen
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_drill_30_pct_off_its_model_raises_a_critical_out_of_range_alarm(seed: int) -> None:
+    """Issue 25: a drill +26 % off its model hit the ±20 % clamp and sowed +10 % with no
+    alarm. Now the scale's estimate beyond the clamp by 2 SE raises a critical alarm (the
+    clamped factor leaves about 1.30 / 1.20 = +8 % on the ground), before the evidence is even
+    enough to apply any correction, and the message says how far off the drill sows."""
+    alarms = AlarmBoard()
+    loop = HopperLoop(HopperScaleSection(enabled=True), alarms, "wheat")
+    seen = _closed_loop(loop, 12.0, k=1.30, sigma_kg=2.0, seed=seed)
+    first = next(minute for minute, sev in seen if sev is not None)
+    assert first < 8.0
+    assert seen[-1][1] == "critical"
+    assert loop.factor == pytest.approx(1.20)
+    alarm = next(a for a in alarms.active if a.code == "hopper_scale.out_of_range")
+    assert "outside the correction range" in alarm.message
+    assert re.search(r"sowing \+[78]\.\d % off target", alarm.message)  # 1.30 / 1.20
+
+
+def test_just_beyond_the_bound_is_a_warning_and_within_it_there_is_none() -> None:
+    alarms = AlarmBoard()
+    loop = HopperLoop(HopperScaleSection(enabled=True), alarms, "wheat")
+    seen = _closed_loop(loop, 20.0, k=1.23, sigma_kg=0.5, seed=4)
+    assert seen[-1][1] == "warning"  # 1.23 / 1.20: 2.5 % off, under the 5 % of critical
+    alarms = AlarmBoard()
+    loop = HopperLoop(HopperScaleSection(enabled=True), alarms, "wheat")
+    seen = _closed_loop(loop, 20.0, k=1.15, sigma_kg=0.5, seed=5)
+    assert all(sev is None for _, sev in seen)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_drill_well_off_its_model_is_corrected_fully_not_shrunk(seed: int) -> None:
+    """The prior (drills spread 5 %) once shrank a 16 % offset found at SE 1–3 % towards 1
+    and left the drill several % short; an offset many SE from 1 is now its own prior."""
+    est = fresh()
+    simulate(est, k=1.16, sigma_kg=2.0, minutes=10.5, rng=random.Random(seed))
+    assert est.state().applied
+    assert est.factor == pytest.approx(1.16, abs=0.016)
