@@ -84,10 +84,12 @@ def doc_commands() -> list[DocCommand]:
     for doc in DOCS:
         name = doc.relative_to(ROOT)
         lines = doc.read_text(encoding="utf-8").splitlines()
-        for number, text in _code_lines(lines):
-            text = re.sub(r"^sudo\s+", "", text)
-            if COMMAND_START.match(text):
-                found.append(DocCommand(f"{name}:{number}", _strip_comment(text)))
+        for number, line in _code_lines(lines):
+            # a shell line may chain commands: `sowgate check-config F && systemctl restart …`
+            for text in re.split(r"\s+(?:&&|\|\||;|\|)\s+", _strip_comment(line)):
+                text = re.sub(r"^sudo\s+", "", text.strip())
+                if COMMAND_START.match(text):
+                    found.append(DocCommand(f"{name}:{number}", text))
         for number, line in enumerate(lines, 1):
             if line.startswith("|"):  # a table row: the commands in its first column
                 first = line.split(" | ")[0]
