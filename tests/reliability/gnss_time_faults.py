@@ -219,6 +219,10 @@ def _judge(
                   f"{in_range} records stamped in the window for {len(stamped)} seeds")
     res.duty = "—"
     res.notes.append(f"{judged} seeds judged, worst position error {worst * 100:.1f} cm")
+    late = [s.late_s for s in seeds if s.late_s]
+    if late:  # the truth of these is the seed as sent (simulator.seed_tubes), not the plan
+        res.notes.append(f"{len(late)} edges written late by the simulator (up to "
+                         f"{max(late) * 1000:.0f} ms)")
 
 
 def _stamped_near(recs: list[SeedRecord], stamp: datetime) -> list[SeedRecord]:
