@@ -135,6 +135,36 @@ async def test_emulator_writes_one_line_per_seed_at_its_edge_time() -> None:
         assert t0 + s.t_edge - 0.001 <= t < t0 + s.t_edge + 0.5
 
 
+async def test_an_edge_written_late_is_in_the_truth_as_sent_not_as_planned() -> None:
+    """A starved host fires the emulator's timer late: the daemon hears of the seed late
+    and stamps it then, so the truth must be the seed as sent (edge, landing and place moved
+    by the lateness), or the daemon is blamed for the simulator's stall (a fault-matrix
+    row once failed on two seeds written 0.17 s late)."""
+    drive = Drive(legs=[Leg(1.2, 10.0)], accel_ms2=100.0)
+    stall_s = 0.25
+    async with SeedTubeEmulator(drive, EXACT) as tubes:
+        assert tubes.t0_mono is not None
+        await asyncio.sleep(max(0.0, tubes.t0_mono + 0.3 - time.monotonic()))
+        time.sleep(stall_s)  # noqa: ASYNC251 - the event loop starved: no timer fires meanwhile
+        await asyncio.wait_for(tubes.wait_done(), 10.0)
+        truth = tubes.truth
+    plan = plan_seeds(drive, EXACT)
+    assert len(truth) == len(plan) > 30
+    late = [(p, s) for p, s in zip(plan, truth, strict=True) if s.late_s]
+    assert tubes.late_writes == len(late)
+    assert max(s.late_s for _, s in late) > stall_s - 0.1
+    for planned, sent in late:
+        assert sent.row == planned.row
+        assert sent.t_edge == pytest.approx(planned.t_edge + sent.late_s)
+        assert sent.t_land == pytest.approx(planned.t_land + sent.late_s)
+        east, north = landing_point(drive.pose_at, EXACT, sent.row, sent.t_land)
+        assert (sent.east, sent.north) == (pytest.approx(east), pytest.approx(north))
+        moved = math.hypot(sent.east - planned.east, sent.north - planned.north)
+        assert moved == pytest.approx(10 / 3.6 * sent.late_s, rel=0.02)
+    on_time = [s for p, s in zip(plan, truth, strict=True) if not s.late_s]
+    assert on_time and all(s in plan for s in on_time)
+
+
 def test_the_planter_can_be_taken_from_a_daemon_positioning_config() -> None:
     section = PositioningSection(
         outlet_behind_antenna_m=0.9, row_lateral_m=[-0.35, 0.35], target_spacing_m=0.25
