@@ -99,3 +99,13 @@ class StartClose:
         tb: TracebackType | None,
     ) -> None:
         await self.close()
+
+
+def raise_if_cancelled() -> None:
+    """Honour a cancel that an inner ``wait_for`` swallowed (gh-86296, above): the request
+    stays counted in ``Task.cancelling()``. For a loop inside a TaskGroup, which cancels its
+    children once: a child that went on after a swallowed cancel kept the group, and so the
+    whole stop, waiting for ever."""
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError

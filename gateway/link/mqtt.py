@@ -35,6 +35,7 @@ import aiomqtt
 import orjson
 
 from drivers.backoff import Backoff
+from drivers.tasks import raise_if_cancelled
 from gateway.config import MqttSection, Settings, TlsSection
 from gateway.config.startup import file_problem
 from gateway.core.alarms import AlarmBoard
@@ -376,13 +377,20 @@ class MqttLink:
                 async with asyncio.timeout(timeout):
                     await self._seeds_wake.wait()
 
+    async def _publish(
+        self, client: aiomqtt.Client, topic: str, payload: bytes, *, retain: bool = False
+    ) -> None:
+        """``client.publish`` (QoS 1, until PUBACK), then honour a cancel that its inner
+        ``wait_for`` may have swallowed on Python 3.11: a publisher loop that went on after one
+        kept the session's TaskGroup, and so the daemon's stop, waiting for ever."""
+        await client.publish(topic, payload, qos=1, retain=retain, timeout=self.publish_timeout_s)
+        raise_if_cancelled()
+
     async def _publish_batch(
         self, client: aiomqtt.Client, batch: OutboxBatch, slots: asyncio.Semaphore
     ) -> None:
         try:
-            await client.publish(
-                self.topics.seeds, batch.payload, qos=1, timeout=self.publish_timeout_s
-            )
+            await self._publish(client, self.topics.seeds, batch.payload)
             if self.cfg.farm_server_ack:
                 # the broker has it; delivered only once the farm server's watermark says it
                 # is committed (``_on_watermark``), else published again (``_rewind``)
@@ -449,11 +457,8 @@ class MqttLink:
         while True:
             self._alarms_wake.clear()
             while self._live_alarms:  # first: they are about now, and the store lacks them
-                await client.publish(
-                    self.topics.alarms,
-                    self._live_alarms[0].model_dump_json().encode(),
-                    qos=1,
-                    timeout=self.publish_timeout_s,
+                await self._publish(
+                    client, self.topics.alarms, self._live_alarms[0].model_dump_json().encode()
                 )
                 self._live_alarms.popleft()
                 self.stats.alarms_published += 1
@@ -462,12 +467,7 @@ class MqttLink:
                 if self.store.pending_alarm_count() else []
             )
             for event in events:  # one at a time: alarms are rare and order matters to readers
-                await client.publish(
-                    self.topics.alarms,
-                    event.model_dump_json().encode(),
-                    qos=1,
-                    timeout=self.publish_timeout_s,
-                )
+                await self._publish(client, self.topics.alarms, event.model_dump_json().encode())
                 self.store.mark_alarms_delivered([event.id])
                 self._progress.set()
                 self.stats.alarms_published += 1
@@ -500,12 +500,8 @@ class MqttLink:
                 if changed and now - last_at < STATE_MIN_GAP_S:
                     await asyncio.sleep(STATE_MIN_GAP_S - (now - last_at))
                     continue  # and look again: it may have changed once more meanwhile
-                await client.publish(
-                    self.topics.state,
-                    snap.model_dump_json().encode(),
-                    qos=1,
-                    retain=True,
-                    timeout=self.publish_timeout_s,
+                await self._publish(
+                    client, self.topics.state, snap.model_dump_json().encode(), retain=True
                 )
                 self.stats.states_published += 1
                 last, last_at = snap, now
@@ -539,6 +535,7 @@ class MqttLink:
                 # paho refuses the ack topic itself: a name so long that "/ack" takes the
                 # topic past MQTT's 65535 bytes. Nowhere to answer; the link is fine.
                 log.warning("mqtt command %s: no ack sent: %s", _quote_name(name), exc)
+            raise_if_cancelled()  # see _publish
 
     def handle_command(self, name: str, payload: bytes, *, retained: bool = False) -> CommandAck:
         """Validate and execute one command; every outcome is an ack, nothing raises.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
 import pytest
 
@@ -134,3 +135,28 @@ async def test_an_exception_the_task_ended_with_is_raised() -> None:
 
 async def test_none_is_accepted() -> None:
     await cancel_and_wait(None)
+
+
+async def test_a_loop_that_swallowed_a_cancel_still_stops_at_its_next_check() -> None:
+    """A cancel swallowed inside a loop (what a 3.11 ``wait_for`` can do) stays counted in
+    ``Task.cancelling()``: ``raise_if_cancelled`` after the swallowing call honours it, so a
+    TaskGroup that cancelled its children once is not left waiting for this one for ever."""
+    from drivers.tasks import raise_if_cancelled
+
+    laps = 0
+    started = asyncio.Event()
+
+    async def publisher_loop() -> None:
+        nonlocal laps
+        while True:
+            laps += 1
+            started.set()
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.sleep(3600)  # swallowed, as the inner wait_for of a publish can
+            raise_if_cancelled()
+
+    async with asyncio.TaskGroup() as tg:
+        task = tg.create_task(publisher_loop())
+        await started.wait()
+        task.cancel()  # once, as a TaskGroup's abort does
+    assert task.cancelled() and laps == 1
