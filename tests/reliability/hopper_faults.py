@@ -82,6 +82,11 @@ def _messages_between(dash: Subscriber, code: str, t0: float, t1: float) -> list
     return out
 
 
+# how late a state on MQTT may show what the daemon held at the fault's start (a state
+# period, 1 s at the default [mqtt] state_hz, plus a loaded host's delay); far below HOPPER_FAULT_S
+PUBLISH_LAG_S = 2.0
+
+
 async def _hopper_fault(machine: TracedMachine, dash: Subscriber, daemon: DaemonProcess,
                         steady: Steady, fault: str) -> RowResult:
     res = RowResult()
@@ -116,6 +121,16 @@ async def _hopper_fault(machine: TracedMachine, dash: Subscriber, daemon: Daemon
               "(the daemon must sow on with its correction)")
     factors = _factors_between(dash, t0, t2)
     res.check(before is not None and bool(factors), "no discharge_correction published")
+    if fault in HOPPER_FROZEN_FAULTS and factors:
+        # The state on MQTT lags the daemon by up to a state period (more on a loaded host): a
+        # window the daemon fitted just before the scale went quiet may show after t0. What
+        # the row guards against, a window fitted across the silence, can only come after the
+        # scale answers again (t1, HOPPER_FAULT_S later), so the baseline is the correction
+        # shown PUBLISH_LAG_S into the fault.
+        settled = _factors_between(dash, t0, t0 + PUBLISH_LAG_S)
+        if settled:
+            before = settled[-1]
+        factors = _factors_between(dash, t0 + PUBLISH_LAG_S, t2) or factors
     if before is not None and factors:
         worst = max(factors, key=lambda f: abs(f - before))
         res.recovery = f"x{before:.4f} -> x{worst:.4f}"
