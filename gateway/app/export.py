@@ -35,11 +35,11 @@ from gateway.metering.prescription import (
 )
 from gateway.recording.export import (
     EXIT_FAILED,
-    EXIT_USAGE,
     QUALITY_SUFFIX,
     ExportError,
     ExportFormat,
     chunks_of_records,
+    export_failed,
     export_format,
     export_quality_csv,
     export_rows,
@@ -122,16 +122,8 @@ def main_export(args: argparse.Namespace) -> int:
             if fmt == "csv" and args.output != "-":
                 with atomic_output(f"{args.output}{QUALITY_SUFFIX}") as qout:
                     export_quality_csv(quality, qout)
-    except ConfigError as exc:
-        for line in exc.problems:
-            print(line, file=sys.stderr)
-        return EXIT_USAGE
-    except ExportError as exc:
-        print(f"sowgate export: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except (StoreError, OSError) as exc:
-        print(f"sowgate export: {exc}", file=sys.stderr)
-        return EXIT_FAILED
+    except (ConfigError, ExportError, StoreError, OSError) as exc:
+        return export_failed(exc)
     if moved is not None:
         print(
             f"re-positioned with the current position model and calibration; "

@@ -73,9 +73,9 @@ from gateway.config import ConfigError, Settings, as_applied_path, load_config, 
 from gateway.core.records import utc_to_us
 from gateway.recording.export import (
     EXIT_FAILED,
-    EXIT_USAGE,
     ExportError,
     chunks_of_records,
+    export_failed,
     parse_rows,
     parse_time,
 )
@@ -110,6 +110,8 @@ Key = tuple[int, str]  # (DDI, DET id): one logged value
 
 class AsAppliedLogError(ExportError):
     """The as-applied log has a row that is not one (a damaged file, not a bad request)."""
+
+    exit_code = EXIT_FAILED
 
 
 @dataclass
@@ -547,19 +549,8 @@ def main_export_isoxml(args: argparse.Namespace) -> int:
             applied = applied_events(as_applied_path(settings, state), since, until)
             with _taskdata_folder(output, as_zip) as folder:
                 result = write_taskdata(folder, settings, chunks, applied, _version())
-    except ConfigError as exc:
-        for line in exc.problems:
-            print(line, file=sys.stderr)
-        return EXIT_USAGE
-    except AsAppliedLogError as exc:
-        print(f"sowgate export: {exc}", file=sys.stderr)
-        return EXIT_FAILED
-    except ExportError as exc:
-        print(f"sowgate export: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except (StoreError, OSError) as exc:
-        print(f"sowgate export: {exc}", file=sys.stderr)
-        return EXIT_FAILED
+    except (ConfigError, ExportError, StoreError, OSError) as exc:
+        return export_failed(exc)
     where = output if as_zip else output / "TASKDATA"
     print(
         f"wrote {result.seeds} seed records and {result.applied} as-applied rows as "

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import json
+import sys
 import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from datetime import UTC, datetime
@@ -79,6 +80,20 @@ COORD_DECIMALS = 8
 
 class ExportError(GatewayError):
     """The export cannot be made (bad filter, no store, unwritable output)."""
+
+    exit_code = EXIT_USAGE  # a bad request; a damaged input says EXIT_FAILED
+
+
+def export_failed(exc: Exception) -> int:
+    """Say why an export failed, one line each on standard error, and return its exit status:
+    a bad request (config, option) EXIT_USAGE, a store or file that failed EXIT_FAILED."""
+    problems = getattr(exc, "problems", None)  # a ConfigError's lines, each naming its key
+    if isinstance(problems, list):
+        for line in problems:
+            print(line, file=sys.stderr)
+        return EXIT_USAGE
+    print(f"sowgate export: {exc}", file=sys.stderr)
+    return exc.exit_code if isinstance(exc, ExportError) else EXIT_FAILED
 
 
 def target_spacing(
