@@ -269,17 +269,24 @@ class SeedTubeEmulator(StartClose):
                 self.late_writes += 1  # starved box: the edge goes out late, still goes out
             if s.row in self.silent_rows:
                 continue
+            line = encode_seed_line(s.row)
+            written = 0
             with contextlib.suppress(BlockingIOError, OSError):
-                os.write(self._pair.master_fd, encode_seed_line(s.row))
-            self.truth.append(s if delay >= -LATE_WRITE_S else self._sent_late(s, -delay))
+                written = os.write(self._pair.master_fd, line)
+            # a full line buffer (a reader starved as long as the writer) drops the line as a
+            # UART would: that seed was never told of, so it is no one's truth
+            if written == len(line):
+                self.truth.append(s if delay >= -LATE_WRITE_S else self._sent_late(s, -delay))
+            if delay < -LATE_WRITE_S:
+                await asyncio.sleep(0)  # catching up: let a reader on this loop drain the line
 
     def _sent_late(self, s: SeedTruth, late_s: float) -> SeedTruth:
         """The seed as the line told of it: edge and landing ``late_s`` later, its landing
         point (bounce kept) moved as far as the outlet moved meanwhile."""
         assert isinstance(self.model, PlanterModel)
         t_land = s.t_land + late_s
-        if t_land > self.drive.duration_s:
-            return replace(s, late_s=late_s)  # no pose to move it to: keep the plan's
+        if t_land > self.drive.duration_s:  # no pose to move it to: the plan's place
+            return replace(s, t_edge=s.t_edge + late_s, t_land=t_land, late_s=late_s)
         e0, n0 = landing_point(self.drive.pose_at, self.model, s.row, s.t_land)
         e1, n1 = landing_point(self.drive.pose_at, self.model, s.row, t_land)
         return SeedTruth(s.row, s.t_edge + late_s, t_land, s.east + e1 - e0,

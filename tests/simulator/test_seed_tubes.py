@@ -157,6 +157,9 @@ async def test_an_edge_written_late_is_in_the_truth_as_sent_not_as_planned() -> 
         assert sent.row == planned.row
         assert sent.t_edge == pytest.approx(planned.t_edge + sent.late_s)
         assert sent.t_land == pytest.approx(planned.t_land + sent.late_s)
+        if sent.t_land > drive.duration_s:  # a loaded host: landed after the drive's end
+            assert (sent.east, sent.north) == (planned.east, planned.north)
+            continue
         east, north = landing_point(drive.pose_at, EXACT, sent.row, sent.t_land)
         assert (sent.east, sent.north) == (pytest.approx(east), pytest.approx(north))
         moved = math.hypot(sent.east - planned.east, sent.north - planned.north)
