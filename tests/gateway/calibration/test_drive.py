@@ -30,6 +30,7 @@ from simulator.can_pid import MeteringControllerSim, MeterPlant
 from simulator.modbus_devices import Rs485Simulator
 from tests.helpers import Plant, eventually, sowgate_env, spawn_sowgate
 
+SPAWN_TIMEOUT_S = 60.0  # a `sowgate` child process up and driving (imports on a loaded host)
 WHEAT_W = [22.0, 30.0, 38.0, 44.0]  # shaft r/min the operator reads at each duty
 WHEAT_DUTIES = [(w + 19.8309) / 0.6671 for w in WHEAT_W]  # paper A eq. 5 for wheat
 
@@ -159,9 +160,10 @@ async def test_a_signal_mid_run_leaves_motor_and_fan_off(
     else:
         proc = await spawn_sowgate(*argv, env=sowgate_env(tmp_path))
     try:
-        await eventually(lambda: sim.duty_pct["motor"] > 0, what="the motor running")
+        # a child `sowgate` starts (imports) in seconds on a loaded host: waited for, not timed
+        await eventually(lambda: sim.duty_pct["motor"] > 0, SPAWN_TIMEOUT_S, "the motor running")
         proc.send_signal(sig)
-        stdout, stderr = await asyncio.wait_for(proc.communicate(), 10)
+        stdout, stderr = await asyncio.wait_for(proc.communicate(), 30)
     finally:
         if proc.returncode is None:
             proc.kill()
@@ -373,11 +375,11 @@ async def test_ctrl_c_at_the_mass_prompt_switches_the_fan_off_and_exits(
     try:
         # run 1 over: the motor stopped, the fan still on while the operator weighs
         await eventually(lambda: motor_steps(plant)[-2:] == [round(WHEAT_DUTIES[0], 1), 0.0],
-                         what="run 1 over")
+                         SPAWN_TIMEOUT_S, "run 1 over")
         await asyncio.sleep(0.5)  # at the prompt now
         assert sim.duty_pct == {"motor": 0.0, "fan": 85.0}
         proc.send_signal(signal.SIGINT)
-        stdout, stderr = await asyncio.wait_for(proc.communicate(), 10)
+        stdout, stderr = await asyncio.wait_for(proc.communicate(), 30)
     finally:
         if proc.returncode is None:
             proc.kill()
