@@ -275,6 +275,22 @@ class IngestDatabase:
         self.conn.commit()
         return Committed(machine_id, [(int(a), int(b)) for a, b in rows], 0, 0)
 
+    def coverage_of(self, machines: Iterable[str] | None = None) -> list[Committed]:
+        """The committed coverage of these machines (None: of every machine there is)."""
+        if machines is None:
+            rows = self.conn.execute(
+                "SELECT machine_id, lo, hi FROM seed_coverage ORDER BY machine_id, lo"
+            ).fetchall()
+        else:
+            rows = self.conn.execute(
+                "SELECT machine_id, lo, hi FROM seed_coverage WHERE machine_id = ANY(%s) "
+                "ORDER BY machine_id, lo", (sorted(machines),)).fetchall()
+        self.conn.commit()
+        by_machine: dict[str, list[tuple[int, int]]] = {}
+        for machine_id, lo, hi in rows:
+            by_machine.setdefault(str(machine_id), []).append((int(lo), int(hi)))
+        return [Committed(m, spans, 0, 0) for m, spans in by_machine.items()]
+
     def write_alarms(self, events: Sequence[AlarmEvent]) -> int:
         """Insert alarm events (unique per machine and id); returns how many were new."""
         if not events:
