@@ -279,7 +279,8 @@ ROWS: tuple[Row, ...] = (
         "then started again",
         "ingest keeps running; afterwards every record of every cab in the database exactly "
         "once (ids compared with each cab's store) and the retained `<prefix>/<machine>/"
-        "ingested` watermark equal to the cab's last id; daemons never exit on their own, no traceback"),
+        "ingested` watermark equal to the cab's last id; daemons never exit on their own, "
+        "no traceback"),
     Row("farm_ingest_sigkill_x5", "farm",
         f"two `sowgate ingest` processes in one share group; SIGKILL {FARM_INGEST_KILLS}×, "
         "alternating, at any phase of a flush (each restarted at once) while a cab seeds",
@@ -303,7 +304,8 @@ ROWS: tuple[Row, ...] = (
         f"`farm_server_ack_timeout_s` ({FARM_ACK_TIMEOUT_S:g} s), ~2 600 records held",
         "the records of the outage held in the cab's store and published from the oldest "
         "uncovered one when it is back; every record in the database exactly once; the "
-        "retained watermark equal to the cab's last id; daemon never exits on its own, no traceback"),
+        "retained watermark equal to the cab's last id; daemon never exits on its own, "
+        "no traceback"),
 )
 ROWS_BY_NAME = {r.name: r for r in ROWS}
 
