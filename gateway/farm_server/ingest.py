@@ -121,6 +121,8 @@ class Ingest:
         self._db: IngestDatabase | None = None
         self._db_lock = asyncio.Lock()
         self._active: set[str] = set()  # machines that sent seeds since the last refresh
+        # per machine, the highest ``pending_from`` it sent (no id below it will come again)
+        self._pending_from: dict[str, int] = {}
 
     # -- parsing: pure, every failure is a Rejected -------------------------------------------
 
@@ -168,6 +170,10 @@ class Ingest:
                 self._active.add(machine_id)
                 if batch.records:
                     self._seeds.setdefault(machine_id, []).extend(batch.records)
+                    if batch.pending_from is not None:  # never above what it sends itself
+                        floor = min(batch.pending_from, min(r.id for r in batch.records))
+                        if floor > self._pending_from.get(machine_id, 0):
+                            self._pending_from[machine_id] = floor
                     self._rows += len(batch.records)
             elif kind == "alarms":
                 event = AlarmEvent.model_validate_json(payload)
@@ -215,7 +221,8 @@ class Ingest:
         done = []
         try:
             for machine_id in list(work.seeds):
-                result = db.write_seeds(machine_id, work.seeds[machine_id])
+                result = db.write_seeds(machine_id, work.seeds[machine_id],
+                                        self._pending_from.get(machine_id, 0))
                 del work.seeds[machine_id]
                 done.append(result)
                 self.stats.seeds_committed += result.new_seeds

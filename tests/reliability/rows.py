@@ -86,6 +86,7 @@ FARM_PG_DOWN_S = 30.0
 FARM_PG_CABS = 3  # the ten cabs, scaled to what a busy 2-core `make test` carries
 FARM_INGEST_KILLS = 5
 FARM_DUPLICATE_COPIES = 5
+FARM_REPLAY_EVERY = 10
 # the 10 minutes offline scaled down 15x: still 20 resend timeouts, ~2 600 records held
 FARM_OFFLINE_S = 40.0
 
@@ -293,8 +294,8 @@ ROWS: tuple[Row, ...] = (
         "the cab's last id; daemon never exits on its own, no traceback"),
     Row("farm_duplicate_flood", "farm",
         f"every `seeds` batch the cab publishes published {FARM_DUPLICATE_COPIES}× more (as "
-        "the cab), all batches so far replayed at every 10th, and all of them once more "
-        "after the pass",
+        f"the cab), the last {FARM_REPLAY_EVERY} replayed at every {FARM_REPLAY_EVERY}th, "
+        "all of them once more after the pass; and the cab's own resends",
         "no record twice in the database, none missing; the retained watermark equal to the "
         "cab's last id; daemon never exits on its own, no traceback"),
     Row("farm_cab_offline", "farm",
