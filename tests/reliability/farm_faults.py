@@ -51,6 +51,9 @@ PG_BIN = Path("/usr/lib/postgresql/15/bin")
 INGEST_USER = "sowgate-ingest"  # the ACL's farm-side user (reads every machine's topics)
 DASHBOARD_USER = "sowgate-dashboard"  # reads sowgate/#
 CONFIRM_TIMEOUT_S = 120.0
+# daemon start → its first records committed: the daemon, its simulated devices and a first
+# GNSS fix on a 2-core host running the whole matrix (load 17-28 measured while writing this)
+STARTUP_TIMEOUT_S = 240.0
 # The cabs sow at 8 km/h until the row has done its fault, then every seed tube falls silent
 # (the drive itself would end at a fixed time, whenever the daemons came up on a busy host)
 PASS_S = 600.0  # pass over → the watermark covers the last id (a loaded host)
@@ -343,7 +346,7 @@ async def lane(
             try:
                 for p in procs:
                     await p.start()
-                await eventually(lambda: all(p.subscribed() for p in procs), 60.0,
+                await eventually(lambda: all(p.subscribed() for p in procs), STARTUP_TIMEOUT_S,
                                  "ingest subscribed",
                                  detail=lambda: [p.log_text()[-400:] for p in procs])
                 port = cab_port(broker.port) if cab_port else broker.port
@@ -440,7 +443,7 @@ async def end_pass(ln: Lane) -> None:
 
 async def seeding(ln: Lane, seconds: float = 3.0) -> None:
     """Every cab's records are being committed (a watermark above 0), then ``seconds`` more."""
-    await eventually(lambda: ln.min_through() > 0, 90.0, "first records committed",
+    await eventually(lambda: ln.min_through() > 0, STARTUP_TIMEOUT_S, "first records committed",
                      detail=lambda: dict(ln.marks.seen))
     await asyncio.sleep(seconds)
 
@@ -485,15 +488,15 @@ async def row_ingest_kills(tmp: Path) -> RowResult:
             for k in range(FARM_INGEST_KILLS):
                 victim = ln.ingests[k % 2]
                 other = ln.ingests[(k + 1) % 2]
-                await eventually(other.subscribed, 60.0, "the other ingest subscribed")
+                await eventually(other.subscribed, STARTUP_TIMEOUT_S, "the other ingest subscribed")
                 before = ln.min_through()
-                await eventually(lambda b=before: ln.min_through() > b, 60.0,
+                await eventually(lambda b=before: ln.min_through() > b, STARTUP_TIMEOUT_S,
                                  "records committed since the last kill")
                 await asyncio.sleep(rng.uniform(0.2, 1.5))  # any phase of a flush
                 code = await victim.kill()
                 ln.res.check(code == -9, f"kill {k + 1}: ingest exit code {code}, not -9")
                 await victim.start()
-                restarts.append(await eventually(victim.subscribed, 60.0,
+                restarts.append(await eventually(victim.subscribed, STARTUP_TIMEOUT_S,
                                                  f"ingest restarted after kill {k + 1}"))
             ln.res.recovery = (f"{FARM_INGEST_KILLS} kills, alternating between the two; a "
                                f"killed ingest subscribed again after max {max(restarts):.1f} s")
@@ -553,7 +556,7 @@ async def row_duplicate_flood(tmp: Path) -> RowResult:
 
             task = asyncio.create_task(flood(), name="duplicate-flood")
             try:
-                await eventually(lambda: len(batches) > 0 or task.done(), 90.0,
+                await eventually(lambda: len(batches) > 0 or task.done(), STARTUP_TIMEOUT_S,
                                  "the flood started")
                 await seeding(ln, 15.0)
                 await end_pass(ln)

@@ -85,7 +85,7 @@ FARM_ACK_TIMEOUT_S = 2.0
 FARM_PG_DOWN_S = 30.0
 FARM_PG_CABS = 3  # the ten cabs, scaled to what a busy 2-core `make test` carries
 FARM_INGEST_KILLS = 5
-FARM_DUPLICATE_COPIES = 5
+FARM_DUPLICATE_COPIES = 10
 FARM_REPLAY_EVERY = 10
 # the 10 minutes offline scaled down 15x: still 20 resend timeouts, ~2 600 records held
 FARM_OFFLINE_S = 40.0
