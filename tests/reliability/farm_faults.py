@@ -37,6 +37,7 @@ from tests.reliability.harness import DaemonProcess, RowResult, finish_row, stea
 from tests.reliability.rows import (
     FARM_ACK_TIMEOUT_S,
     FARM_DUPLICATE_COPIES,
+    FARM_FLOOD_BATCHES,
     FARM_INGEST_KILLS,
     FARM_OFFLINE_S,
     FARM_PG_CABS,
@@ -54,6 +55,7 @@ CONFIRM_TIMEOUT_S = 120.0
 # daemon start → its first records committed: the daemon, its simulated devices and a first
 # GNSS fix on a 2-core host running the whole matrix (load 17-28 measured while writing this)
 STARTUP_TIMEOUT_S = 240.0
+PUBLISH_S = 30.0  # the flood's publishes: a PUBACK that never comes fails the row, not hangs it
 # The cabs sow at 8 km/h until the row has done its fault, then every seed tube falls silent
 # (the drive itself would end at a fixed time, whenever the daemons came up on a busy host)
 PASS_S = 600.0  # pass over → the watermark covers the last id (a loaded host)
@@ -547,33 +549,36 @@ async def row_duplicate_flood(tmp: Path) -> RowResult:
                             continue  # our own copies come back too
                         batches.append(payload)
                         for _ in range(FARM_DUPLICATE_COPIES):
-                            await writer.publish(topic, payload, qos=1)
+                            await writer.publish(topic, payload, qos=1, timeout=PUBLISH_S)
                             flooded += 1
                         if len(batches) % FARM_REPLAY_EVERY == 0:  # a replay of the last ones
                             for old in batches[-FARM_REPLAY_EVERY - 1:-1]:
-                                await writer.publish(topic, old, qos=0)
+                                await writer.publish(topic, old, qos=0, timeout=PUBLISH_S)
                                 flooded += 1
 
             task = asyncio.create_task(flood(), name="duplicate-flood")
             try:
-                await eventually(lambda: len(batches) > 0 or task.done(), STARTUP_TIMEOUT_S,
-                                 "the flood started")
-                await seeding(ln, 15.0)
+                await eventually(lambda: len(batches) >= FARM_FLOOD_BATCHES or task.done(),
+                                 STARTUP_TIMEOUT_S, f"{FARM_FLOOD_BATCHES} batches flooded",
+                                 detail=lambda: (len(batches), flooded))
                 await end_pass(ln)
                 await asyncio.sleep(1.0)  # the flood of the last batches
             finally:
                 stop.set()
                 task.cancel()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(asyncio.gather(task, return_exceptions=True), 10.0)
-            if task.done() and not task.cancelled() and task.exception() is not None:
+                # bounded without waiting for the cancel to land (a publish may swallow it)
+                await asyncio.wait({task}, timeout=10.0)
+            if task.done() and not task.cancelled() and task.exception() is not None \
+                    and len(batches) < FARM_FLOOD_BATCHES:
                 ln.res.problems.append(f"the flood failed: {task.exception()!r}")
             # one more replay of every batch after the pass, at QoS 1
             async with aiomqtt.Client("127.0.0.1", port, username=mid,
                                       identifier="flood-replay") as writer:
                 for old in batches:
-                    await writer.publish(topic, old, qos=1)
+                    await writer.publish(topic, old, qos=1, timeout=PUBLISH_S)
                     flooded += 1
+            ln.res.check(len(batches) >= FARM_FLOOD_BATCHES,
+                         f"only {len(batches)} batches flooded")
             ln.res.recovery = (f"{flooded} duplicate messages ({FARM_DUPLICATE_COPIES} copies of "
                                f"each of {len(batches)} batches, the last {FARM_REPLAY_EVERY} "
                                f"replayed at every {FARM_REPLAY_EVERY}th, all once more after "

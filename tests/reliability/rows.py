@@ -87,6 +87,7 @@ FARM_PG_CABS = 3  # the issue's ten cabs, scaled to what a busy 2-core `make tes
 FARM_INGEST_KILLS = 5
 FARM_DUPLICATE_COPIES = 10
 FARM_REPLAY_EVERY = 10
+FARM_FLOOD_BATCHES = 20  # the pass ends once this many of the cab's batches were flooded
 # the 10 minutes offline scaled down 15x: still 20 resend timeouts, ~2 600 records held
 FARM_OFFLINE_S = 40.0
 
@@ -295,7 +296,8 @@ ROWS: tuple[Row, ...] = (
     Row("farm_duplicate_flood", "farm",
         f"every `seeds` batch the cab publishes published {FARM_DUPLICATE_COPIES}× more (as "
         f"the cab), the last {FARM_REPLAY_EVERY} replayed at every {FARM_REPLAY_EVERY}th, "
-        "all of them once more after the pass; and the cab's own resends",
+        f"all of them once more after the pass ({FARM_FLOOD_BATCHES} batches at least); and "
+        "the cab's own resends",
         "no record twice in the database, none missing; the retained watermark equal to the "
         "cab's last id; daemon never exits on its own, no traceback"),
     Row("farm_cab_offline", "farm",
