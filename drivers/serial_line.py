@@ -147,6 +147,7 @@ class SerialLine:
             await asyncio.sleep(self._backoff.next_delay())
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        guard_write_ready(writer.transport)
         stats = self.stats
         stats.connected = True
         stats.connects += 1
@@ -225,6 +226,29 @@ class SerialLine:
         if message != self.stats.last_error:  # a port that stays away is reported once
             self._log.warning("%s: %s", self.label, message)
         self.stats.last_error = message
+
+
+def guard_write_ready(transport: asyncio.BaseTransport) -> None:
+    """Work around pyserial-asyncio-fast 0.16: after a partial write (the peer not reading,
+    its pty buffer full) the transport registers a writer callback, and when that callback
+    then writes the rest it never removes itself; the next time the fd is writable it asserts
+    on the empty buffer ("Write buffer should not be empty"), logged by asyncio on every turn
+    of the loop (a busy loop: 17 000 tracebacks in a minute on a loaded host). The guard
+    removes the callback when there is nothing left to write, which is what the library's own
+    ``_write_data`` means to do."""
+    write_ready = getattr(transport, "_write_ready", None)
+    remove_writer = getattr(transport, "_remove_writer", None)
+    buffer = getattr(transport, "_write_buffer", None)
+    if write_ready is None or remove_writer is None or not isinstance(buffer, list):
+        return  # another transport (or a fixed library): nothing to guard
+
+    def guarded() -> None:
+        if not buffer:
+            remove_writer()
+            return
+        write_ready()
+
+    transport._write_ready = guarded  # type: ignore[attr-defined]
 
 
 async def _close(writer: asyncio.StreamWriter) -> None:

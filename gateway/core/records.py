@@ -135,7 +135,10 @@ def drop_row(drop: SeedDrop) -> SeedRow:
 _UTC_SECOND_FORMAT = "%Y-%m-%dT%H:%M:%S"
 
 
-def seed_batch_json(machine_id: str, ids: Sequence[int], rows: Sequence[SeedRow]) -> bytes:
+def seed_batch_json(
+    machine_id: str, ids: Sequence[int], rows: Sequence[SeedRow],
+    pending_from: int | None = None,
+) -> bytes:
     """The ``seeds`` payload (a ``SeedBatch``) for stored rows, without a model per record.
 
     This runs for every seed published, so it builds plain dicts and lets orjson write them
@@ -162,4 +165,7 @@ def seed_batch_json(machine_id: str, ids: Sequence[int], rows: Sequence[SeedRow]
             "attitude": attitude, "roll_deg": roll, "pitch_deg": pitch,
             "id": i, "machine_id": machine_id,
         })
-    return orjson.dumps({"machine_id": machine_id, "records": records})
+    if pending_from is None:
+        return orjson.dumps({"machine_id": machine_id, "records": records})
+    return orjson.dumps({"machine_id": machine_id, "records": records,
+                         "pending_from": pending_from})

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, date, datetime
 
 import psycopg
@@ -35,7 +35,7 @@ from gateway.recording.id_ranges import IdRanges
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 
 class SchemaError(Exception):
@@ -108,6 +108,17 @@ BEGIN
     END IF;
   END LOOP;
 END $fn$""",
+    ],
+    # 2: a GiST index on the point (map queries of a field: "which seeds are in this
+    # polygon"), and ``seed_void``: per machine, the id ranges the cab declared it will never
+    # send (its ``pending_from``: ids skipped by its id reservation after an unclean stop, or
+    # delivered before this farm server knew it). ``committed_through`` counts them as done,
+    # so a machine whose ids do not start at 1 or jump by a block does not hold the watermark
+    # (and the gap list) back for ever; ``seed_coverage`` stays what is really committed.
+    2: [
+        "CREATE INDEX seed_records_geom_gist ON seed_records USING gist (geom)",
+        "CREATE TABLE seed_void (machine_id text NOT NULL, lo bigint NOT NULL, "
+        "hi bigint NOT NULL, PRIMARY KEY (machine_id, lo), CHECK (lo <= hi))",
     ],
 }
 
@@ -192,16 +203,23 @@ class Committed:
     coverage: list[tuple[int, int]]  # merged id ranges of its seed records
     new_seeds: int
     duplicate_seeds: int
+    # id ranges the machine declared it will never send (``seed_void``)
+    void: list[tuple[int, int]] = field(default_factory=list)
+
+    def _done(self) -> IdRanges:
+        return IdRanges([*self.coverage, *self.void])
 
     @property
     def through(self) -> int:
-        return IdRanges(self.coverage).through()
+        """Every id up to this one is committed or declared never to come."""
+        return self._done().through()
 
     def gaps(self) -> list[tuple[int, int]]:
-        """Ids missing below the highest committed one, as inclusive runs."""
+        """Ids missing below the highest committed one, as inclusive runs (the ids the
+        machine declared it will never send are not missing)."""
         if not self.coverage:
             return []
-        return list(IdRanges(self.coverage).gaps(0, self.coverage[-1][1]))
+        return list(self._done().gaps(0, self.coverage[-1][1]))
 
 
 class IngestDatabase:
@@ -230,16 +248,33 @@ class IngestDatabase:
             self.conn.commit()
             self._days.add(day)
 
-    def write_seeds(self, machine_id: str, records: Sequence[SeedRecord]) -> Committed:
-        """Commit the records this machine's coverage lacks; return its coverage after."""
+    def _ranges(self, table: str, machine_id: str) -> IdRanges:
+        return IdRanges((int(lo), int(hi)) for lo, hi in self.conn.execute(
+            sql.SQL("SELECT lo, hi FROM {} WHERE machine_id = %s ORDER BY lo")
+            .format(sql.Identifier(table)), (machine_id,)).fetchall())
+
+    def _store_ranges(self, table: str, machine_id: str, ranges: IdRanges) -> None:
+        self.conn.execute(sql.SQL("DELETE FROM {} WHERE machine_id = %s")
+                          .format(sql.Identifier(table)), (machine_id,))
+        with self.conn.cursor() as cur:
+            cur.executemany(
+                sql.SQL("INSERT INTO {} (machine_id, lo, hi) VALUES (%s, %s, %s)")
+                .format(sql.Identifier(table)),
+                [(machine_id, lo, hi) for lo, hi in ranges],
+            )
+
+    def write_seeds(self, machine_id: str, records: Sequence[SeedRecord],
+                    pending_from: int = 0) -> Committed:
+        """Commit the records this machine's coverage lacks; return its coverage after.
+
+        ``pending_from``: the machine said it will send no id below this one again; the ids
+        below it that are not committed are recorded in ``seed_void`` (not missing)."""
         unique = {r.id: r for r in records}
         self._ensure_days(r.utc for r in unique.values())
         with self.conn.transaction():
             self.conn.execute("SELECT pg_advisory_xact_lock(hashtext(%s))", (machine_id,))
-            covered = IdRanges((int(lo), int(hi)) for lo, hi in self.conn.execute(
-                "SELECT lo, hi FROM seed_coverage WHERE machine_id = %s ORDER BY lo",
-                (machine_id,),
-            ).fetchall())
+            covered = self._ranges("seed_coverage", machine_id)
+            void = self._ranges("seed_void", machine_id)
             fresh = [r for i, r in sorted(unique.items()) if i not in covered]
             if fresh:
                 names = sql.SQL(", ").join(sql.Identifier(n) for n, _ in SEED_COLUMNS)
@@ -259,21 +294,43 @@ class IngestDatabase:
                         "ON CONFLICT DO NOTHING").format(names=names))
                     cur.execute("TRUNCATE seed_staging")
                 covered.add_ids(r.id for r in fresh)
-                self.conn.execute("DELETE FROM seed_coverage WHERE machine_id = %s",
-                                  (machine_id,))
-                with self.conn.cursor() as cur:
-                    cur.executemany(
-                        "INSERT INTO seed_coverage (machine_id, lo, hi) VALUES (%s, %s, %s)",
-                        [(machine_id, lo, hi) for lo, hi in covered],
-                    )
-        return Committed(machine_id, list(covered), len(fresh), len(records) - len(fresh))
+                self._store_ranges("seed_coverage", machine_id, covered)
+            if pending_from > 1:
+                done = IdRanges([*covered, *void])
+                never = list(done.gaps(0, pending_from - 1))
+                if never:
+                    for lo, hi in never:
+                        void.add(lo, hi)
+                    self._store_ranges("seed_void", machine_id, void)
+                    log.info("%s: ids %s will never come (the machine skipped them or had "
+                             "them delivered before); not counted as missing", machine_id,
+                             ", ".join(f"{lo}–{hi}" for lo, hi in never[:5]))
+        return Committed(machine_id, list(covered), len(fresh), len(records) - len(fresh),
+                         list(void))
 
     def coverage(self, machine_id: str) -> Committed:
-        rows = self.conn.execute(
-            "SELECT lo, hi FROM seed_coverage WHERE machine_id = %s ORDER BY lo", (machine_id,)
-        ).fetchall()
+        covered = self._ranges("seed_coverage", machine_id)
+        void = self._ranges("seed_void", machine_id)
         self.conn.commit()
-        return Committed(machine_id, [(int(a), int(b)) for a, b in rows], 0, 0)
+        return Committed(machine_id, list(covered), 0, 0, list(void))
+
+    def coverage_of(self, machines: Iterable[str] | None = None) -> list[Committed]:
+        """The committed coverage of these machines (None: of every machine there is)."""
+        out: dict[str, dict[str, list[tuple[int, int]]]] = {}
+        for table in ("seed_coverage", "seed_void"):
+            query = sql.SQL("SELECT machine_id, lo, hi FROM {}").format(sql.Identifier(table))
+            if machines is None:
+                rows = self.conn.execute(query + sql.SQL(" ORDER BY machine_id, lo")).fetchall()
+            else:
+                rows = self.conn.execute(
+                    query + sql.SQL(" WHERE machine_id = ANY(%s) ORDER BY machine_id, lo"),
+                    (sorted(machines),)).fetchall()
+            for machine_id, lo, hi in rows:
+                out.setdefault(str(machine_id), {}).setdefault(table, []).append(
+                    (int(lo), int(hi)))
+        self.conn.commit()
+        return [Committed(m, t.get("seed_coverage", []), 0, 0, t.get("seed_void", []))
+                for m, t in out.items()]
 
     def write_alarms(self, events: Sequence[AlarmEvent]) -> int:
         """Insert alarm events (unique per machine and id); returns how many were new."""

@@ -50,6 +50,12 @@ GAP_LOG_INTERVAL_S = 30.0
 WATERMARK_RANGES = 64  # the newest committed id ranges a watermark lists
 RECONNECT_S = 2.0
 SUMMARY_INTERVAL_S = 60.0  # an INFO line with the counters and the gaps
+# Watermarks are published again from the database: every machine's at each (re)connect (a
+# broker restarted without persistence lost them, and a cab whose records are all committed
+# sends nothing that would bring a new one), and every this many seconds those of the machines
+# that sent seeds meanwhile (two ingest processes publish in any order: the retained one may be
+# the older of two, until this puts the database's newest coverage on top again)
+WATERMARK_REFRESH_S = 5.0
 
 
 class Rejected(Exception):
@@ -114,6 +120,9 @@ class Ingest:
         self._failure_logged = -1e9
         self._db: IngestDatabase | None = None
         self._db_lock = asyncio.Lock()
+        self._active: set[str] = set()  # machines that sent seeds since the last refresh
+        # per machine, the highest ``pending_from`` it sent (no id below it will come again)
+        self._pending_from: dict[str, int] = {}
 
     # -- parsing: pure, every failure is a Rejected -------------------------------------------
 
@@ -158,8 +167,13 @@ class Ingest:
                 ids = [r.machine_id for r in batch.records]
                 if batch.machine_id != machine_id or any(i != machine_id for i in ids):
                     raise Rejected("impersonation", "machine_id differs from the topic's")
+                self._active.add(machine_id)
                 if batch.records:
                     self._seeds.setdefault(machine_id, []).extend(batch.records)
+                    if batch.pending_from is not None:  # never above what it sends itself
+                        floor = min(batch.pending_from, min(r.id for r in batch.records))
+                        if floor > self._pending_from.get(machine_id, 0):
+                            self._pending_from[machine_id] = floor
                     self._rows += len(batch.records)
             elif kind == "alarms":
                 event = AlarmEvent.model_validate_json(payload)
@@ -207,7 +221,8 @@ class Ingest:
         done = []
         try:
             for machine_id in list(work.seeds):
-                result = db.write_seeds(machine_id, work.seeds[machine_id])
+                result = db.write_seeds(machine_id, work.seeds[machine_id],
+                                        self._pending_from.get(machine_id, 0))
                 del work.seeds[machine_id]
                 done.append(result)
                 self.stats.seeds_committed += result.new_seeds
@@ -275,6 +290,36 @@ class Ingest:
             "committed": [list(r) for r in result.coverage[-WATERMARK_RANGES:]],
         })
 
+    def _read_coverage(self, machines: set[str] | None) -> list[Committed]:
+        if self._db is None:
+            assert self.farm.database_url is not None
+            self._db = IngestDatabase(self.farm.database_url)
+        try:
+            return self._db.coverage_of(machines)
+        except BaseException:
+            with contextlib.suppress(Exception):
+                self._db.close()
+            self._db = None
+            raise
+
+    async def refresh_watermarks(self, client: aiomqtt.Client | None,
+                                 machines: set[str] | None = None) -> None:
+        """Publish these machines' watermarks (None: every machine's) from the database's
+        coverage; a database away is logged and left for the next time."""
+        if machines is not None and not machines:
+            return
+        async with self._db_lock:
+            try:
+                known = await asyncio.to_thread(self._read_coverage, machines)
+            except Exception as exc:
+                log.info("ingest: watermarks not refreshed (%s: %s)", type(exc).__name__,
+                         str(exc).strip()[:200])
+                return
+        for result in known:
+            self.committed[result.machine_id] = result
+            if client is not None:
+                await self._publish_watermark(client, result)
+
     async def _publish_watermark(self, client: aiomqtt.Client, result: Committed) -> None:
         await client.publish(f"{self.prefix}/{result.machine_id}/ingested",
                              self.watermark_payload(result), qos=1, retain=True)
@@ -302,6 +347,7 @@ class Ingest:
             for kind in KINDS:
                 await client.subscribe(
                     f"$share/{self.farm.share_group}/{self.prefix}/+/{kind}", qos=1)
+            await self.refresh_watermarks(client)
             self.connected.set()
             log.info("ingest connected to %s:%s as %s (share group %s)", self.mqtt.host,
                      self.mqtt.port, self.client_id, self.farm.share_group)
@@ -324,7 +370,12 @@ class Ingest:
 
     async def _flush_loop(self, client: aiomqtt.Client) -> None:
         next_summary = time.monotonic() + SUMMARY_INTERVAL_S
+        next_refresh = time.monotonic() + WATERMARK_REFRESH_S
         while True:
+            if time.monotonic() >= next_refresh:
+                next_refresh = time.monotonic() + WATERMARK_REFRESH_S
+                active, self._active = self._active, set()
+                await self.refresh_watermarks(client, active)
             if time.monotonic() >= next_summary:
                 next_summary = time.monotonic() + SUMMARY_INTERVAL_S
                 log.info("%s", self.summary())

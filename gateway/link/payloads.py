@@ -276,6 +276,13 @@ class SeedBatch(_Payload):
 
     machine_id: str
     records: list[SeedRecord]
+    pending_from: int | None = Field(
+        None, ge=1,
+        description="the lowest id the box had not seen delivered when it sent this batch: it "
+        "will send no id below it again (those are confirmed by the farm server, or "
+        "acknowledged by the broker without farm_server_ack, or were never used: ids skipped "
+        "after an unclean stop). The farm server counts the ones it lacks as never to come.",
+    )
 
 
 class _Command(_Payload):

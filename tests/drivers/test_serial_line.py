@@ -233,3 +233,35 @@ async def test_a_bug_in_the_driver_on_close_still_closes_the_port(pty: PtyPair) 
     with pytest.raises(RuntimeError, match="driver bug"):
         await task
     assert writer is not None and writer.is_closing() and not line.connected
+
+
+async def test_a_write_the_device_is_slow_to_take_leaves_no_busy_writer(pty: PtyPair) -> None:
+    """pyserial-asyncio-fast 0.16 leaves its writer callback registered after a partial write
+    completes and then asserts on the empty buffer on every loop turn (a busy loop of logged
+    tracebacks); the line's guard removes the callback instead."""
+    rec = Recorder()
+    errors: list[str] = []
+    loop = asyncio.get_running_loop()
+    loop.set_exception_handler(lambda _loop, ctx: errors.append(str(ctx.get("exception"))))
+    line = line_for(pty.device_path, rec)
+    try:
+        async with running(line):
+            await eventually(lambda: line.writer is not None)
+            assert line.writer is not None
+            line.writer.write(b"x" * 200_000)  # far more than a pty buffer holds: partial
+            got = 0
+
+            def drained() -> bool:
+                nonlocal got
+                with contextlib.suppress(BlockingIOError):
+                    while chunk := os.read(pty.master_fd, 65536):
+                        got += len(chunk)
+                return got >= 200_000
+
+            await eventually(drained, 30)
+            for _ in range(50):  # the fd stays writable: any callback left would fire now
+                await asyncio.sleep(0.001)
+            assert line.writer.transport.get_write_buffer_size() == 0
+    finally:
+        loop.set_exception_handler(None)
+    assert errors == []

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from tests.reliability.agopengps_faults import group_agopengps
 from tests.reliability.device_faults import group_modbus, group_serial
+from tests.reliability.farm_faults import group_farm
 from tests.reliability.gnss_time_faults import group_gnss_time
 from tests.reliability.harness import RowResult
 from tests.reliability.hopper_faults import group_hopper
@@ -38,6 +39,7 @@ GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
     "commands": group_commands,
     "config": group_config,
     "agopengps": group_agopengps,
+    "farm": group_farm,
 }
 
 

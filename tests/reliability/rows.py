@@ -78,6 +78,18 @@ CHATTER_S = 10.0
 # (all sections on) per AgIO frame, plus junk, and AgIO's line one bad checksum per tick
 AGOPENGPS_KMH = 8.0
 STRANGER_FRAMES_PER_TICK = 50
+# the farm server rows (issue 24 §4): real daemons on the simulated 6-row planter at 8 km/h
+# (~65 seeds/s a cab: the daemon's real rate on this planter), `[mqtt] farm_server_ack` with
+# its resend timeout at this (the default is 60 s; 2 s makes a row's minute hold ~30 of them)
+FARM_ACK_TIMEOUT_S = 2.0
+FARM_PG_DOWN_S = 30.0
+FARM_PG_CABS = 3  # the issue's ten cabs, scaled to what a busy 2-core `make test` carries
+FARM_INGEST_KILLS = 5
+FARM_DUPLICATE_COPIES = 10
+FARM_REPLAY_EVERY = 10
+FARM_FLOOD_BATCHES = 20  # the pass ends once this many of the cab's batches were flooded
+# the issue's 10 minutes offline scaled down 15x: still 20 resend timeouts, ~2 600 records held
+FARM_OFFLINE_S = 40.0
 
 
 @dataclass(frozen=True)
@@ -263,6 +275,40 @@ ROWS: tuple[Row, ...] = (
         "a file",
         f"`sowgate run` exits {EXIT_CONFIG} naming the key within 10 s; `check-config` "
         f"exits {EXIT_CONFIG} for the config file keys; never a traceback"),
+    Row("farm_postgres_down", "farm",
+        f"a private PostgreSQL 15 cluster (initdb, own port) stopped for {FARM_PG_DOWN_S:g} s "
+        f"(`pg_ctl stop -m fast`) while {FARM_PG_CABS} cabs seed into one `sowgate ingest`, "
+        "then started again",
+        "ingest keeps running; afterwards every record of every cab in the database exactly "
+        "once (ids compared with each cab's store) and the retained `<prefix>/<machine>/"
+        "ingested` watermark equal to the cab's last id; daemons never exit on their own, "
+        "no traceback"),
+    Row("farm_ingest_sigkill_x5", "farm",
+        f"two `sowgate ingest` processes in one share group; SIGKILL {FARM_INGEST_KILLS}×, "
+        "alternating, at any phase of a flush (each restarted at once) while a cab seeds",
+        "every record in the database exactly once; the retained watermark equal to the "
+        "cab's last id; the cab never exits on its own, no traceback"),
+    Row("farm_broker_restart_no_persistence", "farm",
+        "mosquitto (persistence off) restarted while a cab seeds: the retained watermark, the "
+        "sessions and every in-flight message lost",
+        "every record in the database exactly once; the watermark retained again, equal to "
+        "the cab's last id; daemon never exits on its own, no traceback"),
+    Row("farm_duplicate_flood", "farm",
+        f"every `seeds` batch the cab publishes published {FARM_DUPLICATE_COPIES}× more (as "
+        f"the cab), the last {FARM_REPLAY_EVERY} replayed at every {FARM_REPLAY_EVERY}th, "
+        f"all of them once more after the pass ({FARM_FLOOD_BATCHES} batches at least); and "
+        "the cab's own resends",
+        "no record twice in the database, none missing; the retained watermark equal to the "
+        "cab's last id; daemon never exits on its own, no traceback"),
+    Row("farm_cab_offline", "farm",
+        f"the cab's link to the broker cut (a TCP relay drops its connections and refuses "
+        f"new ones) for {FARM_OFFLINE_S:g} s while it seeds: the issue's 10 minutes scaled "
+        f"down 15×, still {FARM_OFFLINE_S / FARM_ACK_TIMEOUT_S:g}× the cab's "
+        f"`farm_server_ack_timeout_s` ({FARM_ACK_TIMEOUT_S:g} s), ~2 600 records held",
+        "the records of the outage held in the cab's store and published from the oldest "
+        "uncovered one when it is back; every record in the database exactly once; the "
+        "retained watermark equal to the cab's last id; daemon never exits on its own, "
+        "no traceback"),
 )
 ROWS_BY_NAME = {r.name: r for r in ROWS}
 

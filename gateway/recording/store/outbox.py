@@ -146,10 +146,13 @@ class Outbox:
         Equals ``SeedBatch(...).model_dump_json()`` value for value (tested); see
         ``seed_batch_json`` for why it builds no models.
         """
+        oldest = self.oldest_pending_seed_id()  # first: a watermark may only raise it
         ids, rows = self._undelivered(limit, after_id)
         if not ids:
             return None
-        return OutboxBatch(ids, seed_batch_json(self.machine_id, ids, rows))
+        # the farm server learns which ids it will never get (SeedBatch.pending_from)
+        pending_from = ids[0] if oldest is None else min(oldest, ids[0])
+        return OutboxBatch(ids, seed_batch_json(self.machine_id, ids, rows, pending_from))
 
     def pending_alarms(self, limit: int, after_id: int = 0) -> list[AlarmEvent]:
         limit = max(0, min(limit, MAX_OUTBOX_LIMIT))

@@ -333,3 +333,67 @@ def test_ingest_migrates_a_fresh_database_itself_when_it_may(tmp_path: Path) -> 
     finally:
         with psycopg.connect(ADMIN_URL, autocommit=True) as admin:
             admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'.encode())
+
+
+async def test_a_cab_whose_ids_do_not_start_at_1_or_jump_is_confirmed_to_its_last_id(
+    database: str, broker: Mosquitto, tmp_path: Path
+) -> None:
+    """Ids 1..300 delivered on PUBACK before the cab had a farm server, then an unclean stop
+    that left the id reservation 20 000 ahead (what a SIGKILL leaves): the farm server never
+    gets ids 1..20 300, and the cab's ``pending_from`` says so; the watermark reaches the cab's
+    last id and nothing is named missing."""
+    from gateway.recording.store import RecordStore
+    from gateway.recording.store.ids import reservation_path
+    from tests.gateway.farm_server.test_ingest import watermarks
+
+    path = tmp_path / "cab.sqlite3"
+    store = RecordStore(path, MACHINE)
+    ids = store.append_seeds(drops(300))
+    store.flush()
+    store.mark_seeds_delivered(list(ids))
+    store.close()
+    reservation_path(path).write_text('{"seeds": 20300, "alarms": 0}', encoding="utf-8")
+    async with running_ingest(database, broker) as ingest, watermarks(broker) as seen, \
+            running_link(cab_settings(broker, 2.0), path) as cab:
+        cab.store.append_seeds(drops(100))
+        cab.store.flush()
+        await eventually(lambda: cab.store.backlog() == 0, 60, "every record confirmed",
+                         detail=lambda: (cab.store.backlog(), ingest.stats, seen))
+        await eventually(lambda: seen.get(MACHINE, {}).get("committed_through") == 20400, 30,
+                         "watermark at the last id", detail=lambda: seen)
+        assert ingest.gaps() == {}
+    assert rows(database, "SELECT count(*), min(id), max(id) FROM seed_records")[0] == \
+        (100, 20301, 20400)
+    assert rows(database, "SELECT lo, hi FROM seed_void") == [(1, 20300)]
+
+
+def test_a_version_1_schema_is_migrated_to_2(tmp_path: Path) -> None:
+    """The GiST index on the point and seed_void are added to a database ingest 1 made."""
+    import uuid
+
+    import psycopg
+
+    from gateway.farm_server.db import MIGRATIONS, SCHEMA_VERSION, ensure_schema, schema_version
+    from tests.gateway.farm_server.conftest import ADMIN_URL
+
+    name = f"sowgate_test_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(ADMIN_URL, autocommit=True) as admin:
+        admin.execute(f'CREATE DATABASE "{name}"'.encode())
+    url = f"postgresql://postgres@127.0.0.1:5432/{name}"
+    try:
+        with psycopg.connect(url) as conn:
+            conn.execute("CREATE TABLE sowgate_schema (version integer NOT NULL, "
+                         "migrated_at timestamptz NOT NULL DEFAULT now())")
+            for statement in MIGRATIONS[1]:
+                conn.execute(statement.encode())
+            conn.execute("INSERT INTO sowgate_schema (version) VALUES (1)")
+            conn.execute("SELECT sowgate_ensure_day('2026-04-20')")
+        assert ensure_schema(url) == 1
+        assert schema_version(url) == SCHEMA_VERSION == 2
+        assert rows(url, "SELECT count(*) FROM seed_void")[0][0] == 0
+        # the index on the partitioned table reaches the partition made before it
+        assert rows(url, "SELECT count(*) FROM pg_indexes WHERE tablename = "
+                    "'seed_records_20260420' AND indexdef LIKE '%USING gist (geom)%'")[0][0] == 1
+    finally:
+        with psycopg.connect(ADMIN_URL, autocommit=True) as admin:
+            admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'.encode())

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 from collections.abc import AsyncIterator
 from datetime import UTC, datetime, timedelta
 
@@ -32,9 +33,9 @@ def records(machine: str, first: int, last: int) -> list[SeedRecord]:
     ]
 
 
-def batch(machine: str, first: int, last: int) -> bytes:
-    return SeedBatch(machine_id=machine, records=records(machine, first, last)) \
-        .model_dump_json().encode()
+def batch(machine: str, first: int, last: int, pending_from: int | None = None) -> bytes:
+    return SeedBatch(machine_id=machine, records=records(machine, first, last),
+                     pending_from=pending_from).model_dump_json().encode()
 
 
 @contextlib.asynccontextmanager
@@ -146,6 +147,49 @@ async def test_gaps_are_known_per_machine_and_named(database: str, broker: Mosqu
         "seeder-03: records 18 200–18 340 not received yet"
 
 
+async def test_ids_the_machine_will_never_send_do_not_hold_the_watermark(
+    database: str, broker: Mosquitto
+) -> None:
+    """A cab whose ids do not start at 1 (delivered before this farm server knew it) or jump
+    by a reservation block (an unclean stop) says so in ``pending_from``: those ids count as
+    done for ``committed_through`` and are not named as missing; a ``pending_from`` above the
+    batch's own first id is capped at it."""
+    async with running_ingest(database, broker) as ingest, watermarks(broker) as seen, \
+            cab(broker, "seeder-10") as client:
+        topic = "sowgate/seeder-10/seeds"
+        await client.publish(topic, batch("seeder-10", 5001, 5100, pending_from=5001), qos=1)
+        await eventually(lambda: through(seen, "seeder-10") == 5100, 30, "through 5100",
+                         detail=lambda: (seen, ingest.stats))
+        # a block skipped after a kill: 5101..25100 never used
+        await client.publish(topic, batch("seeder-10", 25101, 25150, pending_from=25101), qos=1)
+        await eventually(lambda: through(seen, "seeder-10") == 25150, 30, "through 25150")
+        # a batch without pending_from (an older cab) above a gap: the gap stays a gap
+        await client.publish(topic, batch("seeder-10", 25200, 25210), qos=1)
+        await eventually(lambda: ingest.gaps().get("seeder-10") == [(25151, 25199)], 30,
+                         "a real gap named")
+        assert through(seen, "seeder-10") == 25150
+        # pending_from beyond the batch: only the ids below the batch are given up
+        await client.publish(topic, batch("seeder-10", 25300, 25310, pending_from=99_999),
+                             qos=1)
+        await eventually(lambda: through(seen, "seeder-10") == 25310, 30, "through 25310")
+        await client.publish(topic, batch("seeder-10", 25320, 25330), qos=1)
+        await eventually(lambda: ingest.gaps().get("seeder-10") == [(25311, 25319)], 30,
+                         "the gap above the capped pending_from")
+        assert through(seen, "seeder-10") == 25310
+    assert rows(database, "SELECT count(*), count(DISTINCT id) FROM seed_records")[0] == \
+        (100 + 50 + 11 + 11 + 11, 100 + 50 + 11 + 11 + 11)
+    assert rows(database, "SELECT lo, hi FROM seed_void ORDER BY lo") == \
+        [(1, 5000), (5101, 25100), (25151, 25199), (25211, 25299)]
+    assert rows(database, "SELECT lo, hi FROM seed_coverage ORDER BY lo") == \
+        [(5001, 5100), (25101, 25150), (25200, 25210), (25300, 25310), (25320, 25330)]
+
+
+async def test_the_point_has_a_gist_index(database: str) -> None:
+    (index,) = rows(database, "SELECT indexdef FROM pg_indexes WHERE tablename = "
+                    "'seed_records' AND indexname = 'seed_records_geom_gist'")
+    assert "USING gist (geom)" in str(index[0])
+
+
 async def test_alarms_state_and_status_are_kept_state_thinned(
     database: str, broker: Mosquitto
 ) -> None:
@@ -181,8 +225,9 @@ HOSTILE = [
 
 
 async def test_hostile_payloads_are_counted_never_stored_never_fatal(
-    database: str, broker: Mosquitto
+    database: str, broker: Mosquitto, caplog: pytest.LogCaptureFixture
 ) -> None:
+    caplog.set_level(logging.WARNING, logger="gateway.farm_server.ingest")
     async with running_ingest(database, broker, max_payload_bytes=1_000_000) as ingest, \
             watermarks(broker) as seen, cab(broker, "seeder-05") as client:
         for topic, payload in HOSTILE:
@@ -195,6 +240,11 @@ async def test_hostile_payloads_are_counted_never_stored_never_fatal(
         await eventually(lambda: through(seen, "seeder-05") == 10, 30, "a good batch after")
     assert ingest.stats.rejected["impersonation"] == 1
     assert ingest.stats.rejected["too_large"] == 1
+    # logged, at most once per reason per 10 s (a flood cannot fill the journal)
+    logged = [r for r in caplog.records if "ingest rejected a message" in r.getMessage()]
+    assert {r.getMessage().split("(")[1].split(",")[0] for r in logged} == \
+        set(ingest.stats.rejected)
+    assert len(logged) <= 2 * len(ingest.stats.rejected)
     assert rows(database, "SELECT count(*) FROM seed_records")[0][0] == 10
     assert rows(database, "SELECT count(*) FROM alarm_events")[0][0] == 0
     assert rows(database, "SELECT count(*) FROM machine_status")[0][0] == 0
