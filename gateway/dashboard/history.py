@@ -40,7 +40,8 @@ from gateway.recording.spacing_quality import MISS_LIMIT, MULTIPLE_LIMIT, RowQua
 GRID_CELLS = 600  # cells across the longer side of the field: about one per screen pixel
 MAX_MACHINES = 100  # machines one request may name
 MAX_ALARMS = 5000  # alarm events one day returns (the rest are counted)
-MEDIAN_SAMPLE = 64  # the reference spacing of a machine without a target: every 64th id
+PREVIEW_ROWS = 100_000  # rows (about) of a preview's page sample (the first draw of a big day)
+SAMPLE_ROWS = 20_000  # rows (about) of the page sample giving the extent and the medians
 R_EARTH_M = 6_371_008.8
 MACHINE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 DAY = re.compile(r"\d{4}-\d{2}-\d{2}")
@@ -131,71 +132,136 @@ class History:
                       reverse=True)
         return days
 
-    def field(self, window: Window, machines: list[str] | None) -> dict[str, Any]:
-        """Every machine's seeds of the day as grid cells, and each machine's figures."""
+    def field(self, window: Window, machines: list[str] | None,
+              preview: bool = False) -> dict[str, Any]:
+        """Every machine's seeds of the day as grid cells, and each machine's figures.
+
+        One pass over the day's rows: a small page sample (``TABLESAMPLE SYSTEM``, about
+        ``SAMPLE_ROWS`` rows) gives the field's extent, hence the cell size, and each
+        machine's median spacing (its reference without a configured target); then one
+        ``GROUP BY`` of the cell counts the seeds per cell and class, with each cell's first
+        and last time, from which the machines' counts and spans are summed. A machine the
+        sample missed (a few seeds that day) gets its own exact reference and pass.
+
+        ``preview``: on a day of more than ``2 * PREVIEW_ROWS`` rows, the cells of a page
+        sample of about ``PREVIEW_ROWS`` rows only (``complete`` false, ``sample_pct``): the
+        page draws it at once and asks for the whole day next."""
         p: dict[str, Any] = {"since": window.since, "until": window.until,
                              "machines": machines}
         where = ("utc >= %(since)s AND utc < %(until)s AND "
                  "(%(machines)s::text[] IS NULL OR machine_id = ANY(%(machines)s))")
+        out: dict[str, Any] = {"day": window.day.isoformat(), "machines": [], "cells": [],
+                               "cell_m": None, "origin": None, "extent_cells": [0, 0],
+                               "seeds": 0, "complete": True, "sample_pct": 100.0}
         with self._connect() as conn:
-            stats = conn.execute((
-                "SELECT machine_id, count(*), min(lat), max(lat), min(lon), max(lon), "
-                "min(utc), max(utc), percentile_cont(0.5) WITHIN GROUP (ORDER BY spacing_m) "
-                f"FILTER (WHERE id %% {MEDIAN_SAMPLE} = 0) "
-                f"FROM seed_records WHERE {where} GROUP BY machine_id ORDER BY machine_id "
-                f"LIMIT {MAX_MACHINES}").encode(), p).fetchall()
-            out: dict[str, Any] = {"day": window.day.isoformat(), "machines": [],
-                                   "cells": [], "cell_m": None, "origin": None,
-                                   "seeds": 0}
-            if not stats:
+            row = conn.execute(
+                b"SELECT reltuples FROM pg_class WHERE oid = to_regclass(%s)",
+                (f"seed_records_{window.day:%Y%m%d}",)).fetchone()
+            if row is None:
+                return out  # no partition: nothing on that day
+            rows = float(row[0])
+            pct = 100.0 if rows < 2 * SAMPLE_ROWS else max(0.5, 100.0 * SAMPLE_ROWS / rows)
+            sample = self._sample(conn, where, p, pct)
+            cut = 100.0
+            if preview and rows >= 2 * PREVIEW_ROWS:
+                cut = max(0.5, 100.0 * PREVIEW_ROWS / rows)
+            if not sample and pct < 100:
+                sample = self._sample(conn, where, p, 100.0)
+            if not sample:
                 return out
-            lat0 = min(s[2] for s in stats)
-            lon0 = min(s[4] for s in stats)
+            lat0 = min(s[1] for s in sample.values())
+            lon0 = min(s[3] for s in sample.values())
             ky = math.pi / 180 * R_EARTH_M
             kx = ky * math.cos(math.radians(lat0))
-            extent = max(max((s[3] - lat0) * ky, (s[5] - lon0) * kx) for s in stats)
-            cell = max(0.05, extent / GRID_CELLS)
-            ids = [s[0] for s in stats]
-            refs = [self.target_spacing.get(s[0], s[8]) for s in stats]
+            extent = max(max((s[2] - lat0) * ky, (s[4] - lon0) * kx) for s in sample.values())
+            cell = max(0.05, 1.02 * extent / GRID_CELLS)
+            grid = {"lon0": lon0, "lat0": lat0, "kx": kx / cell, "ky": ky / cell}
+            refs = {mid: self.target_spacing.get(mid, s[5]) for mid, s in sample.items()}
+            cells = self._cells(conn, where, {**p, **grid}, refs, others=True, pct=cut)
+            missed = sorted({c[2] for c in cells} - set(refs))
+            if missed:  # machines the sample missed: exact reference, their own pass
+                cells = [c for c in cells if c[2] in refs]
+                q = {**p, "machines": missed}
+                for mid, s in self._sample(conn, where, q, 100.0).items():
+                    refs[mid] = self.target_spacing.get(mid, s[5])
+                cells += self._cells(conn, where, {**q, **grid}, refs, others=False,
+                                     pct=cut)
+            ids = sorted(refs)
             coverage: dict[str, list[tuple[int, int]]] = {mid: [] for mid in ids}
             for mid, lo, hi in conn.execute(
                     b"SELECT machine_id, lo, hi FROM seed_coverage "
                     b"WHERE machine_id = ANY(%s) ORDER BY machine_id, lo", (ids,)):
                 coverage[mid].append((int(lo), int(hi)))
-            cells = conn.execute((
-                "WITH refs AS (SELECT * FROM unnest(%(ids)s::text[], %(refs)s::float8[], "
-                "%(idx)s::int[]) AS r(machine_id, ref, idx)) "
-                "SELECT ix, iy, idx, CASE "
-                " WHEN n - n0 - n1 - n3 >= greatest(n0, n1, n3) THEN 2"
-                " WHEN n3 >= greatest(n0, n1) THEN 3 WHEN n1 >= n0 THEN 1 ELSE 0 END "
-                "FROM (SELECT floor((s.lon - %(lon0)s) * %(kx)s)::int AS ix, "
-                "floor((s.lat - %(lat0)s) * %(ky)s)::int AS iy, r.idx, count(*) AS n, "
-                "count(*) FILTER (WHERE s.spacing_m IS NULL OR r.ref IS NULL) AS n0, "
-                f"count(*) FILTER (WHERE s.spacing_m <= {MULTIPLE_LIMIT} * r.ref) AS n1, "
-                f"count(*) FILTER (WHERE s.spacing_m > {MISS_LIMIT} * r.ref) AS n3 "
-                f"FROM seed_records s JOIN refs r USING (machine_id) WHERE {where} "
-                "GROUP BY 1, 2, 3) g").encode(),
-                {**p, "ids": ids, "refs": refs, "idx": list(range(len(ids))),
-                 "lon0": lon0, "lat0": lat0, "kx": kx / cell, "ky": ky / cell}).fetchall()
+        index = {mid: k for k, mid in enumerate(ids)}
+        ix0 = min(c[0] for c in cells)
+        iy0 = min(c[1] for c in cells)
         flat: list[int] = []
-        for ix, iy, idx, cls in cells:
-            flat.extend((ix, iy, idx, cls))
-        out.update(cells=flat, cell_m=cell, origin=[lat0, lon0],
-                   extent_cells=[math.floor(max((s[5] - lon0) * kx for s in stats) / cell),
-                                 math.floor(max((s[3] - lat0) * ky for s in stats) / cell)],
-                   seeds=sum(int(s[1]) for s in stats))
-        for s, ref in zip(stats, refs, strict=True):
-            mid = s[0]
+        per: dict[str, list[Any]] = {}
+        for ix, iy, mid, cls, n, first, last in cells:
+            flat.extend((ix - ix0, iy - iy0, index[mid], cls))
+            m = per.get(mid)
+            if m is None:
+                per[mid] = [n, first, last]
+            else:
+                m[0] += n
+                m[1] = min(m[1], first)
+                m[2] = max(m[2], last)
+        out.update(cells=flat, cell_m=cell, complete=cut >= 100, sample_pct=cut,
+                   origin=[lat0 + iy0 * cell / ky, lon0 + ix0 * cell / kx],
+                   extent_cells=[max(c[0] for c in cells) - ix0,
+                                 max(c[1] for c in cells) - iy0],
+                   seeds=sum(m[0] for m in per.values()))
+        for mid in ids:
+            n, first, last = per[mid]
             covered = coverage[mid]  # ingest's committed ids: what is missing below the top
             gaps = list(IdRanges(covered).gaps(0, covered[-1][1])) if covered else []
             out["machines"].append({
-                "machine_id": mid, "seeds": int(s[1]),
-                "first_utc": _iso(s[6]), "last_utc": _iso(s[7]),
-                "x_ref_m": ref, "target_configured": mid in self.target_spacing,
+                "machine_id": mid, "seeds": int(n),
+                "first_utc": _iso(first), "last_utc": _iso(last),
+                "x_ref_m": refs[mid], "target_configured": mid in self.target_spacing,
                 "gaps": [[lo, hi] for lo, hi in gaps[:100]], "gap_runs": len(gaps),
                 "gaps_text": gaps_text(mid, gaps),
             })
         return out
+
+    @staticmethod
+    def _sample(conn: psycopg.Connection[TupleRow], where: str, p: dict[str, Any],
+                pct: float) -> dict[str, tuple[Any, ...]]:
+        """Per machine: (n, min lat, max lat, min lon, max lon, median spacing) of a sample
+        of ``pct`` % of the day's pages (all of them at 100)."""
+        sample = "" if pct >= 100 else f"TABLESAMPLE SYSTEM ({float(pct):.3f}) REPEATABLE (1) "
+        rows = conn.execute((
+            "SELECT machine_id, count(*), min(lat), max(lat), min(lon), max(lon), "
+            "percentile_cont(0.5) WITHIN GROUP (ORDER BY spacing_m) "
+            f"FROM seed_records {sample}WHERE {where} GROUP BY machine_id "
+            f"ORDER BY machine_id LIMIT {MAX_MACHINES}").encode(), p).fetchall()
+        return {r[0]: tuple(r[1:]) for r in rows}
+
+    @staticmethod
+    def _cells(conn: psycopg.Connection[TupleRow], where: str, p: dict[str, Any],
+               refs: dict[str, float | None], *, others: bool,
+               pct: float = 100.0) -> list[tuple[Any, ...]]:
+        """(ix, iy, machine, class, seeds, first utc, last utc) per occupied cell; with
+        ``others`` the machines without a reference come too (classed unknown)."""
+        ids = sorted(refs)
+        join = "LEFT JOIN" if others else "JOIN"
+        sample = "" if pct >= 100 else f"TABLESAMPLE SYSTEM ({float(pct):.3f}) REPEATABLE (2) "
+        return conn.execute((
+            "WITH refs AS (SELECT * FROM unnest(%(ids)s::text[], %(refs)s::float8[]) "
+            "AS r(machine_id, ref)) "
+            "SELECT ix, iy, machine_id, CASE "
+            " WHEN n - n0 - n1 - n3 >= greatest(n0, n1, n3) THEN 2"
+            " WHEN n3 >= greatest(n0, n1) THEN 3 WHEN n1 >= n0 THEN 1 ELSE 0 END, "
+            "n, t0, t1 "
+            "FROM (SELECT floor((s.lon - %(lon0)s) * %(kx)s)::int AS ix, "
+            "floor((s.lat - %(lat0)s) * %(ky)s)::int AS iy, s.machine_id, count(*) AS n, "
+            "count(*) FILTER (WHERE s.spacing_m IS NULL OR r.ref IS NULL) AS n0, "
+            f"count(*) FILTER (WHERE s.spacing_m <= {MULTIPLE_LIMIT} * r.ref) AS n1, "
+            f"count(*) FILTER (WHERE s.spacing_m > {MISS_LIMIT} * r.ref) AS n3, "
+            "min(s.utc) AS t0, max(s.utc) AS t1 "
+            f"FROM seed_records s {sample}{join} refs r USING (machine_id) WHERE {where} "
+            "GROUP BY 1, 2, 3) g").encode(),
+            {**p, "ids": ids, "refs": [refs[m] for m in ids]}).fetchall()
 
     def quality(self, window: Window, machine: str) -> dict[str, Any]:
         """Per-row spacing quality of one machine over the day (export's accumulators)."""

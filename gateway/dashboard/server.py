@@ -249,9 +249,13 @@ def create_app(
                 check_params(params, set())
                 result: Any = {"days": await asyncio.to_thread(history.days)}
             elif what == "field":
-                check_params(params, {"day", "machine"})
+                check_params(params, {"day", "machine", "preview"})
                 window, machines = parse_day(params), parse_machines(params)
-                result = await asyncio.to_thread(history.field, window, machines)
+                preview = params.get("preview", "0")
+                if preview not in ("0", "1"):
+                    raise BadRequest(f"preview: 0 or 1 (got {preview[:20]!r})")
+                result = await asyncio.to_thread(history.field, window, machines,
+                                                 preview == "1")
             elif what == "quality":
                 check_params(params, {"day", "machine"})
                 window, machines = parse_day(params), parse_machines(params, required=True)

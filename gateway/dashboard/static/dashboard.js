@@ -116,6 +116,7 @@ function handle(msg) {
       app.config = msg;
       setupControls();
       if (msg.history && !app.history.ready) setupHistory();
+      else if (!msg.history) $("history").hidden = true;
       for (const el of document.querySelectorAll("[data-unit]")) el.textContent = msg.units[el.dataset.unit] || "";
       break;
     case "snapshot":
@@ -531,16 +532,18 @@ async function getJSON(url) {
   return body;
 }
 
-async function setupHistory() {
+async function setupHistory(known) {
   const h = app.history;
   h.ready = true;
   $("history").hidden = false;
   $("h-colour").onchange = (ev) => { h.colourBy = ev.target.value; drawHistory(); };
   window.addEventListener("resize", () => drawHistory());
   const wanted = new URLSearchParams(location.search).get("day");
-  let days = [];
-  try { days = (await getJSON("/api/history/days")).days; }
-  catch (err) { $("h-status").textContent = `farm database: ${err.message}`; return; }
+  let days = known || [];
+  if (!known) {
+    try { days = (await getJSON("/api/history/days")).days; }
+    catch (err) { $("h-status").textContent = `farm database: ${err.message}`; return; }
+  }
   if (wanted && !days.includes(wanted)) days.unshift(wanted);
   const select = $("h-day");
   select.replaceChildren(...days.map((d) => { const o = document.createElement("option"); o.value = d; o.textContent = d; return o; }));
@@ -555,16 +558,18 @@ async function loadDay(day) {
   $("h-day").value = day;
   $("h-status").textContent = "loading…";
   let field;
-  try { field = await getJSON(`/api/history/field?day=${encodeURIComponent(day)}`); }
-  catch (err) { $("h-status").textContent = `farm database: ${err.message}`; return; }
+  try {
+    // a big day comes first as a page sample (drawn at once), then whole
+    field = await getJSON(`/api/history/field?day=${encodeURIComponent(day)}&preview=1`);
+    if (h.day !== day) return;
+    if (!field.complete) {
+      showField(field);
+      $("h-status").textContent = `preview: a ${field.sample_pct.toFixed(0)} % sample of the day; the whole day is loading…`;
+      field = await getJSON(`/api/history/field?day=${encodeURIComponent(day)}`);
+    }
+  } catch (err) { $("h-status").textContent = `farm database: ${err.message}`; return; }
   if (h.day !== day) return;
-  h.field = field;
-  h.quality = {};
-  $("h-seeds").textContent = field.seeds.toLocaleString("en");
-  $("h-cells").textContent = (field.cells.length / 4).toLocaleString("en");
-  $("h-cell-m").textContent = field.cell_m === null ? "–" : field.cell_m.toFixed(2);
-  $("h-status").textContent = field.seeds ? "" : "no seed records on this day";
-  drawHistory();
+  showField(field);
   renderHistoryMachines();
   getJSON(`/api/history/alarms?day=${encodeURIComponent(day)}`)
     .then((a) => { if (h.day === day) { h.alarms = a; renderTimeline(); } })
@@ -577,6 +582,17 @@ async function loadDay(day) {
       renderHistoryQuality();
     } catch (err) { h.quality[m.machine_id] = { error: err.message }; renderHistoryQuality(); }
   }
+}
+
+function showField(field) {
+  const h = app.history;
+  h.field = field;
+  h.quality = {};
+  $("h-seeds").textContent = field.seeds.toLocaleString("en");
+  $("h-cells").textContent = (field.cells.length / 4).toLocaleString("en");
+  $("h-cell-m").textContent = field.cell_m === null ? "–" : field.cell_m.toFixed(2);
+  $("h-status").textContent = field.seeds ? "" : "no seed records on this day";
+  drawHistory();
 }
 
 function drawHistory() {
@@ -620,7 +636,7 @@ function drawHistory() {
   // names as text, never as HTML (machine ids come from the database)
   $("h-legend").querySelectorAll("span > i").forEach((el, i) => el.after(items[i][0]));
   const t = performance.now();
-  h.draws.push({ day: f.day, cells: n, seeds: f.seeds, t, ms: t - started });
+  h.draws.push({ day: f.day, cells: n, seeds: f.seeds, complete: f.complete, t, ms: t - started });
   if (h.draws.length > 100) h.draws.shift();
 }
 
@@ -718,6 +734,9 @@ function renderTimeline() {
 }
 
 setupMap();
+// the fleet view starts without waiting for the WebSocket: /api/history/days answers 404
+// when the dashboard has no farm database, and the section stays hidden
+getJSON("/api/history/days").then((d) => { if (!app.history.ready) setupHistory(d.days); }).catch(() => {});
 if (new URLSearchParams(location.search).get("view") === "field") $("fit").click();
 connect();
 requestAnimationFrame(draw);

@@ -98,7 +98,9 @@ async def test_a_day_of_the_fleet_comes_back_thinned_with_gaps_quality_and_alarm
     assert get(base + "days") == (200, {"days": [DAY]})
     status, field = get(base + f"field?day={DAY}")
     assert status == 200
-    assert field["seeds"] == 3000 + 2200
+    assert field["seeds"] == 3000 + 2200 and field["complete"] is True
+    # a day this small is whole even when a preview is asked for
+    assert get(base + f"field?day={DAY}&preview=1")[1] == field
     one, two = field["machines"]
     assert (one["machine_id"], one["seeds"], one["gap_runs"]) == ("seeder-01", 3000, 0)
     assert (two["machine_id"], two["seeds"], two["gaps"]) == ("seeder-02", 2200, [[1001, 1200]])
@@ -139,6 +141,7 @@ async def test_a_day_of_the_fleet_comes_back_thinned_with_gaps_quality_and_alarm
     ("field?day=2026-04-20&day=2026-04-21", "each parameter once"),
     ("field?day=2026-04-20&zoom=3", "zoom: not a parameter of this request"),
     ("quality?day=2026-04-20", "machine: required"),
+    ("field?day=2026-04-20&preview=yes", "preview: 0 or 1"),
     ("days?x=1", "x: not a parameter"),
 ])
 async def test_bad_parameters_are_a_400_that_says_which_and_why(
