@@ -208,9 +208,10 @@ def run(seeds: int = SEEDS, runs: int = RUNS) -> dict[str, object]:
         f"{f['payload_mb']:.1f} MB of JSON. Target ≤ {TARGET_S:g} s to the first draw "
         f"(slowest load): {met}. Load average of the machine at the end: {f['load_avg']} "
         "(other work shares its 2 cores). The first draw is a preview: on a day of more than "
-        "200 000 rows the server first counts a `TABLESAMPLE SYSTEM` page sample of about "
-        "100 000 rows (its cost does not grow with the day), then the whole day; the whole "
-        "day's grid query reads every row of it, so its time grows with the seeds. Would "
+        "80 000 rows the server first reads a `TABLESAMPLE SYSTEM` page sample of about "
+        "40 000 rows and grids it (its cost does not grow with the day), then the whole "
+        "day; the whole day's grid query reads every row of it, so its time grows with the "
+        "seeds. Would "
         "break it: a slower database server, or a whole day wanted at once; the next step "
         "would be per-day cells kept by ingest (pre-aggregated tiles).\n"
     )

@@ -25,8 +25,10 @@ up the live WebSocket.
 
 from __future__ import annotations
 
+import collections
 import math
 import re
+import statistics
 from dataclasses import dataclass
 from datetime import UTC, date, datetime, timedelta
 from typing import Any
@@ -40,7 +42,7 @@ from gateway.recording.spacing_quality import MISS_LIMIT, MULTIPLE_LIMIT, RowQua
 GRID_CELLS = 600  # cells across the longer side of the field: about one per screen pixel
 MAX_MACHINES = 100  # machines one request may name
 MAX_ALARMS = 5000  # alarm events one day returns (the rest are counted)
-PREVIEW_ROWS = 100_000  # rows (about) of a preview's page sample (the first draw of a big day)
+PREVIEW_ROWS = 40_000  # rows (about) of a preview's page sample (the first draw of a big day)
 SAMPLE_ROWS = 20_000  # rows (about) of the page sample giving the extent and the medians
 R_EARTH_M = 6_371_008.8
 MACHINE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
@@ -145,7 +147,11 @@ class History:
 
         ``preview``: on a day of more than ``2 * PREVIEW_ROWS`` rows, the cells of a page
         sample of about ``PREVIEW_ROWS`` rows only (``complete`` false, ``sample_pct``): the
-        page draws it at once and asks for the whole day next."""
+        page draws it at once and asks for the whole day next (``_preview``)."""
+        if preview:
+            quick = self._preview(window, machines)
+            if quick is not None:
+                return quick
         p: dict[str, Any] = {"since": window.since, "until": window.until,
                              "machines": machines}
         where = ("utc >= %(since)s AND utc < %(until)s AND "
@@ -163,8 +169,6 @@ class History:
             pct = 100.0 if rows < 2 * SAMPLE_ROWS else max(0.5, 100.0 * SAMPLE_ROWS / rows)
             sample = self._sample(conn, where, p, pct)
             cut = 100.0
-            if preview and rows >= 2 * PREVIEW_ROWS:
-                cut = max(0.5, 100.0 * PREVIEW_ROWS / rows)
             if not sample and pct < 100:
                 sample = self._sample(conn, where, p, 100.0)
             if not sample:
@@ -223,6 +227,70 @@ class History:
                 "gaps_text": gaps_text(mid, gaps),
             })
         return out
+
+    def _preview(self, window: Window, machines: list[str] | None) -> dict[str, Any] | None:
+        """A big day's first draw: one read of a page sample of about ``PREVIEW_ROWS`` rows
+        (``TABLESAMPLE SYSTEM``: only those pages are read, so its cost does not grow with
+        the day), gridded and classed here. None when the day is small enough to be read
+        whole at once (or the sample came back empty)."""
+        p: dict[str, Any] = {"since": window.since, "until": window.until,
+                             "machines": machines}
+        with self._connect() as conn:
+            row = conn.execute(
+                b"SELECT reltuples FROM pg_class WHERE oid = to_regclass(%s)",
+                (f"seed_records_{window.day:%Y%m%d}",)).fetchone()
+            if row is None or float(row[0]) < 2 * PREVIEW_ROWS:
+                return None
+            pct = max(0.5, 100.0 * PREVIEW_ROWS / float(row[0]))
+            with conn.cursor(binary=True) as cur:
+                cur.execute((
+                    "SELECT machine_id, lat, lon, spacing_m FROM seed_records "
+                    f"TABLESAMPLE SYSTEM ({pct:.3f}) REPEATABLE (1) WHERE utc >= %(since)s "
+                    "AND utc < %(until)s AND (%(machines)s::text[] IS NULL OR "
+                    "machine_id = ANY(%(machines)s))").encode(), p)
+                sample = cur.fetchall()
+        if not sample:
+            return None
+        lat0 = min(r[1] for r in sample)
+        lon0 = min(r[2] for r in sample)
+        ky = math.pi / 180 * R_EARTH_M
+        kx = ky * math.cos(math.radians(lat0))
+        extent = max((max(r[1] for r in sample) - lat0) * ky,
+                     (max(r[2] for r in sample) - lon0) * kx)
+        cell = max(0.05, 1.02 * extent / GRID_CELLS)
+        ids = sorted({r[0] for r in sample})
+        index = {mid: k for k, mid in enumerate(ids)}
+        spacings: dict[str, list[float]] = {mid: [] for mid in ids}
+        for r in sample:
+            if r[3] is not None:
+                spacings[r[0]].append(r[3])
+        refs = {mid: self.target_spacing.get(mid) or (statistics.median(spacings[mid])
+                                                      if spacings[mid] else None)
+                for mid in ids}
+        counts: dict[tuple[int, int, int], list[int]] = {}
+        fx, fy = kx / cell, ky / cell
+        for mid, lat, lon, spacing in sample:
+            key = (math.floor((lon - lon0) * fx), math.floor((lat - lat0) * fy), index[mid])
+            c = counts.get(key)
+            if c is None:
+                c = counts[key] = [0, 0, 0, 0]  # unknown, multiple, good, miss
+            ref = refs[mid]
+            c[CLASS_UNKNOWN if spacing is None or ref is None else
+              CLASS_MULTIPLE if spacing <= MULTIPLE_LIMIT * ref else
+              CLASS_MISS if spacing > MISS_LIMIT * ref else CLASS_GOOD] += 1
+        flat: list[int] = []
+        # the class most of the cell's seeds have (ties: good, miss, multiple, unknown)
+        order = (CLASS_GOOD, CLASS_MISS, CLASS_MULTIPLE, CLASS_UNKNOWN)
+        for (ix, iy, k), c in counts.items():
+            flat.extend((ix, iy, k, max(order, key=lambda cls: (c[cls], -order.index(cls)))))
+        per = collections.Counter(r[0] for r in sample)
+        return {"day": window.day.isoformat(), "cells": flat, "cell_m": cell,
+                "origin": [lat0, lon0], "complete": False, "sample_pct": pct,
+                "extent_cells": [max(k[0] for k in counts), max(k[1] for k in counts)],
+                "seeds": len(sample),
+                "machines": [{"machine_id": mid, "seeds": per[mid], "x_ref_m": refs[mid],
+                              "target_configured": mid in self.target_spacing}
+                             for mid in ids]}
 
     @staticmethod
     def _sample(conn: psycopg.Connection[TupleRow], where: str, p: dict[str, Any],

@@ -560,7 +560,9 @@ async function loadDay(day) {
   let field;
   try {
     // a big day comes first as a page sample (drawn at once), then whole
-    field = await getJSON(`/api/history/field?day=${encodeURIComponent(day)}&preview=1`);
+    const pre = h.prefetch && h.prefetch.day === day ? h.prefetch.answer : null;
+    h.prefetch = null;
+    field = await (pre || getJSON(`/api/history/field?day=${encodeURIComponent(day)}&preview=1`));
     if (h.day !== day) return;
     if (!field.complete) {
       showField(field);
@@ -734,6 +736,15 @@ function renderTimeline() {
 }
 
 setupMap();
+// ?day=: its map is asked for at once, beside the list of days (a 404 without a database)
+{
+  const day = new URLSearchParams(location.search).get("day");
+  if (day) {
+    const answer = getJSON(`/api/history/field?day=${encodeURIComponent(day)}&preview=1`);
+    answer.catch(() => {});
+    app.history.prefetch = { day, answer };
+  }
+}
 // the fleet view starts without waiting for the WebSocket: /api/history/days answers 404
 // when the dashboard has no farm database, and the section stays hidden
 getJSON("/api/history/days").then((d) => { if (!app.history.ready) setupHistory(d.days); }).catch(() => {});
