@@ -86,7 +86,7 @@ def add_report_command(sub: argparse._SubParsersAction[argparse.ArgumentParser])
 def add_database_options(p: argparse.ArgumentParser) -> None:
     """``--database URL --machine M``: read the farm server's PostgreSQL, not the store."""
     p.add_argument("--database", default=None, metavar="URL",
-                   help="read the farm server's PostgreSQL (what `sowgate ingest` wrote), "
+                   help="read the farm server's PostgreSQL (what sowgate ingest wrote), "
                    "not the record store: e.g. postgresql://reader@farm-server/farm "
                    "(docs/farm-server.md)")
     p.add_argument("--machine", default=None, metavar="ID",
