@@ -293,9 +293,10 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="read the store here (e.g. sowgate-demo), not in $SOWGATE_STATE_DIR",
     )
-    e.set_defaults(func=cmd_export)
+    from gateway.report.command import add_database_options, add_report_command
 
-    from gateway.report.command import add_report_command
+    add_database_options(e)
+    e.set_defaults(func=cmd_export)
 
     add_report_command(sub)
     sub.choices["report"].set_defaults(func=cmd_report)

@@ -39,6 +39,7 @@ from gateway.recording.export import (
     ExportError,
     ExportFormat,
     chunks_of_records,
+    database_options,
     export_failed,
     export_format,
     export_quality_csv,
@@ -48,6 +49,7 @@ from gateway.recording.export import (
     quality_by_row_chunks,
     target_spacing,
 )
+from gateway.recording.source import open_source
 
 
 @contextlib.contextmanager
@@ -77,7 +79,7 @@ def main_export(args: argparse.Namespace) -> int:
     Opens the store read-only (safe next to the running daemon: WAL readers do not block the
     writer). Returns a process exit code; problems are printed as one line each.
     """
-    from gateway.recording.store import RecordStore, StoreError
+    from gateway.recording.store import StoreError
 
     if getattr(args, "format", None) == "isoxml":  # a folder of several files, its own writer
         from gateway.app.isoxml_export import main_export_isoxml
@@ -93,18 +95,20 @@ def main_export(args: argparse.Namespace) -> int:
         until = parse_time(getattr(args, "until", None), "until")
         if since is not None and until is not None and until <= since:
             raise ExportError("--until must be later than --since")
+        database_options(args)  # a bad --database/--machine before anything is read
         if getattr(args, "what", "seeds") == "as-applied":
             return _export_as_applied(settings, args, since, until, fmt, state)
         if getattr(args, "what", "seeds") == "alarms":
             return _export_alarms(settings, args, since, until, fmt, state)
         rows = parse_rows(getattr(args, "rows", None), settings.machine.rows)
         path = store_path(settings, state)
+        database, machine = database_options(args)
         moved = None
         if getattr(args, "reposition", False):
             from gateway.app.position_calibration import Repositioner, calibrated_settings
 
             moved = Repositioner(calibrated_settings(settings, state))
-        with RecordStore.open_readonly(path, settings.machine.id) as store:
+        with open_source(path, settings.machine.id, database, machine) as store:
             x_ref = target_spacing(settings.positioning.target_spacing_m, store, since, until)
             # two passes over the store, each streaming: the quality goes before the features
             quality = quality_by_row_chunks(store.query_seed_rows(since, until, rows), x_ref)
@@ -156,12 +160,12 @@ def _export_alarms(
     ``gateway.recording.runs``) or ``open`` (still active at the end of the store or window).
     The same periods as the report's alarm timeline."""
     from gateway.recording.field_stats import alarm_intervals
-    from gateway.recording.store import RecordStore
 
     if fmt != "csv" or args.output == "-":
         raise ExportError("--what alarms writes CSV: name the file .csv or pass --format csv")
     path = store_path(settings, state)
-    with RecordStore.open_readonly(path, settings.machine.id) as store:
+    database, machine = database_options(args)
+    with open_source(path, settings.machine.id, database, machine) as store:
         events = list(store.query_alarms(since, until))
         runs = store.runs()
         span = store.seed_time_span(since, until)

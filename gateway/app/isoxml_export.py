@@ -519,7 +519,7 @@ def _version() -> str:
 
 def main_export_isoxml(args: argparse.Namespace) -> int:
     """``sowgate export --format isoxml --output DIR [--zip]``: exit code as ``export``."""
-    from gateway.recording.store import RecordStore, StoreError
+    from gateway.recording.store import StoreError
 
     try:
         config = getattr(args, "config", None)
@@ -542,11 +542,18 @@ def main_export_isoxml(args: argparse.Namespace) -> int:
             from gateway.app.position_calibration import Repositioner, calibrated_settings
 
             moved = Repositioner(calibrated_settings(settings, state))
-        with RecordStore.open_readonly(store_path(settings, state), settings.machine.id) as st:
+        from gateway.recording.export import database_options
+        from gateway.recording.source import open_source
+
+        database, machine = database_options(args)
+        with open_source(store_path(settings, state), settings.machine.id, database,
+                         machine) as st:
             chunks: Iterable[Sequence[StoredSeedRow]] = st.query_seed_rows(since, until, rows)
             if moved is not None:
                 chunks = chunks_of_records(moved(st.query_seeds(since, until, rows)))
-            applied = applied_events(as_applied_path(settings, state), since, until)
+            # the as-applied log is the cab's own file: from the database, seeds only
+            applied = (applied_events(as_applied_path(settings, state), since, until)
+                       if database is None else iter(()))
             with _taskdata_folder(output, as_zip) as folder:
                 result = write_taskdata(folder, settings, chunks, applied, _version())
     except (ConfigError, ExportError, StoreError, OSError) as exc:

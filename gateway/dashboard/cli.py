@@ -49,7 +49,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
     d = settings.dashboard
     password = _read_password(d.password_file) if d.password_file else None
-    app = create_app(settings, password=password)
+    app = create_app(settings, password=password, database_url=args.database)
     if not settings.mqtt.enabled:
         log.warning("[mqtt] is off in %s: the dashboard connects to %s:%s all the same",
                     args.config, settings.mqtt.host, settings.mqtt.port)
@@ -62,8 +62,9 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     )
     server = uvicorn.Server(config)
     shown = f"[{d.host}]" if ":" in d.host else d.host
+    farm = " + farm database" if (args.database or settings.farm_server.database_url) else ""
     print(f"sowgate dashboard: http://{shown}:{d.port}/ (MQTT {settings.mqtt.host}:"
-          f"{settings.mqtt.port}; Ctrl-C to stop)", file=sys.stderr, flush=True)
+          f"{settings.mqtt.port}{farm}; Ctrl-C to stop)", file=sys.stderr, flush=True)
     try:
         asyncio.run(server.serve())
     except KeyboardInterrupt:
@@ -78,4 +79,7 @@ def add_dashboard_command(sub: Any) -> None:
                    "[commands], [dashboard])")
     d.add_argument("--listen", default=None, metavar="HOST:PORT",
                    help="address to serve on (default: [dashboard] listen, 127.0.0.1:8080)")
+    d.add_argument("--database", default=None, metavar="URL",
+                   help="the farm server's PostgreSQL (default: [farm_server] database_url): "
+                   "adds the fleet view of any day (docs/farm-server.md)")
     d.set_defaults(func=cmd_dashboard)

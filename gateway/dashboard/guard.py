@@ -113,8 +113,14 @@ def foreign_origin(headers: Mapping[str, str], hosts: TrustedHosts) -> str | Non
     return None
 
 
+# GETs whose Origin is checked too: the fleet view's database queries (a page of another
+# site cannot read their answers without CORS, but it must not make the database work either)
+ORIGIN_CHECKED_PREFIXES = ("/api/history/",)
+
+
 class RequestGuard:
-    """ASGI middleware: the host list on every request, the Origin on POSTs and WebSockets."""
+    """ASGI middleware: the host list on every request, the Origin on POSTs, WebSockets and
+    the fleet view's GETs."""
 
     def __init__(self, app: ASGIApp, hosts: TrustedHosts) -> None:
         self.app = app
@@ -135,7 +141,8 @@ class RequestGuard:
                 "; add it to [dashboard] allowed_hosts if it is this machine's name",
             )
             return
-        if kind == "websocket" or scope.get("method") == "POST":
+        if kind == "websocket" or scope.get("method") == "POST" or \
+                str(scope.get("path", "")).startswith(ORIGIN_CHECKED_PREFIXES):
             why = foreign_origin(headers, self.hosts)
             if why is not None:
                 await self._refuse(scope, receive, send, 403, f"cross-origin request refused: "

@@ -114,6 +114,7 @@ def create_app(
     fleet: Fleet | None = None,
     password: str | None = None,
     run_subscriber: bool = True,
+    database_url: str | None = None,
 ) -> Starlette:
     own_id, own_target = settings.machine.id, settings.positioning.target_spacing_m
     fleet = fleet or Fleet(
@@ -128,6 +129,14 @@ def create_app(
     trusted = TrustedHosts(d.trusted_hosts(), any_ip=not d.local_only)
     subscriber = DashboardSubscriber(settings, fleet, on_change=hub.changed)
     config = page_config(settings)
+    # the fleet view (gateway/dashboard/history.py): the farm server's PostgreSQL, if any
+    url = database_url or settings.farm_server.database_url
+    history = None
+    if url:
+        from gateway.dashboard.history import History
+
+        history = History(url, {} if own_target is None else {own_id: own_target})
+    config["history"] = history is not None
 
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
@@ -217,9 +226,60 @@ def create_app(
             "requests_refused": trusted.refused,
         })
 
+    async def history_request(request: Request) -> Response:
+        """The fleet view's GETs (``/api/history/<what>``): a bad parameter is a 400 naming it,
+        a database that cannot answer a 503; the queries run in a worker thread."""
+        from gateway.dashboard.history import (
+            BadRequest,
+            check_params,
+            parse_day,
+            parse_machines,
+        )
+
+        if history is None:
+            return JSONResponse({"error": "no farm database: set [farm_server] database_url "
+                                 "or start sowgate dashboard with --database URL"}, 404)
+        what = request.path_params["what"]
+        items = request.query_params.multi_items()
+        params = dict(items)
+        try:
+            if len(params) != len(items):
+                raise BadRequest("each parameter once")
+            if what == "days":
+                check_params(params, set())
+                result: Any = {"days": await asyncio.to_thread(history.days)}
+            elif what == "field":
+                check_params(params, {"day", "machine", "preview"})
+                window, machines = parse_day(params), parse_machines(params)
+                preview = params.get("preview", "0")
+                if preview not in ("0", "1"):
+                    raise BadRequest(f"preview: 0 or 1 (got {preview[:20]!r})")
+                result = await asyncio.to_thread(history.field, window, machines,
+                                                 preview == "1")
+            elif what == "quality":
+                check_params(params, {"day", "machine"})
+                window, machines = parse_day(params), parse_machines(params, required=True)
+                assert machines is not None
+                result = await asyncio.to_thread(history.quality, window, machines[0])
+            elif what == "alarms":
+                check_params(params, {"day", "machine"})
+                window, machines = parse_day(params), parse_machines(params)
+                result = await asyncio.to_thread(history.alarms, window, machines)
+            else:
+                return JSONResponse({"error": f"no such history request: {what[:40]!r} (days, "
+                                     "field, quality, alarms)"}, 404)
+        except BadRequest as exc:
+            return JSONResponse({"error": str(exc)}, 400)
+        except Exception as exc:  # psycopg's: the database is away or refuses
+            log.warning("dashboard: farm database request %s failed: %s", what, exc)
+            return JSONResponse({"error": f"farm database: {str(exc).strip()[:300]}"}, 503)
+        return Response(orjson.dumps(result), media_type="application/json",
+                        headers={"Cache-Control": "no-store"})
+
     app = Starlette(
         routes=[
             Route("/", index),
+            Route("/api/history/{what}", history_request),
             Route("/api/command", command, methods=["POST"]),
             Route("/api/health", health),
             WebSocketRoute("/ws", live),

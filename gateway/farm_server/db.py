@@ -46,9 +46,12 @@ class SchemaError(Exception):
 SEED_COLUMNS: tuple[tuple[str, str], ...] = (
     ("machine_id", "text"), ("id", "bigint"), ("row", "smallint"), ("utc", "timestamptz"),
     ("lat", "double precision"), ("lon", "double precision"), ("fix", "text"),
-    ("speed_kmh", "real"), ("heading_deg", "real"), ("heading_source", "text"),
-    ("extrapolated", "boolean"), ("method", "text"), ("spacing_m", "real"),
-    ("attitude", "text"), ("roll_deg", "real"), ("pitch_deg", "real"),
+    # double precision, as published (JSON) and stored on the cab: a report or export read
+    # from the database gives the cab's numbers to the last digit (float4 would not)
+    ("speed_kmh", "double precision"), ("heading_deg", "double precision"),
+    ("heading_source", "text"), ("extrapolated", "boolean"), ("method", "text"),
+    ("spacing_m", "double precision"), ("attitude", "text"),
+    ("roll_deg", "double precision"), ("pitch_deg", "double precision"),
 )
 _NOT_NULL = {"machine_id", "id", "row", "utc", "lat", "lon", "fix", "speed_kmh",
              "heading_source", "extrapolated", "method", "attitude"}

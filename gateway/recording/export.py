@@ -19,6 +19,7 @@ temporary name and renamed at the end, so a failed export never leaves half a ma
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import sys
@@ -33,8 +34,9 @@ import orjson
 from gateway.core.errors import GatewayError
 from gateway.core.records import SeedRecord, utc_to_us
 from gateway.recording.runs import stored_setting
+from gateway.recording.source import MACHINE_ID, RecordSource
 from gateway.recording.spacing_quality import RowQualityAccumulator, SpacingQuality
-from gateway.recording.store import STORED_SEED_COLUMNS, RecordStore, StoredSeedRow
+from gateway.recording.store import STORED_SEED_COLUMNS, StoredSeedRow
 
 ExportFormat = Literal["geojson", "csv"]
 CSV_FIELDS = [
@@ -98,7 +100,7 @@ def export_failed(exc: Exception) -> int:
 
 def target_spacing(
     configured: float | None,
-    store: RecordStore,
+    store: RecordSource,
     since: datetime | None = None,
     until: datetime | None = None,
 ) -> float | None:
@@ -355,3 +357,30 @@ def export_format(requested: str | None, output: str) -> ExportFormat:
             "(ogr2ogr converts GeoJSON to a shapefile)"
         )
     raise ExportError(f"cannot tell the format of {name!r}: {choices}")
+
+
+def database_options(args: argparse.Namespace) -> tuple[str | None, str | None]:
+    """``--database URL --machine M``: read the farm server's PostgreSQL, not the store.
+
+    ``--machine`` is needed with ``--database`` (a farm database holds every machine), and
+    means nothing without it; the as-applied log and ``--reposition`` exist only on the cab."""
+    database = getattr(args, "database", None)
+    machine = getattr(args, "machine", None)
+    if database is None:
+        if machine is not None:
+            raise ExportError("--machine: only with --database (the record store holds one "
+                              "machine, the config's)")
+        return None, None
+    if not database.strip():
+        raise ExportError("--database: empty; a PostgreSQL URL, e.g. "
+                          "postgresql://reader@farm-server/farm")
+    if machine is None or not MACHINE_ID.fullmatch(machine):
+        raise ExportError("--machine: required with --database, a machine id "
+                          f"([A-Za-z0-9_.-], 1..64 characters; got {machine!r})")
+    if getattr(args, "reposition", False):
+        raise ExportError("--reposition: needs the record store (the raw timing it uses is "
+                          "not published to the farm server)")
+    if getattr(args, "what", "seeds") == "as-applied":
+        raise ExportError("--what as-applied: the as-applied log is on the cab only, not in "
+                          "the farm database")
+    return database, machine

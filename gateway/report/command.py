@@ -20,8 +20,15 @@ from typing import Literal
 
 from gateway.config import EXIT_CONFIG, ConfigError, load_config, store_path
 from gateway.core.records import AlarmEvent, utc_to_us
-from gateway.recording.export import ExportError, parse_rows, parse_time, target_spacing
-from gateway.recording.store import RecordStore, StoreError
+from gateway.recording.export import (
+    ExportError,
+    database_options,
+    parse_rows,
+    parse_time,
+    target_spacing,
+)
+from gateway.recording.source import open_source, source_text
+from gateway.recording.store import StoreError
 
 ReportFormat = Literal["html", "pdf"]
 
@@ -73,6 +80,17 @@ def add_report_command(sub: argparse._SubParsersAction[argparse.ArgumentParser])
                    help="thousand-seed mass of the seed lot, for the seed mass and kg/ha")
     r.add_argument("--state-dir", type=Path, default=None,
                    help="read the store here (e.g. sowgate-demo), not in $SOWGATE_STATE_DIR")
+    add_database_options(r)
+
+
+def add_database_options(p: argparse.ArgumentParser) -> None:
+    """``--database URL --machine M``: read the farm server's PostgreSQL, not the store."""
+    p.add_argument("--database", default=None, metavar="URL",
+                   help="read the farm server's PostgreSQL (what sowgate ingest wrote), "
+                   "not the record store: e.g. postgresql://reader@farm-server/farm "
+                   "(docs/farm-server.md)")
+    p.add_argument("--machine", default=None, metavar="ID",
+                   help="with --database: the machine whose records to read")
 
 
 def report_format(requested: str | None, output: str) -> ReportFormat:
@@ -106,20 +124,23 @@ def main_report(args: argparse.Namespace) -> int:
         tsw = getattr(args, "tsw", None)
         if tsw is not None and not 0 < tsw < 5000:
             raise ReportError(f"--tsw: the thousand-seed mass in grams, 0..5000 (got {tsw})")
+        database, machine = database_options(args)
     except ExportError as exc:
         print(f"sowgate report: {exc}", file=sys.stderr)
         return EXIT_USAGE
     state = getattr(args, "state_dir", None)
     path = store_path(settings, Path(state) if state is not None else None)
-    if not path.exists():
+    if database is None and not path.exists():
         print(f"sowgate report: nothing to report: no record store at {path}", file=sys.stderr)
         return EXIT_NO_RECORDS
     window = _window_text(args.since, args.until, args.rows)
+    where = source_text(database, machine, path)
+    machine_id = machine or settings.machine.id
     try:
-        with RecordStore.open_readonly(path, settings.machine.id) as store:
+        with open_source(path, settings.machine.id, database, machine) as store:
             span = store.seed_time_span(since, until)
             if span is None:
-                print(f"sowgate report: nothing to report: no seed records in {path}{window}",
+                print(f"sowgate report: nothing to report: no seed records in {where}{window}",
                       file=sys.stderr)
                 return EXIT_NO_RECORDS
             row_spacing = settings.machine.working_width_m / settings.machine.rows
@@ -129,7 +150,7 @@ def main_report(args: argparse.Namespace) -> int:
                 stats.add_rows(chunk)
             summary = stats.result()
             if summary.seeds == 0:
-                print(f"sowgate report: nothing to report: no seed records in {path}{window}",
+                print(f"sowgate report: nothing to report: no seed records in {where}{window}",
                       file=sys.stderr)
                 return EXIT_NO_RECORDS
             seed_map = SeedMap(summary)
@@ -154,7 +175,7 @@ def main_report(args: argparse.Namespace) -> int:
         [(r.start_us, r.stop_us) for r in runs],
     )
     report = FieldReport(
-        machine_id=settings.machine.id,
+        machine_id=machine_id,
         machine_rows=settings.machine.rows,
         working_width_m=settings.machine.working_width_m,
         crop=settings.control.crop,
@@ -168,6 +189,7 @@ def main_report(args: argparse.Namespace) -> int:
         until=until,
         rows=rows,
         tsw_g=tsw,
+        source="the record store" if database is None else "the farm database",
     )
     try:
         data = to_pdf(report) if fmt == "pdf" else to_html(report)

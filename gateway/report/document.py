@@ -48,6 +48,7 @@ class FieldReport:
     rows: list[int] | None
     tsw_g: float | None
     runs: list[Run] = field(default_factory=list)  # daemon starts and stops (recording.runs)
+    source: str = "the record store"  # or "the farm database" (sowgate report --database)
     created: datetime = field(default_factory=lambda: datetime.now(UTC))
 
     @property
@@ -269,8 +270,8 @@ def to_html(report: FieldReport) -> bytes:
         "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">",
         f"<title>{e(report.title)}</title><style>{CSS}</style></head><body>",
         f"<h1>{e(report.title)}</h1>",
-        f"<p class=\"note\">Made by sowgate report on {_when(report.created)} from the record "
-        "store. Opens offline: everything is in this one file.</p>",
+        f"<p class=\"note\">Made by sowgate report on {_when(report.created)} from "
+        f"{e(report.source)}. Opens offline: everything is in this one file.</p>",
         "<h2>Summary</h2><table class=\"summary\">",
     ]
     for k, v in report.summary_lines():

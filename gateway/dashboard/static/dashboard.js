@@ -21,6 +21,8 @@ const app = {
   chart: null,
   pending: new Map(), // request_id -> log <li>
   tiles: new Map(),
+  // the fleet view (farm database): cells of the day's map, read by the tests and benchmark
+  history: { ready: false, field: null, draws: [], colourBy: "class", quality: {}, alarms: null },
 };
 window.sowgate = app;
 
@@ -113,6 +115,8 @@ function handle(msg) {
     case "config":
       app.config = msg;
       setupControls();
+      if (msg.history && !app.history.ready) setupHistory();
+      else if (!msg.history) $("history").hidden = true;
       for (const el of document.querySelectorAll("[data-unit]")) el.textContent = msg.units[el.dataset.unit] || "";
       break;
     case "snapshot":
@@ -515,7 +519,235 @@ function setupMap() {
   window.addEventListener("resize", () => { app.dirty = true; });
 }
 
+// ---- the fleet view: a day of every machine from the farm database ----------------------------
+// The server thins the day to one cell per grid square (GET /api/history/field); the page
+// draws the cells, then fills the machines' gaps, per-row quality and the alarm timeline.
+
+const MACHINE_PALETTE = ROW_PALETTE;
+
+async function getJSON(url) {
+  const resp = await fetch(url, { headers: { Accept: "application/json" } });
+  const body = await resp.json().catch(() => ({ error: `HTTP ${resp.status}` }));
+  if (!resp.ok) throw new Error(body.error || `HTTP ${resp.status}`);
+  return body;
+}
+
+async function setupHistory(known) {
+  const h = app.history;
+  h.ready = true;
+  $("history").hidden = false;
+  $("h-colour").onchange = (ev) => { h.colourBy = ev.target.value; drawHistory(); };
+  window.addEventListener("resize", () => drawHistory());
+  const wanted = new URLSearchParams(location.search).get("day");
+  let days = known || [];
+  if (!known) {
+    try { days = (await getJSON("/api/history/days")).days; }
+    catch (err) { $("h-status").textContent = `farm database: ${err.message}`; return; }
+  }
+  if (wanted && !days.includes(wanted)) days.unshift(wanted);
+  const select = $("h-day");
+  select.replaceChildren(...days.map((d) => { const o = document.createElement("option"); o.value = d; o.textContent = d; return o; }));
+  select.onchange = () => loadDay(select.value);
+  if (days.length) loadDay(wanted || days[0]);
+  else $("h-status").textContent = "the farm database holds no day yet";
+}
+
+async function loadDay(day) {
+  const h = app.history;
+  h.day = day;
+  $("h-day").value = day;
+  $("h-status").textContent = "loading…";
+  let field;
+  try {
+    // a big day comes first as a page sample (drawn at once), then whole
+    const pre = h.prefetch && h.prefetch.day === day ? h.prefetch.answer : null;
+    h.prefetch = null;
+    field = await (pre || getJSON(`/api/history/field?day=${encodeURIComponent(day)}&preview=1`));
+    if (h.day !== day) return;
+    if (!field.complete) {
+      showField(field);
+      $("h-status").textContent = `preview: a ${field.sample_pct.toFixed(0)} % sample of the day; the whole day is loading…`;
+      field = await getJSON(`/api/history/field?day=${encodeURIComponent(day)}`);
+    }
+  } catch (err) { $("h-status").textContent = `farm database: ${err.message}`; return; }
+  if (h.day !== day) return;
+  showField(field);
+  renderHistoryMachines();
+  getJSON(`/api/history/alarms?day=${encodeURIComponent(day)}`)
+    .then((a) => { if (h.day === day) { h.alarms = a; renderTimeline(); } })
+    .catch((err) => { $("h-alarm-count").textContent = `(${err.message})`; });
+  for (const m of field.machines) {
+    try {
+      const q = await getJSON(`/api/history/quality?day=${encodeURIComponent(day)}&machine=${encodeURIComponent(m.machine_id)}`);
+      if (h.day !== day) return;
+      h.quality[m.machine_id] = q;
+      renderHistoryQuality();
+    } catch (err) { h.quality[m.machine_id] = { error: err.message }; renderHistoryQuality(); }
+  }
+}
+
+function showField(field) {
+  const h = app.history;
+  h.field = field;
+  h.quality = {};
+  $("h-seeds").textContent = field.seeds.toLocaleString("en");
+  $("h-cells").textContent = (field.cells.length / 4).toLocaleString("en");
+  $("h-cell-m").textContent = field.cell_m === null ? "–" : field.cell_m.toFixed(2);
+  $("h-status").textContent = field.seeds ? "" : "no seed records on this day";
+  drawHistory();
+}
+
+function drawHistory() {
+  const h = app.history, f = h.field, canvas = $("h-map");
+  if (!f || $("history").hidden) return;
+  const started = performance.now();
+  const w = canvas.clientWidth, ht = canvas.clientHeight;
+  if (!w || !ht) return;
+  if (canvas.width !== w || canvas.height !== ht) { canvas.width = w; canvas.height = ht; }
+  const ctx = canvas.getContext("2d", { willReadFrequently: true });
+  ctx.fillStyle = "#3b3326";
+  ctx.fillRect(0, 0, w, ht);
+  const cells = f.cells, n = cells.length / 4;
+  if (n) {
+    const [ex, ey] = f.extent_cells;
+    const s = Math.min((w - 8) / (ex + 1), (ht - 8) / (ey + 1));
+    const ox = (w - (ex + 1) * s) / 2, oy = (ht + (ey + 1) * s) / 2;
+    const size = Math.max(1, Math.ceil(s));
+    const img = ctx.getImageData(0, 0, w, ht);
+    const px = new Uint32Array(img.data.buffer);
+    const byMachine = h.colourBy === "machine";
+    const palette = (byMachine ? MACHINE_PALETTE : CLASS_COLOURS)
+      .map(([r, g, b]) => (255 << 24) | (b << 16) | (g << 8) | r);
+    for (let i = 0; i < cells.length; i += 4) {
+      const x = (ox + cells[i] * s) | 0, y = (oy - (cells[i + 1] + 1) * s) | 0;
+      const c = byMachine ? palette[cells[i + 2] % palette.length] : palette[cells[i + 3]];
+      for (let dy = 0; dy < size; dy++) {
+        const yy = y + dy;
+        if (yy < 0 || yy >= ht) continue;
+        const base = yy * w;
+        for (let dx = 0; dx < size; dx++) { const xx = x + dx; if (xx >= 0 && xx < w) px[base + xx] = c; }
+      }
+    }
+    ctx.putImageData(img, 0, 0);
+  }
+  const items = h.colourBy === "machine"
+    ? f.machines.map((m, i) => [m.machine_id, MACHINE_PALETTE[i % MACHINE_PALETTE.length]])
+    : CLASS_NAMES.map((name, i) => [name, CLASS_COLOURS[i]]);
+  $("h-legend").innerHTML = items.map(([name, c]) => `<span><i style="background:rgb(${c})"></i></span>`).join("")
+    + `<span class="muted">each square: the class most of its seeds have</span>`;
+  // names as text, never as HTML (machine ids come from the database)
+  $("h-legend").querySelectorAll("span > i").forEach((el, i) => el.after(items[i][0]));
+  const t = performance.now();
+  h.draws.push({ day: f.day, cells: n, seeds: f.seeds, complete: f.complete, t, ms: t - started });
+  if (h.draws.length > 100) h.draws.shift();
+}
+
+function cell(tr, text) { const td = document.createElement("td"); td.textContent = text; tr.appendChild(td); return td; }
+
+function renderHistoryMachines() {
+  const f = app.history.field;
+  const body = $("h-machines").querySelector("tbody");
+  body.replaceChildren(...f.machines.map((m) => {
+    const tr = document.createElement("tr");
+    tr.dataset.machine = m.machine_id;
+    if (m.gap_runs) tr.className = "has-gaps";
+    cell(tr, m.machine_id);
+    cell(tr, m.seeds.toLocaleString("en"));
+    cell(tr, time(m.first_utc));
+    cell(tr, time(m.last_utc));
+    cell(tr, m.x_ref_m === null ? "–" : `${(m.x_ref_m * 100).toFixed(1)} cm${m.target_configured ? " (target)" : " (median)"}`);
+    cell(tr, m.gaps_text).className = "gaps";
+    return tr;
+  }));
+}
+
+function renderHistoryQuality() {
+  const h = app.history, el = $("h-quality");
+  el.replaceChildren(...h.field.machines.map((m) => {
+    const q = h.quality[m.machine_id];
+    const div = document.createElement("div");
+    div.dataset.machine = m.machine_id;
+    const title = document.createElement("h3");
+    title.textContent = m.machine_id;
+    div.appendChild(title);
+    if (!q) { div.append("computing…"); return div; }
+    if (q.error) { div.append(`not available: ${q.error}`); return div; }
+    const table = document.createElement("table");
+    table.className = "rows";
+    table.innerHTML = "<thead><tr><th>row</th><th>quality of feed</th><th>multiples</th><th>misses</th><th>precision</th><th>spacings</th></tr></thead>";
+    const tbody = document.createElement("tbody");
+    tbody.innerHTML = Object.entries(q.rows).map(([r, v]) =>
+      `<tr data-row="${Number(r)}"><td>${Number(r)}</td><td>${bar("q", v.quality_of_feed_index)}</td>` +
+      `<td>${bar("m", v.multiples_index)}</td><td>${bar("s", v.miss_index)}</td>` +
+      `<td>${fmt(v.precision, 1, "%")}</td><td>${Number(v.n)}</td></tr>`).join("");
+    table.appendChild(tbody);
+    div.appendChild(table);
+    return div;
+  }));
+}
+
+// Raised → cleared periods per machine and code, as bars on the day's time axis.
+function renderTimeline() {
+  const h = app.history, a = h.alarms, el = $("h-alarms");
+  $("h-alarm-count").textContent = a.total > a.events.length
+    ? `(${a.events.length} of ${a.total} events)` : `(${a.total} events)`;
+  if (!a.events.length) { el.textContent = "no alarm on this day"; return; }
+  const ms = (iso) => new Date(iso).getTime();
+  const machines = h.field ? h.field.machines : [];
+  let t0 = Math.min(...a.events.map((e) => ms(e.utc))), t1 = Math.max(...a.events.map((e) => ms(e.utc)));
+  for (const m of machines) { t0 = Math.min(t0, ms(m.first_utc)); t1 = Math.max(t1, ms(m.last_utc)); }
+  const span = Math.max(1, t1 - t0);
+  const lanes = new Map();
+  const open = new Map();
+  for (const e of a.events) {
+    if (!lanes.has(e.machine_id)) lanes.set(e.machine_id, []);
+    const key = `${e.machine_id} ${e.code}`;
+    if (e.active && !open.has(key)) open.set(key, e);
+    else if (!e.active && open.has(key)) {
+      const r = open.get(key); open.delete(key);
+      lanes.get(e.machine_id).push([r, ms(r.utc), ms(e.utc)]);
+    }
+  }
+  for (const r of open.values()) lanes.get(r.machine_id).push([r, ms(r.utc), t1]);
+  const rows = [...lanes.entries()].sort().map(([mid, periods]) => {
+    const lane = document.createElement("div");
+    lane.className = "lane";
+    lane.dataset.machine = mid;
+    const name = document.createElement("span");
+    name.textContent = mid;
+    const track = document.createElement("div");
+    track.className = "track";
+    for (const [r, from, to] of periods) {
+      const i = document.createElement("i");
+      i.className = r.severity;
+      i.style.left = `${(100 * (from - t0)) / span}%`;
+      i.style.width = `${(100 * (to - from)) / span}%`;
+      i.title = `${r.code}: ${time(r.utc)}–${time(new Date(to).toISOString())} ${r.message}`;
+      i.dataset.code = r.code;
+      track.appendChild(i);
+    }
+    lane.append(name, track);
+    return lane;
+  });
+  const axis = document.createElement("div");
+  axis.className = "axis";
+  axis.innerHTML = `<span>${clock(t0 / 1000)}</span><span>${clock(t1 / 1000)}</span>`;
+  el.replaceChildren(...rows, axis);
+}
+
 setupMap();
+// ?day=: its map is asked for at once, beside the list of days (a 404 without a database)
+{
+  const day = new URLSearchParams(location.search).get("day");
+  if (day) {
+    const answer = getJSON(`/api/history/field?day=${encodeURIComponent(day)}&preview=1`);
+    answer.catch(() => {});
+    app.history.prefetch = { day, answer };
+  }
+}
+// the fleet view starts without waiting for the WebSocket: /api/history/days answers 404
+// when the dashboard has no farm database, and the section stays hidden
+getJSON("/api/history/days").then((d) => { if (!app.history.ready) setupHistory(d.days); }).catch(() => {});
 if (new URLSearchParams(location.search).get("view") === "field") $("fit").click();
 connect();
 requestAnimationFrame(draw);

@@ -141,7 +141,39 @@ class StoreQueries:
             ).fetchone()
         if row is None or row[0] is None:
             return None
-        return max(int(row[0]), lo), min(int(row[1]), hi - 1)
+        first, last = int(row[0]), int(row[1])
+        if has_table(db, "seed_spans") and (first < lo or last >= hi):
+            # a batch crosses a bound: read that batch's seeds for the exact first or last
+            # time (a few hundred rows), so the span, and the report's time bins built on
+            # it, are the records' own whatever source holds them (the farm database too)
+            first, last = self._exact_edge(first, lo, hi, True), \
+                self._exact_edge(last, lo, hi, False)
+            if first > last:
+                return None
+        return max(first, lo), min(last, hi - 1)
+
+    def _exact_edge(self, bound: int, lo: int, hi: int, low: bool) -> int:
+        db = self._reader
+        edge = lo if low else hi
+        if (low and bound >= lo) or (not low and bound < hi):
+            return bound
+        # the other batches' own extremes inside the window, and the crossing ones read
+        inside = db.execute(
+            "SELECT MIN(min_utc_us) FROM seed_spans WHERE min_utc_us >= ? AND min_utc_us < ?"
+            if low else
+            "SELECT MAX(max_utc_us) FROM seed_spans WHERE max_utc_us >= ? AND max_utc_us < ?",
+            (lo, hi)).fetchone()[0]
+        ids = db.execute(
+            "SELECT MIN(first_id), MAX(last_id) FROM seed_spans "
+            "WHERE min_utc_us < ? AND max_utc_us >= ?", (edge, edge)).fetchone()
+        crossing = db.execute(
+            f"SELECT {'MIN' if low else 'MAX'}(utc_us) FROM seeds "
+            "WHERE id >= ? AND id <= ? AND utc_us >= ? AND utc_us < ?",
+            (ids[0], ids[1], lo, hi)).fetchone()[0] if ids[0] is not None else None
+        found = [int(v) for v in (inside, crossing) if v is not None]
+        if not found:
+            return hi if low else lo - 1  # no seed in the window at all: first > last
+        return min(found) if low else max(found)
 
     def query_alarms(
         self, since: datetime | None = None, until: datetime | None = None
