@@ -133,8 +133,8 @@ class MeterPlant:
     def per_rev_g(self, rpm: float) -> float:
         """True grams per turn of one outlet at a shaft speed (the fill and the lot)."""
         p = self.fill_shape
-        lo = (10.0 / 60.0) ** p
-        shape = ((max(0.0, rpm) / 60.0) ** p - lo) / (1.0 - lo)
+        lo = math.pow(10.0 / 60.0, p)
+        shape = (math.pow(max(0.0, rpm) / 60.0, p) - lo) / (1.0 - lo)
         return self.grams_per_rev * self.lot_factor * (1.0 - self.fill_fall * shape)
 
     def _deliver(self, drev: float) -> None:
