@@ -76,6 +76,18 @@ class MeterPlant:
     # the controller reports this multiple of the true shaft speed (a wrong pulses-per-rev
     # setting on its encoder input); its PID still regulates the true speed
     report_scale: float = 1.0
+    # The truth of issue 25: a fluted roller's cells fill less as it turns faster, so the
+    # grams per turn fall with shaft speed: by ``fill_fall`` from 10 to 60 r/min, along
+    # ``((n/60)^p - (10/60)^p) / (1 - (10/60)^p)`` with ``fill_shape`` p (a power law, not
+    # the controller's piecewise cubic; p < 1 falls early, p > 1 late), and ``lot_factor``
+    # for the seed lot (grain size, moisture) against the one calibrated with.
+    # ``grams_per_rev`` is the value at 10 r/min. Defaults: a constant g/rev.
+    fill_fall: float = 0.0
+    fill_shape: float = 1.0
+    lot_factor: float = 1.0
+    # the controller's cycle; benchmarks that run thousands of simulated minutes may take
+    # 5 ms (the loop stays stable: motor τ 80 ms, derivative filter 15 ms)
+    inner_dt_s: float = INNER_DT_S
     _integral: float = 0.0
     _deriv: float = 0.0
     _prev_meas: float = 0.0
@@ -105,7 +117,7 @@ class MeterPlant:
         )
 
     def _pid(self, setpoint: float, measured: float) -> float:
-        dt = INNER_DT_S
+        dt = self.inner_dt_s
         err = setpoint - measured
         # derivative on measurement, filtered (Tf = Td/10), so target steps do not kick the valve
         tf = self.td_s / 10.0
@@ -118,8 +130,16 @@ class MeterPlant:
             self._integral += err * dt  # conditional integration = anti-windup
         return out
 
+    def per_rev_g(self, rpm: float) -> float:
+        """True grams per turn of one outlet at a shaft speed (the fill and the lot)."""
+        p = self.fill_shape
+        lo = math.pow(10.0 / 60.0, p)
+        shape = (math.pow(max(0.0, rpm) / 60.0, p) - lo) / (1.0 - lo)
+        return self.grams_per_rev * self.lot_factor * (1.0 - self.fill_fall * shape)
+
     def _deliver(self, drev: float) -> None:
-        per_rev = self.grams_per_rev * self.outlets
+        per_rev = (self.grams_per_rev * self.outlets if self.fill_fall == 0.0
+                   and self.lot_factor == 1.0 else self.per_rev_g(self.rpm) * self.outlets)
         while drev > 0:
             step = min(drev, self._segment_left)
             phase = 2 * math.pi * self.flutes * (self.revs + step / 2)
@@ -134,9 +154,10 @@ class MeterPlant:
 
     def advance(self, seconds: float) -> None:
         """Run the 1 ms inner loop for ``seconds`` of simulated time."""
-        steps = max(0, round(seconds / INNER_DT_S))
+        dt = self.inner_dt_s
+        steps = max(0, round(seconds / dt))
         for _ in range(steps):
-            self.sim_time_s += INNER_DT_S
+            self.sim_time_s += dt
             run = self.enabled and not self._timed_out() and self.fault_code is FaultCode.NONE
             setpoint = self.target_rpm if run else 0.0
             if setpoint <= 0.0:
@@ -147,7 +168,7 @@ class MeterPlant:
             if self.stall:
                 self.rpm = 0.0
             else:
-                self.rpm += (drive - self.rpm) * INNER_DT_S / self.tau_s
+                self.rpm += (drive - self.rpm) * dt / self.tau_s
                 if self.held_fraction is not None:
                     self.rpm = min(self.rpm, self.held_fraction * setpoint)
             # valve well open but the shaft hardly turning: a jam (what a real RC detects)
@@ -156,9 +177,9 @@ class MeterPlant:
                 and self.valve_pct > 2 * self.valve_deadband_pct
                 and self.rpm < 0.05 * setpoint
             )
-            self._stall_timer = self._stall_timer + INNER_DT_S if stalled_now else 0.0
+            self._stall_timer = self._stall_timer + dt if stalled_now else 0.0
             if self.rpm > 0:
-                self._deliver(self.rpm / 60.0 * INNER_DT_S)
+                self._deliver(self.rpm / 60.0 * dt)
 
     def measured_rpm(self) -> float:
         noisy = (self.rpm + self.rng.gauss(0, self.encoder_noise_rpm)) * self.report_scale

@@ -697,6 +697,14 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
             + "".join(f"; set points {', '.join(f'{k:g}' for k in grp)} pooled: their "
                       "difference is within the noise" for grp in meter_own.pooled)
             + ")")
+    vague = cal.imprecise_set_points(duties, rates)
+    if vague:
+        console.print(
+            "[yellow]warning[/]: the weighings scatter more than the rate can take at duty "
+            + "; ".join(f"{v.set_point:g} % (mean known to ±{v.se_pct:.1f} % from {v.runs} "
+                        f"runs: {v.runs_needed} needed)" for v in vague)
+            + f"; repeat those set points, run them longer or weigh on a finer scale to get "
+            f"each under ±{cal.SET_POINT_SE_LIMIT_PCT:g} %")
     problems = pfit.problems
     _check_quality(problems, args, console)
     previous_a = _previous_paper_a(store, settings, args.channel, lot)

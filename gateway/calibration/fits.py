@@ -24,6 +24,7 @@ import itertools
 import json
 import math
 import os
+import statistics
 import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -235,6 +236,41 @@ def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
     resid = tuple(float(yi - curve(float(xi))) for xi, yi in zip(x, y, strict=True))
     return MonotoneFit(points, resid, tuple(tuple(b[0]) for b in merged if len(b[0]) > 1),
                        run_cv)
+
+
+# A set point's mean flow known only to worse than this (its standard error from the repeats,
+# relative) carries that much into the rate wherever the drill sows near it: rapeseed's catches
+# of 25–150 g on a σ 2 g scale are 1–8 % per weighing, and leave ~2 % of rate error at p90
+# over drills (benchmarks/bench_rate.py); a finer scale or longer runs bring it under 1 %.
+SET_POINT_SE_LIMIT_PCT = 1.0
+
+
+@dataclass(frozen=True)
+class ImpreciseSetPoint:
+    set_point: float
+    se_pct: float  # standard error of its mean flow, % of the mean
+    runs: int  # runs weighed
+    runs_needed: int  # of the same length, for SET_POINT_SE_LIMIT_PCT (SE falls as 1/√n)
+
+
+def imprecise_set_points(set_points: Sequence[float], rates: Sequence[float],
+                         limit_pct: float = SET_POINT_SE_LIMIT_PCT) -> list[ImpreciseSetPoint]:
+    """The repeated set points whose mean flow is known to worse than ``limit_pct`` (the
+    scatter of their own repeats): a warning with what to repeat, not a refusal — the
+    readings are consistent, only too few or too small for the rate wanted."""
+    by_key: dict[float, list[float]] = {}
+    for k, q in zip(set_points, rates, strict=True):
+        by_key.setdefault(float(k), []).append(float(q))
+    out = []
+    for k, qs in sorted(by_key.items()):
+        mean = statistics.fmean(qs)
+        if len(qs) < 2 or mean <= 0:
+            continue
+        se = statistics.stdev(qs) / math.sqrt(len(qs)) / mean * 100.0
+        if se > limit_pct:
+            need = math.ceil(len(qs) * (se / limit_pct) ** 2)
+            out.append(ImpreciseSetPoint(k, se, len(qs), need))
+    return out
 
 
 def _names(keys: Sequence[float]) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import time
 import uuid
 from collections.abc import AsyncIterator
@@ -52,6 +53,32 @@ def test_delivered_mass_is_grams_per_rev_times_revolutions() -> None:
     commanded(p, 30.0, 60.0)
     assert (p.mass_g - m0) / (p.revs - r0) == pytest.approx(29.31, rel=0.01)
     assert p.revs - r0 == pytest.approx(30.0, rel=0.01)  # 30 r/min for a minute
+
+
+def test_grams_per_turn_fall_with_shaft_speed_and_move_with_the_lot() -> None:
+    """Issue 25's truth: g/rev falls by ``fill_fall`` from 10 to 60 r/min (a power law, not
+    the controller's piecewise cubic) and scales with the seed lot."""
+    p = MeterPlant(grams_per_rev=16.97, outlets=10, fill_fall=0.2, fill_shape=0.7)
+    assert p.per_rev_g(10.0) == pytest.approx(16.97)
+    assert p.per_rev_g(60.0) == pytest.approx(16.97 * 0.8)
+    mids = [p.per_rev_g(n) for n in (20.0, 30.0, 40.0, 50.0)]
+    assert all(b < a for a, b in itertools.pairwise(mids))
+    late = MeterPlant(grams_per_rev=16.97, fill_fall=0.2, fill_shape=1.6)
+    assert late.per_rev_g(30.0) > p.per_rev_g(30.0)  # the shape moves where it falls
+    for rpm in (15.0, 55.0):
+        q = MeterPlant(grams_per_rev=16.97, outlets=1, fill_fall=0.2, fill_shape=0.7,
+                       lot_factor=1.03, delivery_noise_pct=0.0, pulsation_pct=0.0)
+        commanded(q, rpm, 3.0)
+        m0, r0 = q.mass_g, q.revs
+        commanded(q, rpm, 30.0)
+        assert (q.mass_g - m0) / (q.revs - r0) == pytest.approx(
+            1.03 * p.per_rev_g(rpm), rel=0.005)
+
+
+def test_a_5_ms_cycle_still_regulates() -> None:
+    p = MeterPlant(grams_per_rev=16.97, outlets=10, inner_dt_s=0.005)
+    commanded(p, 40.0, 5.0)
+    assert p.rpm == pytest.approx(40.0, rel=0.005)
 
 
 def test_controller_stops_the_shaft_when_commands_stop() -> None:

@@ -11,6 +11,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import simulator.drill_truth as truth
@@ -61,6 +62,7 @@ def test_importing_the_truth_loads_no_gateway_module_at_all() -> None:
 
 
 def test_saturating_fit_recovers_a_curve_it_is_given() -> None:
+    """The old truth's fit, kept for reference (no drill uses it any more)."""
     known = SaturatingCurve(a=5000.0, b=-5400.0, w=60.0)
     ws = [20.0, 25.0, 30.0, 35.0, 40.0, 45.0]
     fit = fit_saturating(ws, [known.flow_g_min(w) for w in ws])
@@ -69,29 +71,38 @@ def test_saturating_fit_recovers_a_curve_it_is_given() -> None:
 
 
 @pytest.mark.parametrize("crop", ["rapeseed", "wheat"])
-def test_reference_discharge_is_near_paper_a_but_not_its_quadratic(crop: str) -> None:
-    drills = [reference_drill(crop, seed) for seed in range(6)]
-    points = PAPER_A_SET_POINTS_RPM[crop]
-    flows = [_eq6(crop, w) for w in points]
-    sigma = (statistics.pvariance(flows) * (1 - truth.PAPER_A_R2)) ** 0.5  # what R² 0.99 leaves
-    devs = [d.flow_g_min(w) - _eq6(crop, w) for d in drills for w in points]
-    # within the scatter R² 0.99 allows, yet a different curve on every drill
-    assert max(abs(x) for x in devs) < 2 * sigma
-    assert max(abs(x) for x in devs) > 0.1 * sigma
-    assert len({round(d.curve.w, 3) for d in drills}) == len(drills)
-
-
-@pytest.mark.parametrize("crop", ["rapeseed", "wheat"])
-def test_discharge_rises_with_shaft_speed_and_flattens(crop: str) -> None:
-    d = reference_drill(crop, 1)
+def test_discharge_is_built_per_turn_with_underfill_and_a_knee(crop: str) -> None:
+    """Issue 25: not the controller's quadratic shifted: grams per turn fall at a crawl
+    (under-fill) and past a knee, and the flow is anchored to eq. (6) at one point only."""
     lo, hi = PAPER_A_SET_POINTS_RPM[crop][0], PAPER_A_SET_POINTS_RPM[crop][-1]
-    ws = [lo + (hi - lo) * i / 20 for i in range(21)]
-    flows = [d.flow_g_min(w) for w in ws]
-    assert all(b > a for a, b in itertools.pairwise(flows))
-    per_turn = [q / w for q, w in zip(flows, ws, strict=True)]
-    assert per_turn[-1] < per_turn[len(per_turn) // 2] * 1.001  # saturating: no gain per turn
-    assert d.flow_g_min(0.0) == 0.0
-    assert d.flow_g_min(-3.0) == 0.0
+    mid = (lo + hi) / 2
+    for knee in (0.03, 0.06, 0.12):
+        curve = truth.fill_curve(crop, knee=knee, knee_at=0.5, underfill=0.06,
+                                 underfill_rpm=3.0)
+        assert curve.flow_g_min(mid) == pytest.approx(_eq6(crop, mid), rel=1e-9)
+        per_turn_knee = curve.per_turn_g(curve.knee_rpm - 5 * truth.KNEE_SMOOTH_RPM)
+        assert curve.per_turn_g(hi) / per_turn_knee == pytest.approx(1 - knee, abs=0.01)
+        assert curve.per_turn_g(0.5) < curve.per_turn_g(lo + 5.0) * 0.96  # under-fill
+        ws = [0.5 * i for i in range(1, 101)]  # 0.5 .. 50 r/min: rising everywhere
+        flows = [curve.flow_g_min(w) for w in ws]
+        assert all(b > a for a, b in itertools.pairwise(flows))
+    # a quadratic through the set points misses a 12 % knee by more than the weighing noise
+    curve = truth.fill_curve(crop, knee=0.12)
+    pts = [lo + (hi - lo) * i / 20 for i in range(21)]
+    coef = np.polyfit(pts, [curve.flow_g_min(w) for w in pts], 2)
+    worst = max(abs(np.polyval(coef, w) / curve.flow_g_min(w) - 1) for w in pts)
+    assert worst > 0.005
+    assert curve.flow_g_min(0.0) == 0.0
+    assert curve.flow_g_min(-3.0) == 0.0
+
+
+def test_with_knee_changes_only_the_knee() -> None:
+    d = field_drills("wheat", 4, seed=13)[0]
+    k = truth.with_knee(d, 0.12)
+    assert isinstance(k.curve, truth.FillCurve)
+    assert k.curve.knee == 0.12
+    assert k.curve.knee_rpm == d.curve.knee_rpm  # type: ignore[union-attr]
+    assert replace(k, curve=d.curve) == d
 
 
 def test_motor_dead_band_line_and_ceiling() -> None:
@@ -101,6 +112,19 @@ def test_motor_dead_band_line_and_ceiling() -> None:
     assert d.steady_rpm(60.0, turning=False) == pytest.approx(slope * 60.0 + offset)
     assert d.steady_rpm(100.0, turning=True) <= MAX_SHAFT_RPM
     assert d.steady_rpm(0.0, turning=True) == 0.0
+    assert d.steady_rpm(-offset / slope - 0.5, turning=True) == 0.0  # the dead band
+
+
+def test_motor_saturates_and_slips_with_load() -> None:
+    """Issue 25: not a straight line: tanh saturation and slip growing with the load."""
+    slope, offset, _ = PAPER_A_MOTOR["wheat"]
+    d = replace(reference_drill("wheat", 1), motor_saturation_rpm=100.0, motor_slip=0.03)
+    line = [slope * k + offset for k in (40.0, 60.0, 80.0, 95.0)]
+    got = [d.steady_rpm(k, turning=True) for k in (40.0, 60.0, 80.0, 95.0)]
+    shortfall = [1 - g / ln for g, ln in zip(got, line, strict=True)]
+    assert all(b > a for a, b in itertools.pairwise(shortfall))  # bends away more and more
+    assert 0.03 < shortfall[-1] < 0.15
+    assert all(b > a for a, b in itertools.pairwise(got))  # still monotonic
 
 
 def test_meter_lags_a_duty_step_and_integrates_turns_and_grams() -> None:
@@ -140,6 +164,9 @@ def test_radar_reads_the_true_speed_times_its_bias_plus_noise() -> None:
     rng = random.Random(4)
     readings = [d.radar_kmh(4.0, rng.gauss(0.0, 1.0)) for _ in range(4000)]
     assert statistics.fmean(readings) == pytest.approx(4.0 * 1.02, rel=0.003)
+    # the surface's scale on top of the mounting bias, the drill's or given per reading
+    assert replace(d, surface=0.04).radar_kmh(4.0, 0.0) == pytest.approx(4.0 * 1.02 * 1.04)
+    assert d.radar_kmh(4.0, 0.0, surface=0.08) == pytest.approx(4.0 * 1.02 * 1.08)
     assert statistics.stdev(readings) / statistics.fmean(readings) == pytest.approx(
         d.radar_cv, rel=0.1)
     assert d.radar_kmh(0.0, 1.5) == 0.0
@@ -162,3 +189,8 @@ def test_field_drills_span_every_range_and_are_reproducible(crop: str) -> None:
         # one value in each sixth of the range: both ends are reached
         assert min(values) < -bound * 2 / 3 and max(values) > bound * 2 / 3, name
     assert {abs(d.lot_drift) for d in drills} == {truth.LOT_DRIFT}
+    knees = [d.curve.knee for d in drills]  # type: ignore[union-attr]
+    lo, hi = truth.KNEE_RANGE
+    assert all(lo <= k <= hi for k in knees)
+    assert min(knees) < lo + (hi - lo) / 3 and max(knees) > hi - (hi - lo) / 3
+    assert all(100.0 <= d.motor_saturation_rpm <= 200.0 for d in drills)

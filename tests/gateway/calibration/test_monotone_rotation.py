@@ -233,3 +233,35 @@ def test_an_older_calibration_file_without_curves_still_loads_on_the_quadratic(
     model = settings.control.crops["wheat"]
     assert model.meter_curve is None and model.motor_curve is None
     assert omega_for_flow(-0.6 * 900 + 130.0 * 30 - 390.0, model) == pytest.approx(30.0)
+
+
+def test_weighings_too_noisy_for_the_rate_name_the_set_points_to_repeat(
+        tmp_path: Path) -> None:
+    """Rapeseed on a knee drill (not the controller's model): catches of 25–150 g on a
+    σ 2 g scale leave the low set points' means known to several %; the test names them,
+    with how many runs each needs, and still saves (the readings are consistent). On a
+    σ 0.2 g scale nothing is named."""
+    rng = random.Random(11)
+    drill = knee_drill("rapeseed", rng)
+    duties, rpm, _ = rotation_test(drill, "rapeseed", rng)
+    duties = [round(d, 3) for d in duties]  # as typed at the CLI below
+    true = [drill.flow_g_min(drill.rpm(d)) for d in duties]  # 60 s runs: g/min = g caught
+    coarse = [q + rng.gauss(0.0, 2.0) for q in true]
+    fine = [q + rng.gauss(0.0, 0.2) for q in true]
+    vague = cal.imprecise_set_points(duties, coarse)
+    assert vague, "σ 2 g on 25 g catches must be named"
+    lowest = min(duties)
+    assert any(v.set_point == lowest for v in vague)
+    assert all(v.se_pct > cal.SET_POINT_SE_LIMIT_PCT and v.runs_needed > v.runs == REPEATS
+               for v in vague)
+    assert cal.imprecise_set_points(duties, fine) == []
+    code, out = run_cli(["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel",
+                         "rapeseed", "--model", "paper_a", "--no-wait", "--seconds", "60",
+                         "--duties", ",".join(f"{d:.3f}" for d in duties),
+                         "--rpm", ",".join(f"{w:.4f}" for w in rpm),
+                         "--mass", ",".join(f"{q:.2f}" for q in coarse)])
+    assert code == 0, out
+    flat = " ".join(out.split())
+    assert "weighings scatter more than the rate can take" in flat
+    assert f"duty {vague[0].set_point:g} %" in flat
+    assert cal.CalibrationStore(tmp_path).get("rotation.rapeseed") is not None
