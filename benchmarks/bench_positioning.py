@@ -68,6 +68,7 @@ from gateway.config.recording import HitchSection, PositioningSection
 from gateway.core.records import SeedDrop
 from gateway.recording.positioning import Landing, SeedPositioner
 from gateway.recording.positioning.survey import (
+    Sown,
     SurveyError,
     SurveyFit,
     fit_survey,
@@ -328,9 +329,12 @@ def calibrate(run: FieldRun, landings: list[Landing], settings: PositioningSecti
     gateway's ``fit_survey`` on the stored records of the surveyed seeds and their surveyed
     lat/lon, the fit laid over ``settings`` (``SurveyFit.settings``, as the calibration file
     does), every record re-positioned with it (``reposition``)."""
+    sown = Sown.empty()
+    for la in landings:
+        sown.add(la.drop)
     fit = fit_survey([p.record for p in pairs],
                      [(p.surveyed_lat, p.surveyed_lon) for p in pairs], settings,
-                     fit_delay=fit_delay)
+                     fit_delay=fit_delay, sown=sown)
     new = fit.settings(settings)
     lat, lon, kept = [], [], 0
     for la in landings:
@@ -583,6 +587,9 @@ def calibration_sensitivity(truth: FieldRun, landings: list[Landing],
             rows.append(row)
             continue
         masks = _masks(truth, held_out)
+        if cal.fit.problems() or cal.fit.coverage_warnings:
+            row["cli"] = ("refuses: " if cal.fit.problems() else "warns: ") + "; ".join(
+                cal.fit.problems() or cal.fit.coverage_warnings)
         row["fit"] = {"delay_ms": cal.fit.delay_ms, "behind_mm": cal.fit.behind_m * 1000.0,
                       "right_mm": cal.fit.right_m * 1000.0}
         row["stats"] = {k: dataclasses.asdict(Stats.of(cal.errors, masks[k]))
@@ -739,7 +746,8 @@ def _markdown(result: dict[str, Any], truth: FieldRun) -> str:
         f = row["fit"]
         cells = [f"{_fmt(row['stats'][k]['mean_mm'])} ({_fmt(row['stats'][k]['p95_mm'])})"
                  for k in ("4–12 km/h", "16 km/h", "4–16 km/h")]
-        lines.append(f"| {row['survey']} | {f['delay_ms']:+.1f} ms / {f['behind_mm']:+.0f} mm"
+        name = row["survey"] + (f" (`calibrate positions` {row['cli']})" if "cli" in row else "")
+        lines.append(f"| {name} | {f['delay_ms']:+.1f} ms / {f['behind_mm']:+.0f} mm"
                      f" / {f['right_mm']:+.0f} mm | " + " | ".join(cells) + " |")
     lines += [
         "",
@@ -824,6 +832,8 @@ def evaluate_draw(d: Draw, *, float_fraction: float = 0.0) -> dict[str, Any]:
     try:
         half = calibrate(run_, landings[CONFIGURED], settings, half_pairs)
         out["one half"] = rows(half.errors, half_held)
+        out["one half"]["cli refused"] = bool(half.fit.problems())  # plausibility
+        out["one half"]["cli warned"] = bool(half.fit.coverage_warnings)
     except SurveyError as exc:
         out["one half"] = {"refused": str(exc)}
     return out
@@ -942,14 +952,15 @@ def draws_markdown(od: dict[str, Any]) -> tuple[str, bool]:
         "| row | median mm | p90 mm | worst mm | draws |",
         "|---|---:|---:|---:|---:|",
     ]
-    refused = [r for r in base if "refused" in r["one half"]]
+    refused = [r for r in base if "refused" in r["one half"] or r["one half"]["cli refused"]]
+    warned = [r for r in base if r["one half"].get("cli warned")]
     for key in ("4–12 km/h", "16 km/h"):
         text, _ = cells([r for r in base if "refused" not in r["one half"]], "one half", key)
         lines.append(f"| survey of one half of the field (12 and 16 km/h passes only), "
-                     f"{key} | {text} |")
-    if refused:
-        lines.append(f"| ... refused by `calibrate positions` | {len(refused)} of "
-                     f"{len(base)} draws | | | |")
+                     f"applied anyway, {key} | {text} |")
+    lines.append(f"| ... `calibrate positions` on that survey: refused in {len(refused)}, "
+                 f"warned (saying what to survey next) in {len(warned)} of {len(base)} draws "
+                 "| | | | |")
     for key, name in (("4–12 km/h", "RTK-fixed seeds, 4–12 km/h"),
                       ("all seeds 4–12 km/h", "all seeds, 4–12 km/h"),
                       ("16 km/h", "RTK-fixed seeds, 16 km/h"),

@@ -200,6 +200,8 @@ class SurveyFit:
     residuals_after_m: tuple[float, ...]
     speed_spread_kmh: float
     outliers: int  # seeds the robust weights took down to under half weight
+    # what the survey cannot tell apart, and what to survey next (survey_coverage)
+    coverage_warnings: tuple[str, ...] = ()
 
     def settings(self, base: PositioningSection) -> PositioningSection:
         """``base`` with the fit applied (what the calibration file makes of the config)."""
@@ -255,11 +257,15 @@ def fit_survey(
     settings: PositioningSection,
     *,
     fit_delay: bool = True,
+    sown: Sown | None = None,
 ) -> SurveyFit:
     """Fit delay and lever arm so ``records`` re-positioned land on ``surveyed`` (lat, lon).
 
     ``fit_delay=False`` keeps the delay and fits the lever arm alone (a survey sown at one
-    speed). Raises ``SurveyError`` naming the minimum when the survey cannot tell.
+    speed). Raises ``SurveyError`` naming the minimum when the survey cannot tell (too few
+    seeds, one speed); a survey that tells the parameters apart only poorly
+    (``survey_coverage``, given the ``sown`` records) gets warnings saying what to survey
+    next in ``coverage_warnings``.
     """
     if len(records) != len(surveyed):
         raise ValueError(f"{len(records)} records for {len(surveyed)} surveyed seeds")
@@ -321,4 +327,107 @@ def fit_survey(
         residuals_after_m=tuple(after.tolist()),
         speed_spread_kmh=spread,
         outliers=int(np.sum(weights < 0.5)),
+        coverage_warnings=tuple(survey_coverage(records, sown)),
     )
+
+
+# -- can the survey tell the parameters apart? ----------------------------------------------
+
+# Surveyed seeds whose headings' resultant (mean unit vector) is longer than this were all sown
+# driving one way (±25°): a lateral lever-arm error then looks exactly like a cross slope's
+# lean or an RTK offset, and the fit would double it on the passes driven the other way.
+ONE_WAY_RESULTANT = 0.9
+# The sown speeds (5th-95th percentile) reaching this far beyond the surveyed ones: the delay
+# (which grows with speed) is extrapolated there.
+SPEED_COVERAGE_MARGIN_KMH = 2.0
+# The surveyed seeds spanning less than this share of the field across the passes.
+MIN_ACROSS_SHARE = 0.5
+
+
+@dataclass
+class Sown:
+    """What the coverage checks need of every stored record (one pass over the store)."""
+
+    speed_kmh: list[float]
+    heading_deg: list[float]
+    lat: list[float]
+    lon: list[float]
+
+    @classmethod
+    def empty(cls) -> Sown:
+        return cls([], [], [], [])
+
+    def add(self, record: SeedDrop) -> None:
+        if record.heading_deg is None:
+            return
+        self.speed_kmh.append(record.speed_kmh)
+        self.heading_deg.append(record.heading_deg)
+        self.lat.append(record.lat)
+        self.lon.append(record.lon)
+
+
+def _resultant(headings_deg: Sequence[float], doubled: bool = False) -> tuple[float, float]:
+    """(resultant length, mean direction in degrees) of headings (doubled: of axes)."""
+    a = np.radians(np.asarray(headings_deg, dtype=np.float64)) * (2.0 if doubled else 1.0)
+    s, c = float(np.mean(np.sin(a))), float(np.mean(np.cos(a)))
+    mean = math.degrees(math.atan2(s, c)) / (2.0 if doubled else 1.0)
+    return math.hypot(s, c), mean % 360.0
+
+
+def survey_coverage(surveyed: Sequence[SeedDrop], sown: Sown | None = None) -> list[str]:
+    """Why the surveyed seeds tell the fitted parameters apart only poorly, each warning
+    saying what to survey next: every surveyed seed sown driving one way (the lateral shift
+    is then a slope's lean or an RTK offset as much as a lever arm); and, given what was
+    ``sown``, sown speeds well beyond the surveyed ones (the delay is extrapolated there) and
+    surveyed seeds on one side of the field (RTK error and slope differ across it). Too few
+    seeds or one speed are refused by ``fit_survey`` itself."""
+    warnings: list[str] = []
+    headings = [r.heading_deg for r in surveyed if r.heading_deg is not None]
+    if len(headings) >= 2:
+        length, mean = _resultant(headings)
+        if length > ONE_WAY_RESULTANT:
+            warnings.append(
+                f"all surveyed seeds were sown driving one way (heading {mean:.0f}°): a "
+                "lateral error of the lever arm cannot be told from a slope's lean or an RTK "
+                f"offset; survey seeds from a pass driven the other way (heading "
+                f"{(mean + 180.0) % 360.0:.0f}°) too"
+            )
+    if sown is None or len(sown.speed_kmh) < 2 or not surveyed:
+        return warnings
+    speeds = [r.speed_kmh for r in surveyed]
+    lo, hi = min(speeds), max(speeds)
+    s_lo, s_hi = (float(x) for x in np.percentile(np.asarray(sown.speed_kmh), [5.0, 95.0]))
+    missing = [v for v in (s_lo, s_hi) if v < lo - SPEED_COVERAGE_MARGIN_KMH
+               or v > hi + SPEED_COVERAGE_MARGIN_KMH]
+    if missing:
+        warnings.append(
+            f"the seeds were sown at {s_lo:.0f}–{s_hi:.0f} km/h, the surveyed ones at "
+            f"{lo:.0f}–{hi:.0f} km/h: the delay is extrapolated to "
+            f"{' and '.join(f'{v:.0f}' for v in missing)} km/h; survey seeds sown at "
+            f"{' and '.join(f'{v:.0f}' for v in missing)} km/h too"
+        )
+    _len, axis = _resultant(sown.heading_deg, doubled=True)
+    frame = LocalFrame(sown.lat[0], sown.lon[0])
+    across_dir = math.radians(axis + 90.0)
+    ux, uy = math.sin(across_dir), math.cos(across_dir)
+
+    def across(lat: float, lon: float) -> float:
+        e, n, _u = frame.to_enu(lat, lon)
+        return e * ux + n * uy
+
+    step = max(1, len(sown.lat) // 20_000)  # a sample is enough for the field's extent
+    field = np.asarray([across(a, b) for a, b in zip(sown.lat[::step], sown.lon[::step],
+                                                      strict=True)])
+    f_lo, f_hi = (float(x) for x in np.percentile(field, [2.0, 98.0]))
+    ours = [across(r.lat, r.lon) for r in surveyed]
+    width = f_hi - f_lo
+    if width > 0 and (max(ours) - min(ours)) < MIN_ACROSS_SHARE * width:
+        centre = (min(ours) + max(ours)) / 2.0
+        far = f_hi if abs(centre - f_lo) < abs(centre - f_hi) else f_lo
+        warnings.append(
+            f"the surveyed seeds span {max(ours) - min(ours):.0f} m of the field's "
+            f"{width:.0f} m across the passes (one side): RTK error and slope differ across a "
+            f"field; survey seeds from the passes about {abs(far - centre):.0f} m across from "
+            "these too"
+        )
+    return warnings
