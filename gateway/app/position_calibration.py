@@ -216,7 +216,10 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
         con.print(_stats_table(fit))
         con.print(
             f"fitted: delay {fit.delay_ms:+.1f} ms"
-            f"{'' if fit.delay_fitted else ' (held: --lever-only)'}, outlets "
+            f"{'' if fit.delay_fitted else ' (held: --lever-only)'}"
+            + (f" at {fit.speed_ref_kmh:.1f} km/h, {fit.delay_ms_per_kmh:+.2f} ms per km/h "
+               "(into the fall-time table)" if fit.delay_ms_per_kmh else "")
+            + ", outlets "
             f"{fit.behind_m * 1000:+.1f} mm behind, {fit.right_m * 1000:+.1f} mm right "
             f"(speed spread {fit.speed_spread_kmh:.1f} km/h, {fit.outliers} seeds "
             "down-weighted as outliers)"
@@ -237,8 +240,11 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
                 "outlets_behind_hitch_m": (
                     None if new.hitch is None else new.hitch.outlets_behind_hitch_m
                 ),
+                "fall_time_table": [list(x) for x in new.fall_time_table],
                 "fitted": {"delay_ms": fit.delay_ms, "behind_m": fit.behind_m,
-                           "right_m": fit.right_m, "delay_fitted": fit.delay_fitted},
+                           "right_m": fit.right_m, "delay_fitted": fit.delay_fitted,
+                           "delay_ms_per_kmh": fit.delay_ms_per_kmh,
+                           "speed_ref_kmh": fit.speed_ref_kmh},
                 "before": fit.before.__dict__,
                 "after": fit.after.__dict__,
             },

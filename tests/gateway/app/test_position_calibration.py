@@ -177,3 +177,5 @@ def test_a_survey_that_cannot_tell_the_parameters_apart_is_warned_with_what_to_s
     out = capsys.readouterr().out
     assert "warning:" in out and "driving one way (heading 37°)" in out
     assert "pass driven the other way (heading 217°)" in out
+    result = CalibrationStore(state).get("positions.survey")["result"]  # type: ignore[index]
+    assert result["fall_time_table"]  # what the daemon applies (a fitted slope goes in it)

@@ -228,3 +228,51 @@ def test_a_survey_on_one_side_of_the_field_is_warned_saying_how_far_across_to_su
 def east_of(d: SeedDrop) -> float:
     """East coordinate of a drop, metres from the field's corner."""
     return LocalFrame(45.75, 126.63, 0.0).to_enu(d.lat, d.lon, 0.0)[0]
+
+
+# -- a delay that changes with speed (a truth unlike the model's constant table offset)
+
+FOUR_SPEEDS = Drive(legs=[Leg(4.0, 4.0), Leg(4.0, 8.0), Leg(4.0, 12.0), Leg(4.0, 16.0)],
+                    start_heading_deg=37.0)
+EDGES_16S = [(1 + k % 6, 0.5 + k * 0.101) for k in range(150)]
+
+
+def sliding_truth(drops: list[SeedDrop], per_kmh2_m: float = 0.0002) -> list[tuple[float, float]]:
+    """Where the seeds are: the TRUE model's point plus a slide forward in the furrow that
+    grows with the square of the speed (5 cm at 16 km/h), which no table offset is."""
+    out = []
+    for d in drops:
+        lat, lon = reposition(d, TRUE)
+        assert d.heading_deg is not None
+        h = math.radians(d.heading_deg)
+        slide = per_kmh2_m * d.speed_kmh ** 2
+        out.append(shift_latlon(lat, lon, slide * math.sin(h), slide * math.cos(h)))
+    return out
+
+
+def test_a_delay_growing_with_speed_is_fitted_into_the_fall_time_table(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    drops = drops_of(CONFIGURED, FOUR_SPEEDS, EDGES_16S, until=17.0)
+    truth = sliding_truth(drops)
+    fit = fit_survey(drops, truth, CONFIGURED)
+    assert fit.delay_ms_per_kmh > 0.5 and fit.speed_ref_kmh > 0  # faster: slides further
+    fitted = fit.settings(CONFIGURED)
+    assert len(fitted.fall_time_table) > len(CONFIGURED.fall_time_table)
+    # re-positioned with the fit, the seeds land on the truth within a few millimetres
+    for d, (lat, lon) in zip(drops, truth, strict=True):
+        e, n, _ = FRAME.to_enu(*reposition(d, fitted))
+        te, tn, _ = FRAME.to_enu(lat, lon)
+        assert math.hypot(e - te, n - tn) < 0.006
+    # a constant delay (the former fit) cannot follow it
+    monkeypatch.setattr("gateway.recording.positioning.survey.MIN_SPREAD_FOR_SLOPE_KMH", 1e9)
+    constant = fit_survey(drops, truth, CONFIGURED)
+    assert constant.delay_ms_per_kmh == 0.0
+    assert fit.after.mean_m < 0.5 * constant.after.mean_m
+
+
+def test_no_slope_is_fitted_when_the_truth_has_none() -> None:
+    drops = drops_of(CONFIGURED, FOUR_SPEEDS, EDGES_16S, until=17.0)
+    fit = fit_survey(drops, survey(drops), CONFIGURED)
+    assert fit.delay_ms_per_kmh == 0.0  # not told from the rover's noise: a constant
+    assert fit.delay_ms == pytest.approx(12.0, abs=3.0)
