@@ -509,29 +509,31 @@ def _one(src: Source) -> tuple[dict[str, Stats], FieldRun]:
     }, run
 
 
+def _sensitivity_row(src: Source) -> dict[str, Any]:
+    stats, run = _one(src)
+    magnitude = src.magnitude
+    if math.isnan(magnitude):  # measured from the truth of this run
+        seeds = run.seeds
+        if src.unit == "mm slide":
+            magnitude = float(np.mean(np.abs([s.slide_m for s in seeds]))) * 1000.0
+        elif src.unit == "ms σ":
+            fall = np.array([s.t_land - s.t_edge for s in seeds])
+            xfall = np.array([s.expected_t_land - s.t_edge for s in seeds])
+            magnitude = float(np.std(fall - xfall)) * 1000.0
+        elif src.unit == "° rms":
+            e, n, h, _v, _hi = run.drive.at(np.array([s.t_land for s in seeds]))
+            pitch, roll = src.cfg.terrain.attitude(e, n, h)
+            magnitude = float(np.sqrt(np.mean(pitch**2 + roll**2)))
+        else:
+            magnitude = float(np.mean(np.abs([s.articulation_deg for s in seeds])))
+    return {"source": src.name, "unit": src.unit, "magnitude": magnitude,
+            **{m: dataclasses.asdict(s) for m, s in stats.items()}}
+
+
 def sensitivity(seed: int = 1) -> list[dict[str, Any]]:
-    base, _ = _one(Source("clean", "", 0.0, clean_config(seed)))
-    rows = [{"source": "clean field (baseline)", "unit": "", "magnitude": 0.0,
-             **{m: dataclasses.asdict(s) for m, s in base.items()}}]
-    for src in sources(seed):
-        stats, run = _one(src)
-        magnitude = src.magnitude
-        if math.isnan(magnitude):  # measured from the truth of this run
-            seeds = run.seeds
-            if src.unit == "mm slide":
-                magnitude = float(np.mean(np.abs([s.slide_m for s in seeds]))) * 1000.0
-            elif src.unit == "ms σ":
-                fall = np.array([s.t_land - s.t_edge for s in seeds])
-                xfall = np.array([s.expected_t_land - s.t_edge for s in seeds])
-                magnitude = float(np.std(fall - xfall)) * 1000.0
-            elif src.unit == "° rms":
-                e, n, h, _v, _hi = run.drive.at(np.array([s.t_land for s in seeds]))
-                pitch, roll = src.cfg.terrain.attitude(e, n, h)
-                magnitude = float(np.sqrt(np.mean(pitch**2 + roll**2)))
-            else:
-                magnitude = float(np.mean(np.abs([s.articulation_deg for s in seeds])))
-        rows.append({"source": src.name, "unit": src.unit, "magnitude": magnitude,
-                     **{m: dataclasses.asdict(s) for m, s in stats.items()}})
+    rows = _pool_map(_sensitivity_row, [Source("clean", "", 0.0, clean_config(seed)),
+                                        *sources(seed)])
+    rows[0]["source"] = "clean field (baseline)"
     return rows
 
 

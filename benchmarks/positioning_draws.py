@@ -27,6 +27,7 @@ Every draw's receiver goes float for 6 s in the 8 km/h pass and silent for 1.5 s
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -101,12 +102,12 @@ def with_outages(cfg: FieldConfig, float_fraction: float = 0.0) -> FieldConfig:
     """A 6 s float period in the 8 km/h pass and a 1.5 s dropout in the 12 km/h pass; with
     ``float_fraction`` instead float windows of 5 s spread evenly to cover that fraction of
     the sowing passes (and the same dropout)."""
-    drive = FieldDrive(cfg.drive, cfg.machine)
-    (a1, b1), (a2, b2) = drive.pass_times[1], drive.pass_times[2]
+    pass_times = _pass_times(cfg.drive, cfg.machine)
+    (a1, b1), (a2, b2) = pass_times[1], pass_times[2]
     floats: tuple[tuple[float, float], ...] = (((a1 + b1) / 2 - 3.0, 6.0),)
     if float_fraction > 0:
         windows = []
-        for a, b in drive.pass_times:
+        for a, b in pass_times:
             n = max(1, round((b - a) * float_fraction / 5.0))
             gap = (b - a) / n
             windows += [(a + gap * (i + 0.5) - 2.5, 5.0) for i in range(n)]
@@ -114,6 +115,11 @@ def with_outages(cfg: FieldConfig, float_fraction: float = 0.0) -> FieldConfig:
     rx = replace(cfg.receiver, float_windows=floats,
                  dropout_windows=(((a2 + b2) / 2, 1.5),))
     return replace(cfg, receiver=rx)
+
+
+@functools.lru_cache(maxsize=256)
+def _pass_times(drive: DriveSpec, machine: Machine) -> list[tuple[float, float]]:
+    return [(float(a), float(b)) for a, b in FieldDrive(drive, machine).pass_times]
 
 
 def draw(index: int) -> Draw:
