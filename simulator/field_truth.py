@@ -59,7 +59,7 @@ import numpy as np
 import numpy.typing as npt
 import pymap3d
 
-from simulator.um982 import GEOID_SEP_M, um982_sentences
+from simulator.gnss_sentences import GEOID_SEP_M, epoch_sentences
 
 Array = npt.NDArray[np.float64]
 KMH_PER_MS = 3.6
@@ -714,7 +714,7 @@ def _receiver_epochs(cfg: FieldConfig, drive: FieldDrive) -> list[ReceiverEpoch]
 
 def epoch_lines(ep: ReceiverEpoch) -> list[str]:
     """The epoch as the UM982 prints it: $GNRMC, $GNGGA and #HEADINGA (with its pitch)."""
-    return um982_sentences(
+    return epoch_sentences(
         ep.utc, ep.lat, ep.lon, ep.alt_msl_m, ep.speed_kmh, ep.course_deg, ep.heading_deg,
         ep.fix, pitch_deg=ep.pitch_deg, hdg_std=0.08,
     )

@@ -2,7 +2,8 @@
 
 Two layers:
 
-* ``um982_sentences`` — a pure generator: one epoch's ``$GNRMC``, ``$GNGGA`` and ``#HEADINGA``
+* ``um982_sentences`` — a pure generator (``simulator.gnss_sentences``, sharing no code with
+  ``protocol/``): one epoch's ``$GNRMC``, ``$GNGGA`` and ``#HEADINGA``
   with correct checksums/CRC and the field widths the real receiver uses. Tests build their
   inputs with it, so the parsers are never tested against hand-typed strings.
 * ``Um982Emulator`` — samples a true trajectory at ``rate_hz`` on the UTC grid, adds RTK and
@@ -27,28 +28,21 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
-from typing import Final, Literal, Protocol
+from typing import Final, Protocol
 
 import pymap3d
 
 from drivers.tasks import StartClose
-from protocol.nmea import KMH_PER_KNOT, encode_nmea
-from protocol.unicore import GPS_UTC_LEAP_S, encode_headinga, utc_to_gps
+from simulator.gnss_sentences import GEOID_SEP_M, GPS_MINUS_UTC_S, Fix, epoch_sentences
 from simulator.pty_link import PtyPair, unplug
 
-Fix = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
+__all__ = ["GEOID_SEP_M", "Fix", "TruthEpoch", "Um982Emulator", "corrupt_checksum",
+           "um982_sentences"]
 
 TRUTH_CAPACITY: Final = 200_000  # epochs of ground truth kept (5.5 h at 10 Hz)
-GEOID_SEP_M: Final = 40.0  # a plausible geoid separation; GGA altitude = ellipsoidal - this
 SPEED_SIGMA_KMH: Final = 0.03  # Doppler speed noise of an RTK receiver
 
-# GGA quality, RMC mode indicator and horizontal noise scale for each fix type.
-_GGA_QUALITY: Final[dict[str, int]] = {
-    "rtk_fixed": 4, "rtk_float": 5, "dgps": 2, "single": 1, "none": 0,
-}
-_RMC_MODE: Final[dict[str, str]] = {
-    "rtk_fixed": "R", "rtk_float": "F", "dgps": "D", "single": "A", "none": "N",
-}
+# horizontal noise scale for each fix type
 _SIGMA_FACTOR: Final[dict[str, float]] = {  # multiples of rtk_sigma_m (1 cm -> 20 cm float...)
     "rtk_fixed": 1.0, "rtk_float": 20.0, "dgps": 50.0, "single": 150.0, "none": 150.0,
 }
@@ -79,79 +73,9 @@ class TruthEpoch:
     lon: float
 
 
-def _dm(value: float, deg_digits: int) -> str:
-    """Degrees to NMEA (d)ddmm.mmmmmmmm with 8 decimals of minutes, as the UM982 prints."""
-    units = round(abs(value) * 60.0 * 1e8)
-    deg, minutes = divmod(units, 60 * 10**8)
-    return f"{deg:0{deg_digits}d}{minutes // 10**8:02d}.{minutes % 10**8:08d}"
-
-
-def _hms(utc: datetime, leap_second: bool = False) -> str:
-    centis = round(utc.microsecond / 10_000)
-    if centis == 100:  # only reachable for sub-centisecond times; keep the field valid
-        centis = 99
-    if leap_second:  # utc is 23:59:59.x: the receiver prints second 60
-        return f"{utc:%H%M}60.{centis:02d}"
-    return f"{utc:%H%M%S}.{centis:02d}"
-
-
-def um982_sentences(
-    utc: datetime,
-    lat: float,
-    lon: float,
-    alt_m: float,
-    speed_kmh: float,
-    course_deg: float,
-    heading_deg: float,
-    fix: Fix = "rtk_fixed",
-    heading_ok: bool = True,
-    *,
-    num_sv: int = 28,
-    hdop: float = 0.6,
-    pitch_deg: float = 0.0,
-    baseline_m: float = 1.0,
-    hdg_std: float = 0.08,
-    geoid_sep_m: float = GEOID_SEP_M,
-    talker: str = "GN",
-    leap_second: bool = False,
-    gps_utc_leap_s: int = GPS_UTC_LEAP_S,
-) -> list[str]:
-    """One epoch's RMC, GGA and #HEADINGA (no line terminators).
-
-    ``alt_m`` is the height above mean sea level that GGA carries. With ``fix="none"`` the
-    position fields are empty, as a receiver without a fix sends them. With ``leap_second``
-    ``utc`` is 23:59:59.x and the sentences say 23:59:60.x; the heading log carries the GPS
-    time of that instant (one second after ``utc``, ``gps_utc_leap_s`` still the old count).
-    """
-    if utc.tzinfo is None:
-        raise ValueError("utc must be timezone-aware")
-    utc = utc.astimezone(UTC)
-    hms = _hms(utc, leap_second)
-    has_fix = fix != "none"
-    ns, ew = ("N" if lat >= 0 else "S"), ("E" if lon >= 0 else "W")
-    pos = f"{_dm(lat, 2)},{ns},{_dm(lon, 3)},{ew}" if has_fix else ",,,"
-    knots = max(0.0, speed_kmh) / KMH_PER_KNOT
-    rmc = (
-        f"{talker}RMC,{hms},{'A' if has_fix else 'V'},{pos},"
-        f"{knots:.3f},{course_deg % 360.0:.1f},{utc:%d%m%y},,,{_RMC_MODE[fix]},V"
-    )
-    quality = _GGA_QUALITY[fix]
-    diff = "1.0,0001" if quality in (2, 4, 5) else ","
-    gga_fix = f"{alt_m:.4f},M,{geoid_sep_m:.4f},M,{diff}" if has_fix else ",M,,M,,"
-    gga = f"{talker}GGA,{hms},{pos},{quality},{num_sv if has_fix else 0:02d},"
-    gga += f"{hdop if has_fix else 99.9:.1f},{gga_fix}"
-    week, tow = utc_to_gps(utc + timedelta(seconds=1 if leap_second else 0), gps_utc_leap_s)
-    if heading_ok:
-        heading = encode_headinga(
-            week, tow, heading_deg, pitch_deg, baseline_m, hdg_std=hdg_std,
-            ptch_std=2 * hdg_std, num_sv_tracked=num_sv, num_sv_used=max(0, num_sv - 6),
-        )
-    else:
-        heading = encode_headinga(
-            week, tow, 0.0, 0.0, 0.0, sol_status="INSUFFICIENT_OBS", pos_type="NONE",
-            hdg_std=0.0, ptch_std=0.0, num_sv_tracked=num_sv, num_sv_used=0,
-        )
-    return [encode_nmea(rmc), encode_nmea(gga), heading]
+# One epoch's RMC, GGA and #HEADINGA, encoded by the simulator's own ``simulator.gnss_sentences``
+# (no code shared with the decoders in protocol/ it feeds).
+um982_sentences = epoch_sentences
 
 
 # binary bytes that would end a line or start a sentence become 0x00 (see binary_output)
@@ -309,7 +233,7 @@ class Um982Emulator(StartClose):
     def stamp_of(self, utc: datetime) -> tuple[datetime, bool, int]:
         """(stamp sent, leap second?, GPS−UTC count) for an epoch truly at ``utc``; counts
         down a temporary shift (call once per epoch)."""
-        leap, count = False, GPS_UTC_LEAP_S
+        leap, count = False, GPS_MINUS_UTC_S
         midnight = self._leap_midnight
         if midnight is not None and utc >= midnight:
             leap = utc < midnight + timedelta(seconds=1)

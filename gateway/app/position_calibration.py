@@ -38,6 +38,7 @@ from gateway.core.errors import GatewayError
 from gateway.core.records import SeedRecord
 from gateway.recording.export import parse_time
 from gateway.recording.positioning.survey import (
+    Sown,
     SurveyError,
     SurveyFit,
     fit_survey,
@@ -120,10 +121,11 @@ def _surveyed(path: Path, line: int, row: dict[str, str]) -> SurveyedSeed:
 
 
 def match_survey(
-    seeds: list[SurveyedSeed], records: Iterable[SeedRecord]
+    seeds: list[SurveyedSeed], records: Iterable[SeedRecord], sown: Sown | None = None,
 ) -> tuple[list[SeedRecord], list[tuple[float, float]], list[str]]:
     """Surveyed seeds paired with their records (by id, else by utc and row); the reasons
-    for the ones left unmatched."""
+    for the ones left unmatched. ``sown`` collects every record on the way (the survey's
+    coverage is judged against them)."""
     by_id: dict[int, SurveyedSeed] = {s.id: s for s in seeds if s.id is not None}
     by_ms: dict[int, list[SurveyedSeed]] = {}  # surveyed by utc, by whole millisecond
     for s in seeds:
@@ -132,6 +134,8 @@ def match_survey(
     found: dict[int, SeedRecord] = {}  # survey line -> record
     ambiguous: set[int] = set()
     for r in records:  # one pass over the store, a dictionary look-up a record
+        if sown is not None:
+            sown.add(r)
         s_id = by_id.get(r.id)
         if s_id is not None:
             found[s_id.line] = r
@@ -201,21 +205,27 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
         current = calibrated_settings(settings, state)
         seeds = read_survey(Path(args.survey))
         path = store_path(settings, state)
+        sown = Sown.empty()
         with RecordStore.open_readonly(path, settings.machine.id) as store:
-            records, surveyed, problems = match_survey(seeds, store.query_seeds())
+            records, surveyed, problems = match_survey(seeds, store.query_seeds(), sown)
         for p in problems:
             con.print(f"[yellow]skipped[/yellow] {escape(p)}")
         fit = fit_survey(records, surveyed, current.positioning,
-                         fit_delay=not getattr(args, "lever_only", False))
+                         fit_delay=not getattr(args, "lever_only", False), sown=sown)
         new = fit.settings(current.positioning)
         con.print(_stats_table(fit))
         con.print(
             f"fitted: delay {fit.delay_ms:+.1f} ms"
-            f"{'' if fit.delay_fitted else ' (held: --lever-only)'}, outlets "
+            f"{'' if fit.delay_fitted else ' (held: --lever-only)'}"
+            + (f" at {fit.speed_ref_kmh:.1f} km/h, {fit.delay_ms_per_kmh:+.2f} ms per km/h "
+               "(into the fall-time table)" if fit.delay_ms_per_kmh else "")
+            + ", outlets "
             f"{fit.behind_m * 1000:+.1f} mm behind, {fit.right_m * 1000:+.1f} mm right "
             f"(speed spread {fit.speed_spread_kmh:.1f} km/h, {fit.outliers} seeds "
             "down-weighted as outliers)"
         )
+        for w in fit.coverage_warnings:
+            con.print(f"[yellow]warning:[/yellow] {escape(w)}")
         bad = fit.problems()
         if bad and not getattr(args, "accept_poor_fit", False):
             for p in bad:
@@ -230,8 +240,11 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
                 "outlets_behind_hitch_m": (
                     None if new.hitch is None else new.hitch.outlets_behind_hitch_m
                 ),
+                "fall_time_table": [list(x) for x in new.fall_time_table],
                 "fitted": {"delay_ms": fit.delay_ms, "behind_m": fit.behind_m,
-                           "right_m": fit.right_m, "delay_fitted": fit.delay_fitted},
+                           "right_m": fit.right_m, "delay_fitted": fit.delay_fitted,
+                           "delay_ms_per_kmh": fit.delay_ms_per_kmh,
+                           "speed_ref_kmh": fit.speed_ref_kmh},
                 "before": fit.before.__dict__,
                 "after": fit.after.__dict__,
             },

@@ -162,6 +162,9 @@ def _apply_one(settings: Settings, key: str, result: dict[str, Any], entry: dict
         pos.delay_correction_ms = float(result["delay_correction_ms"])
         pos.outlet_behind_antenna_m = float(result["outlet_behind_antenna_m"])
         pos.row_lateral_m = lateral
+        table = result.get("fall_time_table")  # with a fitted delay slope (absent before)
+        if table is not None:
+            pos.fall_time_table = [(float(v), float(t)) for v, t in table]
         behind_hitch = result.get("outlets_behind_hitch_m")
         if behind_hitch is not None and pos.hitch is not None:
             pos.hitch = pos.hitch.model_copy(

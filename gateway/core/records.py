@@ -13,7 +13,7 @@ from datetime import UTC, datetime, timedelta
 from typing import Literal
 
 import orjson
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 FixQuality = Literal["rtk_fixed", "rtk_float", "dgps", "single", "none"]
 HeadingSource = Literal["dual_antenna", "course", "none"]
@@ -22,6 +22,26 @@ PositionMethod = Literal["interpolated", "paper", "oracle"]
 # did (no source configured, or none measured at that instant): the antenna was taken as
 # being above the ground point it stands for.
 AttitudeSource = Literal["dual_antenna", "inclinometer", "none"]
+
+
+# The receiver's stated horizontal accuracy (m) for each fix type: Unicore's UM982 datasheet
+# (RTK 0.8 cm + 1 ppm, rounded up to 1 cm for a base within 2 km; DGPS 0.4 m; single point
+# 1.5 m). It states no figure for an RTK float solution; a float solution is a code-and-
+# carrier solution at least as good as DGPS, so DGPS's 0.4 m. No fix: unknown (None).
+STATED_ACCURACY_M: dict[str, float] = {
+    "rtk_fixed": 0.01, "rtk_float": 0.4, "dgps": 0.4, "single": 1.5,
+}
+# A seed positioned past the receiver's last epoch (a dropout) adds this to the fix's figure:
+# the extrapolation horizon is capped (positioning), but heading and speed may change in it.
+EXTRAPOLATED_EXTRA_M = 0.1
+
+
+def stated_accuracy_m(fix: str, extrapolated: bool) -> float | None:
+    """The receiver's stated accuracy for a seed sown on ``fix`` (see STATED_ACCURACY_M)."""
+    base = STATED_ACCURACY_M.get(fix)
+    if base is None:
+        return None
+    return base + EXTRAPOLATED_EXTRA_M if extrapolated else base
 
 
 class _Payload(BaseModel):
@@ -57,6 +77,13 @@ class SeedDrop(_Payload):
         None, ge=-90, le=90,
         description="machine pitch used, positive = nose up; null = not measured",
     )
+    accuracy_m: float | None = Field(
+        None, ge=0,
+        description="the receiver's stated horizontal accuracy (m) for the fix this seed was "
+        "sown on (UM982 datasheet: RTK fixed 0.01, float and DGPS 0.4, single 1.5; +0.1 when "
+        "extrapolated over a dropout); null = no fix. Derived from fix and extrapolated when "
+        "not given",
+    )
     # What re-positioning needs (sowgate export --reposition, calibrate positions): kept in
     # the store, not published (dashboards have the corrected lat/lon).
     delay_ms: float | None = Field(
@@ -70,6 +97,12 @@ class SeedDrop(_Payload):
         "instant to this seed: lever arm and terrain correction (antenna = seed - offset)",
     )
     offset_north_m: float | None = Field(None, exclude=True, description="the same, north")
+
+    @model_validator(mode="after")
+    def _stated_accuracy(self) -> SeedDrop:
+        if self.accuracy_m is None:
+            object.__setattr__(self, "accuracy_m", stated_accuracy_m(self.fix, self.extrapolated))
+        return self
 
 
 class SeedRecord(SeedDrop):
@@ -163,6 +196,7 @@ def seed_batch_json(
             "speed_kmh": speed, "heading_deg": heading, "heading_source": source,
             "extrapolated": bool(extrapolated), "method": method, "spacing_m": spacing,
             "attitude": attitude, "roll_deg": roll, "pitch_deg": pitch,
+            "accuracy_m": stated_accuracy_m(fix, extrapolated),
             "id": i, "machine_id": machine_id,
         })
     if pending_from is None:

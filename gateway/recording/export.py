@@ -32,7 +32,7 @@ from typing import Any, Literal, TextIO
 import orjson
 
 from gateway.core.errors import GatewayError
-from gateway.core.records import SeedRecord, utc_to_us
+from gateway.core.records import SeedRecord, stated_accuracy_m, utc_to_us
 from gateway.recording.runs import stored_setting
 from gateway.recording.source import MACHINE_ID, RecordSource
 from gateway.recording.spacing_quality import RowQualityAccumulator, SpacingQuality
@@ -56,6 +56,7 @@ CSV_FIELDS = [
     "attitude",
     "roll_deg",
     "pitch_deg",
+    "accuracy_m",
 ]
 QUALITY_FIELDS = [
     "row",
@@ -270,6 +271,7 @@ def _geojson(
                     "speed_kmh": speed, "heading_deg": heading, "heading_source": source,
                     "extrapolated": bool(extrapolated), "method": method, "spacing_m": spacing,
                     "attitude": attitude, "roll_deg": roll, "pitch_deg": pitch,
+                    "accuracy_m": stated_accuracy_m(fix, bool(extrapolated)),
                     "id": i, "machine_id": machine_id,
                 },
             })
@@ -295,12 +297,16 @@ def _csv(chunks: Iterable[Sequence[StoredSeedRow]], machine_id: str, out: TextIO
              f"{lon:.{COORD_DECIMALS}f}", fix, speed,
              "" if heading is None else heading, source, bool(extrapolated), method,
              "" if spacing is None else spacing, attitude, "" if roll is None else roll,
-             "" if pitch is None else pitch)
+             "" if pitch is None else pitch, _blank(stated_accuracy_m(fix, bool(extrapolated))))
             for (i, us, row, lat, lon, fix, speed, heading, source, extrapolated, method,
                  spacing, attitude, roll, pitch, *_) in chunk
         )
         n += len(chunk)
     return n
+
+
+def _blank(x: float | None) -> float | str:
+    return "" if x is None else x
 
 
 def export_quality_csv(quality: Mapping[int, SpacingQuality], out: TextIO) -> None:

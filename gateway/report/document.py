@@ -20,7 +20,13 @@ from typing import Any
 
 from matplotlib.figure import Figure, FigureBase
 
-from gateway.core.records import AlarmEvent, us_to_utc, utc_to_us
+from gateway.core.records import (
+    EXTRAPOLATED_EXTRA_M,
+    AlarmEvent,
+    stated_accuracy_m,
+    us_to_utc,
+    utc_to_us,
+)
 from gateway.recording.export import quality_json
 from gateway.recording.field_stats import CLASS_NAMES, AlarmInterval, FieldSummary, MapResult
 from gateway.recording.runs import Run
@@ -97,8 +103,26 @@ class FieldReport:
             ("position quality", f"RTK fixed {100 * s.rtk_fixed_share:.1f} % of the seeds; "
                                  f"extrapolated {100 * s.extrapolated_share:.2f} % "
                                  f"({fixes})"),
+            ("float/dropout seeds", self._degraded_text()),
             ("alarms", f"{self.alarms_total} events, {len(self.intervals)} alarm periods"),
         ]
+
+    def _degraded_text(self) -> str:
+        """Seeds not sown on an RTK-fixed position, apart from the others, with the
+        receiver's stated accuracy for them (records' ``accuracy_m``)."""
+        s = self.summary
+        not_fixed = {k: v for k, v in s.fixes.items() if k != "rtk_fixed" and v}
+        n = sum(not_fixed.values())
+        if not n and not s.extrapolated:
+            return "none: every seed on RTK fixed, none extrapolated"
+        parts = []
+        for k, v in sorted(not_fixed.items()):
+            acc = stated_accuracy_m(k, False)
+            parts.append(f"{k} {v:,} (stated accuracy "
+                         f"{'unknown' if acc is None else f'{acc:g} m'})")
+        return (f"{n:,} seeds not RTK-fixed: " + ", ".join(parts) if n else "all RTK-fixed") + (
+            f"; {s.extrapolated:,} extrapolated over dropouts (+{EXTRAPOLATED_EXTRA_M:g} m); "
+            "the export's accuracy_m gives each seed's")
 
     def data(self) -> dict[str, Any]:
         s = self.summary

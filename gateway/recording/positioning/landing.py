@@ -23,6 +23,7 @@ from gateway.core.records import (
     SeedDrop,
     SeedRow,
     drop_row,
+    stated_accuracy_m,
     us_to_utc,
 )
 from gateway.recording.positioning.methods import FIX_RANK
@@ -84,6 +85,7 @@ def _new_drop(
             "method": method, "spacing_m": spacing_m, "attitude": attitude,
             "roll_deg": roll_deg, "pitch_deg": pitch_deg, "delay_ms": delay_ms,
             "offset_east_m": offset_east_m, "offset_north_m": offset_north_m,
+            "accuracy_m": stated_accuracy_m(fix, extrapolated),
         })
         _setattr(drop, "__pydantic_fields_set__", set(_DROP_FIELDS))
         _setattr(drop, "__pydantic_extra__", None)

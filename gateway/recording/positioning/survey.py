@@ -51,6 +51,14 @@ MIN_SURVEY_SEEDS = 20
 # delay's effect grows with speed. At 3 km/h and 1 cm RTK noise, 50 seeds fit the delay to
 # ~2 ms.
 MIN_SPEED_SPREAD_KMH = 3.0
+# With this much speed spread the delay is fitted as a function of speed (a slope in ms per
+# km/h about the surveyed median speed): the seed's slide in the furrow grows with the square
+# of its speed and a fall-time table of another lot has another slope, which a constant
+# delay cannot follow (v·(d0 + d1·v) holds a v² term). Below it only the constant.
+MIN_SPREAD_FOR_SLOPE_KMH = 6.0
+# The slope is laid into the fall-time table over this speed range (knots added at its ends
+# with the table's end values, so the table's clamping does not cut the line short).
+SLOPE_SPEEDS_KMH = (1.0, 30.0)
 HUBER_K = 1.5  # Huber threshold in robust standard deviations (MAD-based)
 HUBER_FLOOR_M = 0.005  # never treat residuals under 5 mm as outliers
 IRLS_ROUNDS = 20
@@ -200,10 +208,16 @@ class SurveyFit:
     residuals_after_m: tuple[float, ...]
     speed_spread_kmh: float
     outliers: int  # seeds the robust weights took down to under half weight
+    # what the survey cannot tell apart, and what to survey next (survey_coverage)
+    coverage_warnings: tuple[str, ...] = ()
+    # the delay's change per km/h about speed_ref_kmh (0: a constant delay was fitted)
+    delay_ms_per_kmh: float = 0.0
+    speed_ref_kmh: float = 0.0
 
     def settings(self, base: PositioningSection) -> PositioningSection:
         """``base`` with the fit applied (what the calibration file makes of the config)."""
-        return apply_fit(base, self.delay_ms, self.behind_m, self.right_m)
+        return apply_fit(base, self.delay_ms, self.behind_m, self.right_m,
+                         self.delay_ms_per_kmh, self.speed_ref_kmh)
 
     def problems(self) -> list[str]:
         """Why this fit looks wrong (empty when it does not)."""
@@ -222,16 +236,34 @@ class SurveyFit:
         return out
 
 
+def sloped_table(table: Sequence[tuple[float, float]], ms_per_kmh: float, ref_kmh: float
+                 ) -> list[tuple[float, float]]:
+    """The fall-time table with ``ms_per_kmh`` · (v − ``ref_kmh``) added, extended to
+    ``SLOPE_SPEEDS_KMH`` first with its end values (the same function before the slope)."""
+    lo, hi = SLOPE_SPEEDS_KMH
+    knots = [(float(v), float(t)) for v, t in table]
+    if knots[0][0] > lo:
+        knots.insert(0, (lo, knots[0][1]))
+    if knots[-1][0] < hi:
+        knots.append((hi, knots[-1][1]))
+    return [(v, t + ms_per_kmh * (v - ref_kmh)) for v, t in knots]
+
+
 def apply_fit(
-    base: PositioningSection, delay_ms: float, behind_m: float, right_m: float
+    base: PositioningSection, delay_ms: float, behind_m: float, right_m: float,
+    delay_ms_per_kmh: float = 0.0, speed_ref_kmh: float = 0.0,
 ) -> PositioningSection:
     """``base`` with a fit's corrections; with a trailed implement the outlets move along
-    its drawbar (``hitch.outlets_behind_hitch_m``), the hitch staying where it was measured."""
+    its drawbar (``hitch.outlets_behind_hitch_m``), the hitch staying where it was measured.
+    A delay slope goes into the fall-time table (``sloped_table``)."""
     lateral = [r + right_m for r in base.lateral_offsets()]
     update: dict[str, object] = {
         "delay_correction_ms": base.delay_correction_ms + delay_ms,
         "row_lateral_m": lateral,
     }
+    if delay_ms_per_kmh:
+        update["fall_time_table"] = sloped_table(base.fall_time_table, delay_ms_per_kmh,
+                                                 speed_ref_kmh)
     if base.hitch is None:
         update["outlet_behind_antenna_m"] = base.outlet_behind_antenna_m + behind_m
     else:
@@ -239,6 +271,38 @@ def apply_fit(
             update={"outlets_behind_hitch_m": base.hitch.outlets_behind_hitch_m + behind_m}
         )
     return base.model_copy(update=update)
+
+
+def _irls(a: np.ndarray, y: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Robust least squares, Huber weights per seed (both its coordinates)."""
+    weights = np.ones(n)
+    params = np.zeros(a.shape[1])
+    for _ in range(IRLS_ROUNDS):
+        w2 = np.repeat(np.sqrt(weights), 2)
+        params_new, *_ = np.linalg.lstsq(a * w2[:, None], y * w2, rcond=None)
+        res = np.hypot(*(y - a @ params_new).reshape(n, 2).T)
+        sigma = max(1.4826 * float(np.median(res)), HUBER_FLOOR_M)
+        k = HUBER_K * sigma
+        weights = np.where(res <= k, 1.0, k / np.maximum(res, 1e-12))
+        done = bool(np.allclose(params_new, params, rtol=0, atol=1e-7))
+        params = params_new
+        if done:
+            break
+    return params, weights
+
+
+def _significant(a: np.ndarray, y: np.ndarray, params: np.ndarray, weights: np.ndarray,
+                 i: int) -> bool:
+    """Whether parameter ``i`` is more than 3 standard errors from 0 (weighted LS)."""
+    w = np.repeat(weights, 2)
+    r = y - a @ params
+    dof = max(1, len(y) - a.shape[1])
+    var = float(np.sum(w * r * r)) / dof
+    try:
+        cov = var * np.linalg.inv((a * w[:, None]).T @ a)
+    except np.linalg.LinAlgError:
+        return False
+    return abs(float(params[i])) > 3.0 * math.sqrt(max(float(cov[i, i]), 0.0))
 
 
 def speed_spread_kmh(speeds: Sequence[float]) -> float:
@@ -255,11 +319,15 @@ def fit_survey(
     settings: PositioningSection,
     *,
     fit_delay: bool = True,
+    sown: Sown | None = None,
 ) -> SurveyFit:
     """Fit delay and lever arm so ``records`` re-positioned land on ``surveyed`` (lat, lon).
 
     ``fit_delay=False`` keeps the delay and fits the lever arm alone (a survey sown at one
-    speed). Raises ``SurveyError`` naming the minimum when the survey cannot tell.
+    speed). Raises ``SurveyError`` naming the minimum when the survey cannot tell (too few
+    seeds, one speed); a survey that tells the parameters apart only poorly
+    (``survey_coverage``, given the ``sown`` records) gets warnings saying what to survey
+    next in ``coverage_warnings``.
     """
     if len(records) != len(surveyed):
         raise ValueError(f"{len(records)} records for {len(surveyed)} surveyed seeds")
@@ -288,24 +356,24 @@ def fit_survey(
     target = np.array([frame.to_enu(lat, lon)[:2] for lat, lon in surveyed], dtype=np.float64)
     stored = np.array([frame.to_enu(r.lat, r.lon)[:2] for r in records], dtype=np.float64)
     base = stored + np.array([(b.east, b.north) for b in bases], dtype=np.float64)
+    slope = fit_delay and spread >= MIN_SPREAD_FOR_SLOPE_KMH
+    lo, hi = SLOPE_SPEEDS_KMH
+    ref = float(np.median([r.speed_kmh for r in records]))
     cols = [[b.d_delay for b in bases]] if fit_delay else []
+    if slope:  # delay per km/h about ref: the delay column times (v - ref)
+        cols.append([(b.d_delay[0] * (min(max(r.speed_kmh, lo), hi) - ref),
+                      b.d_delay[1] * (min(max(r.speed_kmh, lo), hi) - ref))
+                     for b, r in zip(bases, records, strict=True)])
     cols += [[b.d_behind for b in bases], [b.d_right for b in bases]]
     design = np.stack([np.asarray(c, dtype=np.float64) for c in cols], axis=-1)  # n x 2 x p
     y = (target - base).reshape(-1)
     a = design.reshape(2 * n, -1)
-    weights = np.ones(n)
-    params = np.zeros(a.shape[1])
-    for _ in range(IRLS_ROUNDS):
-        w2 = np.repeat(np.sqrt(weights), 2)
-        params_new, *_ = np.linalg.lstsq(a * w2[:, None], y * w2, rcond=None)
-        res = np.hypot(*(y - a @ params_new).reshape(n, 2).T)
-        sigma = max(1.4826 * float(np.median(res)), HUBER_FLOOR_M)
-        k = HUBER_K * sigma
-        weights = np.where(res <= k, 1.0, k / np.maximum(res, 1e-12))
-        done = bool(np.allclose(params_new, params, rtol=0, atol=1e-7))
-        params = params_new
-        if done:
-            break
+    params, weights = _irls(a, y, n)
+    if slope and not _significant(a, y, params, weights, 1):
+        # the slope is not told from noise (two speed clusters, few seeds): a constant delay
+        slope = False
+        a = np.delete(a, 1, axis=1)
+        params, weights = _irls(a, y, n)
     before = np.hypot(*(y.reshape(n, 2).T))
     after = np.hypot(*(y - a @ params).reshape(n, 2).T)
     delay_s = float(params[0]) if fit_delay else 0.0
@@ -321,4 +389,109 @@ def fit_survey(
         residuals_after_m=tuple(after.tolist()),
         speed_spread_kmh=spread,
         outliers=int(np.sum(weights < 0.5)),
+        coverage_warnings=tuple(survey_coverage(records, sown)),
+        delay_ms_per_kmh=float(params[1]) * 1000.0 if slope else 0.0,
+        speed_ref_kmh=ref if slope else 0.0,
     )
+
+
+# -- can the survey tell the parameters apart? ----------------------------------------------
+
+# Surveyed seeds whose headings' resultant (mean unit vector) is longer than this were all sown
+# driving one way (±25°): a lateral lever-arm error then looks exactly like a cross slope's
+# lean or an RTK offset, and the fit would double it on the passes driven the other way.
+ONE_WAY_RESULTANT = 0.9
+# The sown speeds (5th-95th percentile) reaching this far beyond the surveyed ones: the delay
+# (which grows with speed) is extrapolated there.
+SPEED_COVERAGE_MARGIN_KMH = 2.0
+# The surveyed seeds spanning less than this share of the field across the passes.
+MIN_ACROSS_SHARE = 0.5
+
+
+@dataclass
+class Sown:
+    """What the coverage checks need of every stored record (one pass over the store)."""
+
+    speed_kmh: list[float]
+    heading_deg: list[float]
+    lat: list[float]
+    lon: list[float]
+
+    @classmethod
+    def empty(cls) -> Sown:
+        return cls([], [], [], [])
+
+    def add(self, record: SeedDrop) -> None:
+        if record.heading_deg is None:
+            return
+        self.speed_kmh.append(record.speed_kmh)
+        self.heading_deg.append(record.heading_deg)
+        self.lat.append(record.lat)
+        self.lon.append(record.lon)
+
+
+def _resultant(headings_deg: Sequence[float], doubled: bool = False) -> tuple[float, float]:
+    """(resultant length, mean direction in degrees) of headings (doubled: of axes)."""
+    a = np.radians(np.asarray(headings_deg, dtype=np.float64)) * (2.0 if doubled else 1.0)
+    s, c = float(np.mean(np.sin(a))), float(np.mean(np.cos(a)))
+    mean = math.degrees(math.atan2(s, c)) / (2.0 if doubled else 1.0)
+    return math.hypot(s, c), mean % 360.0
+
+
+def survey_coverage(surveyed: Sequence[SeedDrop], sown: Sown | None = None) -> list[str]:
+    """Why the surveyed seeds tell the fitted parameters apart only poorly, each warning
+    saying what to survey next: every surveyed seed sown driving one way (the lateral shift
+    is then a slope's lean or an RTK offset as much as a lever arm); and, given what was
+    ``sown``, sown speeds well beyond the surveyed ones (the delay is extrapolated there) and
+    surveyed seeds on one side of the field (RTK error and slope differ across it). Too few
+    seeds or one speed are refused by ``fit_survey`` itself."""
+    warnings: list[str] = []
+    headings = [r.heading_deg for r in surveyed if r.heading_deg is not None]
+    if len(headings) >= 2:
+        length, mean = _resultant(headings)
+        if length > ONE_WAY_RESULTANT:
+            warnings.append(
+                f"all surveyed seeds were sown driving one way (heading {mean:.0f}°): a "
+                "lateral error of the lever arm cannot be told from a slope's lean or an RTK "
+                f"offset; survey seeds from a pass driven the other way (heading "
+                f"{(mean + 180.0) % 360.0:.0f}°) too"
+            )
+    if sown is None or len(sown.speed_kmh) < 2 or not surveyed:
+        return warnings
+    speeds = [r.speed_kmh for r in surveyed]
+    lo, hi = min(speeds), max(speeds)
+    s_lo, s_hi = (float(x) for x in np.percentile(np.asarray(sown.speed_kmh), [5.0, 95.0]))
+    missing = [v for v in (s_lo, s_hi) if v < lo - SPEED_COVERAGE_MARGIN_KMH
+               or v > hi + SPEED_COVERAGE_MARGIN_KMH]
+    if missing:
+        warnings.append(
+            f"the seeds were sown at {s_lo:.0f}–{s_hi:.0f} km/h, the surveyed ones at "
+            f"{lo:.0f}–{hi:.0f} km/h: the delay is extrapolated to "
+            f"{' and '.join(f'{v:.0f}' for v in missing)} km/h; survey seeds sown at "
+            f"{' and '.join(f'{v:.0f}' for v in missing)} km/h too"
+        )
+    _len, axis = _resultant(sown.heading_deg, doubled=True)
+    frame = LocalFrame(sown.lat[0], sown.lon[0])
+    across_dir = math.radians(axis + 90.0)
+    ux, uy = math.sin(across_dir), math.cos(across_dir)
+
+    def across(lat: float, lon: float) -> float:
+        e, n, _u = frame.to_enu(lat, lon)
+        return e * ux + n * uy
+
+    step = max(1, len(sown.lat) // 20_000)  # a sample is enough for the field's extent
+    field = np.asarray([across(a, b) for a, b in zip(sown.lat[::step], sown.lon[::step],
+                                                      strict=True)])
+    f_lo, f_hi = (float(x) for x in np.percentile(field, [2.0, 98.0]))
+    ours = [across(r.lat, r.lon) for r in surveyed]
+    width = f_hi - f_lo
+    if width > 0 and (max(ours) - min(ours)) < MIN_ACROSS_SHARE * width:
+        centre = (min(ours) + max(ours)) / 2.0
+        far = f_hi if abs(centre - f_lo) < abs(centre - f_hi) else f_lo
+        warnings.append(
+            f"the surveyed seeds span {max(ours) - min(ours):.0f} m of the field's "
+            f"{width:.0f} m across the passes (one side): RTK error and slope differ across a "
+            f"field; survey seeds from the passes about {abs(far - centre):.0f} m across from "
+            "these too"
+        )
+    return warnings

@@ -12,7 +12,13 @@ from collections.abc import Iterator, Sequence
 from datetime import datetime
 from typing import Any
 
-from gateway.core.records import AlarmEvent, SeedRecord, us_to_utc, utc_to_us
+from gateway.core.records import (
+    AlarmEvent,
+    SeedRecord,
+    stated_accuracy_m,
+    us_to_utc,
+    utc_to_us,
+)
 from gateway.recording.store.schema import StoredSeedRow, fast_record, has_table, max_id
 
 QUERY_CHUNK_ROWS = 5000  # rows fetched per step by query_seed_rows, so exports stream
@@ -38,7 +44,8 @@ class StoreQueries:
             "speed_kmh": r[6], "heading_deg": r[7], "heading_source": r[8],
             "extrapolated": bool(r[9]), "method": r[10], "spacing_m": r[11],
             "attitude": r[12], "roll_deg": r[13], "pitch_deg": r[14], "delay_ms": r[15],
-            "offset_east_m": r[16], "offset_north_m": r[17], "id": r[0],
+            "offset_east_m": r[16], "offset_north_m": r[17],
+            "accuracy_m": stated_accuracy_m(r[5], bool(r[9])), "id": r[0],
             "machine_id": self.machine_id,
         })
 

@@ -163,3 +163,19 @@ def test_surveyed_seeds_can_be_matched_by_landing_time_and_row(
     assert calibrate(config, state, "positions", "--survey", str(f)) == 0
     result = CalibrationStore(state).get("positions.survey")["result"]  # type: ignore[index]
     assert result["outlet_behind_antenna_m"] == pytest.approx(1.2, abs=0.01)
+
+
+def test_a_survey_that_cannot_tell_the_parameters_apart_is_warned_with_what_to_survey_next(
+    field: tuple[Path, Path, list[SeedDrop]], tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The stored drive goes one way (heading 37°): the fit is saved, with a warning naming
+    the heading to survey next (tests/gateway/recording: the speed band, one side)."""
+    config, state, drops = field
+    csv_file = write_survey(tmp_path / "survey.csv", drops, list(range(1, len(drops) + 1, 2)))
+    assert calibrate(config, state, "positions", "--survey", str(csv_file)) == 0
+    out = capsys.readouterr().out
+    assert "warning:" in out and "driving one way (heading 37°)" in out
+    assert "pass driven the other way (heading 217°)" in out
+    result = CalibrationStore(state).get("positions.survey")["result"]  # type: ignore[index]
+    assert result["fall_time_table"]  # what the daemon applies (a fitted slope goes in it)

@@ -418,3 +418,24 @@ def _csv_text() -> str:
     buf = io.StringIO()
     export_seeds(records(), "csv", buf)
     return buf.getvalue()
+
+
+def test_float_and_extrapolated_seeds_carry_the_receivers_stated_accuracy() -> None:
+    """RTK fixed 0.01 m, float 0.4 m (UM982 datasheet), +0.1 m extrapolated: in the record,
+    the published batch, the CSV and the GeoJSON alike."""
+    recs = records()
+    assert [r.accuracy_m for r in recs[:5]] == [0.4, 0.01, 0.4, 0.01, 0.5]
+    buf = io.StringIO()
+    export_seeds(recs, "csv", buf)
+    rows = list(csv.DictReader(io.StringIO(buf.getvalue())))
+    assert [(r["fix"], r["extrapolated"], r["accuracy_m"]) for r in rows[:5]] == [
+        ("rtk_float", "False", "0.4"), ("rtk_fixed", "False", "0.01"),
+        ("rtk_float", "False", "0.4"), ("rtk_fixed", "False", "0.01"),
+        ("rtk_float", "True", "0.5"),
+    ]
+    buf = io.StringIO()
+    export_seeds(recs, "geojson", buf)
+    props = [f["properties"] for f in json.loads(buf.getvalue())["features"]]
+    assert [p["accuracy_m"] for p in props[:2]] == [0.4, 0.01]
+    no_fix = SeedDrop(row=1, utc=T0, lat=45.0, lon=126.0, fix="none", speed_kmh=8.0)
+    assert no_fix.accuracy_m is None

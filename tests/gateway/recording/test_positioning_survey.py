@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import random
+from datetime import UTC, datetime
 
 import pytest
 
@@ -13,11 +14,13 @@ from gateway.recording.positioning import Landing, LocalFrame, SeedPositioner
 from gateway.recording.positioning.survey import (
     MIN_SPEED_SPREAD_KMH,
     MIN_SURVEY_SEEDS,
+    Sown,
     SurveyError,
     apply_fit,
     fit_survey,
     reposition,
     shift_latlon,
+    survey_coverage,
 )
 from simulator.plant import Drive, Leg
 from tests.gateway.recording.test_positioning import FRAME, MONO0, arrivals, run, settings
@@ -159,3 +162,117 @@ def test_a_recalibration_for_another_row_count_is_refused() -> None:
     pos = SeedPositioner(CONFIGURED)
     with pytest.raises(ValueError, match="rows"):
         pos.recalibrate(CONFIGURED.model_copy(update={"row_lateral_m": [0.0, 0.75]}))
+
+
+# -- surveys that cannot tell the parameters apart: warned, saying what to survey next
+
+
+def seed_at(east: float, north: float, heading: float, speed: float) -> SeedDrop:
+    lat, lon = shift_latlon(45.75, 126.63, east, north)
+    return SeedDrop(row=1, utc=datetime(2026, 5, 2, 6, tzinfo=UTC), lat=lat, lon=lon,
+                    fix="rtk_fixed", speed_kmh=speed, heading_deg=heading % 360.0)
+
+
+def passes(speeds: list[float], spacing_m: float = 6.0, length_m: float = 80.0,
+           step_m: float = 2.0) -> list[SeedDrop]:
+    """North–south passes, one a speed, ``spacing_m`` apart, alternating direction."""
+    out = []
+    for i, v in enumerate(speeds):
+        heading = 0.0 if i % 2 == 0 else 180.0
+        out += [seed_at(i * spacing_m, k * step_m, heading, v)
+                for k in range(int(length_m / step_m))]
+    return out
+
+
+def sown_of(drops: list[SeedDrop]) -> Sown:
+    sown = Sown.empty()
+    for d in drops:
+        sown.add(d)
+    return sown
+
+
+FIELD = passes([4.0, 8.0, 12.0, 16.0, 4.0, 8.0, 12.0, 16.0])
+
+
+def test_a_survey_over_the_whole_field_both_ways_and_every_speed_is_not_warned() -> None:
+    chosen = FIELD[::13]
+    assert survey_coverage(chosen, sown_of(FIELD)) == []
+
+
+def test_a_survey_driven_one_way_is_warned_naming_the_heading_to_survey_next() -> None:
+    one_way = [d for d in FIELD if d.heading_deg == 0.0][::7]
+    (warning,) = [w for w in survey_coverage(one_way, sown_of(FIELD)) if "one way" in w]
+    assert "driving one way (heading 0°)" in warning and "heading 180°" in warning
+    # and fit_survey passes it on (the CLI prints it): TWO_SPEEDS is driven one way
+    drops = drops_of(CONFIGURED, TWO_SPEEDS, EDGES, until=10.0)
+    fit = fit_survey(drops, survey(drops), CONFIGURED, sown=sown_of(drops))
+    assert any("heading 217°" in w for w in fit.coverage_warnings)
+
+
+def test_sown_speeds_beyond_the_surveyed_band_are_warned_naming_the_speed_to_survey() -> None:
+    fast = [d for d in FIELD if d.speed_kmh >= 12.0][::7]  # both ways, 12 and 16 km/h only
+    warnings = survey_coverage(fast, sown_of(FIELD))
+    speed = [w for w in warnings if "extrapolated" in w]
+    assert speed == ["the seeds were sown at 4–16 km/h, the surveyed ones at 12–16 km/h: the "
+                     "delay is extrapolated to 4 km/h; survey seeds sown at 4 km/h too"]
+
+
+def test_a_survey_on_one_side_of_the_field_is_warned_saying_how_far_across_to_survey() -> None:
+    west = [d for d in FIELD if east_of(d) < 20.0][::5]  # the first four passes, 18 m
+    warnings = survey_coverage(west, sown_of(FIELD))
+    (side,) = [w for w in warnings if "one side" in w]
+    assert "of the field's 42 m across the passes" in side
+    assert "survey seeds from the passes about" in side
+
+
+def east_of(d: SeedDrop) -> float:
+    """East coordinate of a drop, metres from the field's corner."""
+    return LocalFrame(45.75, 126.63, 0.0).to_enu(d.lat, d.lon, 0.0)[0]
+
+
+# -- a delay that changes with speed (a truth unlike the model's constant table offset)
+
+FOUR_SPEEDS = Drive(legs=[Leg(4.0, 4.0), Leg(4.0, 8.0), Leg(4.0, 12.0), Leg(4.0, 16.0)],
+                    start_heading_deg=37.0)
+EDGES_16S = [(1 + k % 6, 0.5 + k * 0.101) for k in range(150)]
+
+
+def sliding_truth(drops: list[SeedDrop], per_kmh2_m: float = 0.0002) -> list[tuple[float, float]]:
+    """Where the seeds are: the TRUE model's point plus a slide forward in the furrow that
+    grows with the square of the speed (5 cm at 16 km/h), which no table offset is."""
+    out = []
+    for d in drops:
+        lat, lon = reposition(d, TRUE)
+        assert d.heading_deg is not None
+        h = math.radians(d.heading_deg)
+        slide = per_kmh2_m * d.speed_kmh ** 2
+        out.append(shift_latlon(lat, lon, slide * math.sin(h), slide * math.cos(h)))
+    return out
+
+
+def test_a_delay_growing_with_speed_is_fitted_into_the_fall_time_table(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    drops = drops_of(CONFIGURED, FOUR_SPEEDS, EDGES_16S, until=17.0)
+    truth = sliding_truth(drops)
+    fit = fit_survey(drops, truth, CONFIGURED)
+    assert fit.delay_ms_per_kmh > 0.5 and fit.speed_ref_kmh > 0  # faster: slides further
+    fitted = fit.settings(CONFIGURED)
+    assert len(fitted.fall_time_table) > len(CONFIGURED.fall_time_table)
+    # re-positioned with the fit, the seeds land on the truth within a few millimetres
+    for d, (lat, lon) in zip(drops, truth, strict=True):
+        e, n, _ = FRAME.to_enu(*reposition(d, fitted))
+        te, tn, _ = FRAME.to_enu(lat, lon)
+        assert math.hypot(e - te, n - tn) < 0.006
+    # a constant delay (the former fit) cannot follow it
+    monkeypatch.setattr("gateway.recording.positioning.survey.MIN_SPREAD_FOR_SLOPE_KMH", 1e9)
+    constant = fit_survey(drops, truth, CONFIGURED)
+    assert constant.delay_ms_per_kmh == 0.0
+    assert fit.after.mean_m < 0.5 * constant.after.mean_m
+
+
+def test_no_slope_is_fitted_when_the_truth_has_none() -> None:
+    drops = drops_of(CONFIGURED, FOUR_SPEEDS, EDGES_16S, until=17.0)
+    fit = fit_survey(drops, survey(drops), CONFIGURED)
+    assert fit.delay_ms_per_kmh == 0.0  # not told from the rover's noise: a constant
+    assert fit.delay_ms == pytest.approx(12.0, abs=3.0)

@@ -240,3 +240,26 @@ def test_export_files_are_as_readable_as_the_report_and_coordinates_are_to_a_mil
                      "s.geojson": 0o644}
     first = next(csv.DictReader((tmp_path / "s.csv").open()))
     assert first["lat"] == "52.00000000" and first["lon"] == "13.00000000"
+
+
+def test_float_and_dropout_seeds_are_reported_apart_with_their_stated_accuracy(
+    tmp_path: Path,
+) -> None:
+    seeds = drops()
+    seeds[100:140] = [d.model_copy(update={"fix": "rtk_float", "accuracy_m": None})
+                      for d in seeds[100:140]]
+    seeds[200:205] = [d.model_copy(update={"extrapolated": True, "accuracy_m": None})
+                      for d in seeds[200:205]]
+    cfg = config(tmp_path, make_store(tmp_path, seeds))
+    out = tmp_path / "r.html"
+    assert report(cfg, out) == 0
+    text = html.unescape(out.read_text())
+    assert "40 seeds not RTK-fixed: rtk_float 40 (stated accuracy 0.4 m)" in text
+    assert "5 extrapolated over dropouts (+0.1 m)" in text
+
+
+def test_a_field_all_on_rtk_fixed_says_so(tmp_path: Path) -> None:
+    cfg = config(tmp_path, make_store(tmp_path, drops()))
+    out = tmp_path / "r.html"
+    assert report(cfg, out) == 0
+    assert "none: every seed on RTK fixed, none extrapolated" in html.unescape(out.read_text())
