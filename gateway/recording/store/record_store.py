@@ -600,9 +600,8 @@ class RecordStore(StoreQueries, Outbox):
         i, n = 0, len(rows)
         for size in INSERT_CHUNKS:
             while n - i >= size:
-                db.execute(insert_with_ids_sql(size), list(chain.from_iterable(
-                    (first_id + k, *rows[k]) for k in range(i, i + size)
-                )))
+                db.execute(insert_with_ids_sql(size),
+                           [first_id + i, *chain.from_iterable(rows[i:i + size])])
                 i += size
         if not starts or starts[0] != 0:
             starts = [0, *starts]
