@@ -295,7 +295,7 @@ def _counted_replays(short_s: float, long_s: float) -> dict[str, Any]:
         counting.dump("short")
         long = replay(long_s, Path(tmp) / "long")
         counting.dump("long")
-    return {"short": summary(short), "long": summary(long)}
+        return {"short": summary(short), "long": summary(long)}
 
 
 def _counted_reference(short: int, long: int) -> dict[str, Any]:

@@ -32,7 +32,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from operator import itemgetter
+from operator import attrgetter, itemgetter
 from typing import Protocol
 
 from drivers.log_limit import RateLimitedLog
@@ -68,6 +68,7 @@ MAX_BUFFERED_DROPS = 10_000
 MAX_QUEUED_EVENTS = 8_192
 _ROW, _SPACING = itemgetter(1), itemgetter(10)  # in a stored record row (gateway.core.records)
 _EDGE_ROW, _EDGE_TIME = itemgetter(0), itemgetter(1)  # of a SeedEdgeEvent (a NamedTuple)
+_STORED = attrgetter("stored")  # of a Landing: its SeedRow
 
 
 class SeedSink(Protocol):
@@ -300,7 +301,7 @@ class SeedRecorder:
         if not want_records and self.on_records is None:
             append = getattr(self.store, "append_rows", None)
         records: list[SeedRecord] = []
-        stored = [la.stored for la in drops]  # (utc_us, row, ..., spacing_m)
+        stored = list(map(_STORED, drops))  # (utc_us, row, ..., spacing_m)
         try:
             if append is not None:
                 append(stored)  # ids only: no objects nobody reads
