@@ -369,7 +369,6 @@ def measure() -> dict[str, Any]:
 
 def run() -> dict[str, object]:
     f = measure()
-    ok = "met" if f["pct_core"] <= GOAL_PCT else "NOT met"
     fig: dict[str, object] = dict(f)
     fig["markdown"] = (
         "### Daemon CPU per seed record, counted (callgrind)\n\n"
@@ -393,8 +392,9 @@ def run() -> dict[str, object]:
         f"| {f['load']} |\n\n"
         f"Payloads: {f['published']:,} records in {f['records']:,}, sha256 "
         f"`{str(f['payload_sha256'])[:16]}…` (the same in every count: "
-        f"{'yes' if f['digests_agree'] else 'NO'}). Goal ≤ {GOAL_PCT:g} % of a core for the "
-        f"seed path: {ok}.\n"
+        f"{'yes' if f['digests_agree'] else 'NO'}). The issue's goal, ≤ {GOAL_PCT:g} % of a "
+        f"core (target ≤ {TARGET_PCT:g} %), is for the whole daemon: this seed path plus its "
+        "no-seed cost and wake-ups, which `bench_mqtt` reads from /proc.\n"
     )
     return fig
 
@@ -405,8 +405,9 @@ def _profile(seconds: float, top: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         prof = cProfile.Profile()
         prof.enable()
-        result = summary(replay(seconds, Path(tmp)))
+        result = replay(seconds, Path(tmp))
         prof.disable()
+        result = summary(result)
     out = io.StringIO()
     stats = pstats.Stats(prof, stream=out)
     stats.sort_stats("tottime").print_stats(top)
