@@ -122,14 +122,13 @@ def insert_with_ids_sql(rows: int) -> str:
     The ids are consecutive, so the statement takes the first one alone (``?1``) and numbers
     the others from it (``?1+k``): the parameters are then ``[first_id, *row_0, *row_1,
     ...]``, the rows flattened as they are (in C), with no tuple built per row to prepend
-    its id."""
-    width = ROW_COLUMNS.count(",") + 1  # values per row, without the id
-    values = []
-    for k in range(rows):
-        first = 2 + k * width
-        params = ",".join(f"?{n}" for n in range(first, first + width))
-        values.append(f"(?1{f'+{k}' if k else ''},{params})")
-    return f"INSERT INTO seeds ({SEED_COLUMNS}) VALUES " + ",".join(values)
+    its id. The other parameters are plain ``?`` (each the next number after the highest so
+    far, so ``?2``.. in order): spelling them ``?NNN`` made SQLite take 115 ms to prepare the
+    512-row statement, against 6 ms."""
+    values = "," + ",".join("?" * (ROW_COLUMNS.count(",") + 1)) + ")"
+    return f"INSERT INTO seeds ({SEED_COLUMNS}) VALUES " + ",".join(
+        f"(?1{f'+{k}' if k else ''}{values}" for k in range(rows)
+    )
 
 
 def fast_record(fields: dict[str, Any]) -> SeedRecord:
