@@ -32,6 +32,7 @@ BENCHMARKS = [
     ("bench_store", "record store throughput"),
     ("bench_held_records", "records held while the disk is full"),
     ("bench_mqtt", "MQTT outbox throughput, control latency under load, RSS/CPU"),
+    ("bench_cpu", "daemon CPU per seed record, counted (callgrind)"),
     ("bench_multichannel", "multi-channel metering (paper B)"),
     ("bench_dashboard", "dashboard seed map render time (headless chromium)"),
     ("bench_report", "field report and export on a day-sized store"),

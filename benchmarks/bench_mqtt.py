@@ -27,7 +27,9 @@ Issue 4 §8. Everything runs against one mosquitto started here on a free port.
     feeder's making of the synthetic epochs and kernel edge events (a few µs per seed); that
     part is timed with ``time.thread_time``, shown apart and left out of the target check,
     since in the field the receiver's parser and the kernel do it. The GPIO driver's reading
-    and the recorder stay counted.
+    and the recorder stay counted. This is the wall-clock view, and it moves with the
+    machine's load (other processes' cache and CPU-time pressure land in the child's utime);
+    ``bench_cpu`` counts the per-seed part in instructions, which the load does not move.
 """
 
 from __future__ import annotations

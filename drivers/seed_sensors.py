@@ -409,6 +409,9 @@ class GpioSeedSensors:
         stats, on_edge = self._stats, self._on_edge
         falling_of, row_of, last_ns = self._falling, self._row_of, self._last_ns
         debounce_ns, last_seqno = self._debounce_ns, self._last_seqno
+        # the NamedTuple's own constructor is a Python function; tuple.__new__ builds the
+        # same SeedEdgeEvent in C
+        new_edge = tuple.__new__
         try:
             for event in events:
                 seqno = event.global_seqno
@@ -435,7 +438,7 @@ class GpioSeedSensors:
                 last_ns[row] = t_ns
                 stats.edges += 1
                 try:
-                    on_edge(SeedEdgeEvent(row, t_ns / NS_PER_S))
+                    on_edge(new_edge(SeedEdgeEvent, (row, t_ns / NS_PER_S)))
                 except Exception:  # a consumer bug must not stop the sensors being read
                     log.exception("seed edge callback failed")
         finally:

@@ -194,7 +194,8 @@ def seed_batch_json(
         append({
             "row": row, "utc": f"{second}.{frac:06d}Z", "lat": lat, "lon": lon, "fix": fix,
             "speed_kmh": speed, "heading_deg": heading, "heading_source": source,
-            "extrapolated": bool(extrapolated), "method": method, "spacing_m": spacing,
+            "extrapolated": True if extrapolated else False,  # noqa: SIM210 (bool() is a call)
+            "method": method, "spacing_m": spacing,
             "attitude": attitude, "roll_deg": roll, "pitch_deg": pitch,
             "accuracy_m": stated_accuracy_m(fix, extrapolated),
             "id": i, "machine_id": machine_id,

@@ -53,9 +53,15 @@ class IdRanges:
 
     def add_ids(self, ids: Iterable[int]) -> int:
         """Cover these ids (any order, duplicates allowed); returns how many were new."""
+        unique = set(ids)
+        if not unique:
+            return 0
+        lo, hi = min(unique), max(unique)
+        if hi - lo + 1 == len(unique):  # one run, as a published batch is: no loop per id
+            return self.add(lo, hi)
         new = 0
         run: list[int] | None = None
-        for i in sorted(set(ids)):
+        for i in sorted(unique):
             if run is not None and i == run[1] + 1:
                 run[1] = i
                 continue

@@ -32,7 +32,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from operator import itemgetter
+from operator import attrgetter, itemgetter
 from typing import Protocol
 
 from drivers.log_limit import RateLimitedLog
@@ -67,6 +67,8 @@ MAX_BUFFERED_DROPS = 10_000
 # inline so memory stays bounded (~100 bytes an event).
 MAX_QUEUED_EVENTS = 8_192
 _ROW, _SPACING = itemgetter(1), itemgetter(10)  # in a stored record row (gateway.core.records)
+_EDGE_ROW, _EDGE_TIME = itemgetter(0), itemgetter(1)  # of a SeedEdgeEvent (a NamedTuple)
+_STORED = attrgetter("stored")  # of a Landing: its SeedRow
 
 
 class SeedSink(Protocol):
@@ -137,6 +139,7 @@ class SeedRecorder:
         self.last_spacing_m: dict[int, float | None] = dict.fromkeys(range(1, rows + 1))
         self._buffer: list[Landing] = []
         self._events: list[AntennaEpoch | SeedEdgeEvent] = []
+        self._epochs_at: list[int] = []  # where the epochs are in _events (the rest: edges)
         self.records_stored = 0
         self.bad_edges = 0
         self.store_errors = 0
@@ -154,10 +157,15 @@ class SeedRecorder:
     # ------------------------------------------------------------ driver callbacks
 
     def on_epoch(self, epoch: AntennaEpoch) -> None:
+        self._epochs_at.append(len(self._events))
         self._queue(epoch)
 
     def on_edge(self, event: SeedEdgeEvent) -> None:
-        self._queue(event)
+        # ``_queue`` inlined: this runs for every seed, and the call was a tenth of its cost
+        events = self._events
+        events.append(event)
+        if len(events) >= MAX_QUEUED_EVENTS:
+            self._position_queued()
 
     def recalibrate(self, positioning: PositioningSection) -> None:
         """A seed position calibration saved while running (gateway.app.live_calibration):
@@ -182,26 +190,26 @@ class SeedRecorder:
         """Hand the queued epochs and edges to the positioner, in the order they came: each
         run of edges between two epochs in one call (``SeedPositioner.add_edges``)."""
         events, self._events = self._events, []
-        edges: list[SeedEdgeEvent] = []
+        epochs_at, self._epochs_at = self._epochs_at, []
         positioner = self.positioner
         positioner.defer_resolution()  # one vector pass for the burst, not one per epoch
         try:
-            for event in events:
-                if type(event) is SeedEdgeEvent:
-                    edges.append(event)
-                else:
-                    if edges:
-                        self._edges(edges)
-                        edges = []
-                    self._take(positioner.add_epoch(event))  # type: ignore[arg-type]
-            if edges:
-                self._edges(edges)
+            # the runs of edges between epochs are slices (no per-seed look at each event)
+            start = 0
+            for at in epochs_at:
+                if at > start:
+                    self._edges(events[start:at])  # type: ignore[arg-type]
+                self._take(positioner.add_epoch(events[at]))  # type: ignore[arg-type]
+                start = at + 1
+            if start < len(events):
+                self._edges(events[start:])  # type: ignore[arg-type]
         finally:
             self._take(positioner.settle())
 
     def _edges(self, edges: list[SeedEdgeEvent]) -> None:
         dropped = self.plausibility.implausible_total
-        rows, times = self.plausibility.filter([e.row for e in edges], [e.t_mono for e in edges])
+        rows, times = self.plausibility.filter(list(map(_EDGE_ROW, edges)),
+                                               list(map(_EDGE_TIME, edges)))
         per_row = self.edges_per_row
         for row, count in Counter(rows).items():
             if row in per_row:
@@ -293,7 +301,7 @@ class SeedRecorder:
         if not want_records and self.on_records is None:
             append = getattr(self.store, "append_rows", None)
         records: list[SeedRecord] = []
-        stored = [la.stored for la in drops]  # (utc_us, row, ..., spacing_m)
+        stored = list(map(_STORED, drops))  # (utc_us, row, ..., spacing_m)
         try:
             if append is not None:
                 append(stored)  # ids only: no objects nobody reads

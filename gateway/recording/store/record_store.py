@@ -65,8 +65,8 @@ PRUNE_INTERVAL_S = 3600.0
 PRUNE_CHUNK_ROWS = 5000
 # Seed records kept in memory while the store cannot write them (disk full, card gone
 # read-only or stalled): every row accepted and not committed, in order, under the ids they
-# were given, until a write succeeds. A held record costs about 310 bytes of memory (308
-# measured by benchmarks/bench_held_records.py), so the cap is about 74 MB, and at 2 000
+# were given, until a write succeeds. A held record costs about 415 bytes of memory (413
+# measured by benchmarks/bench_held_records.py), so the cap is about 99 MB, and at 2 000
 # seeds/s it rides out a full disk for 240 000 / 2 000 = 120 s. Past it, new records are
 # counted in ``records_lost`` (state payload, records.lost alarm), never dropped silently;
 # they take no ids.
@@ -600,9 +600,8 @@ class RecordStore(StoreQueries, Outbox):
         i, n = 0, len(rows)
         for size in INSERT_CHUNKS:
             while n - i >= size:
-                db.execute(insert_with_ids_sql(size), list(chain.from_iterable(
-                    (first_id + k, *rows[k]) for k in range(i, i + size)
-                )))
+                db.execute(insert_with_ids_sql(size),
+                           [first_id + i, *chain.from_iterable(rows[i:i + size])])
                 i += size
         if not starts or starts[0] != 0:
             starts = [0, *starts]
