@@ -42,7 +42,10 @@ class SchemaError(Exception):
     """The database's schema is one this ingest cannot write (newer, or not ours)."""
 
 
-# (MQTT name, PostgreSQL type): seed_records has a column per published field, in this order
+# (MQTT name, PostgreSQL type): seed_records has a column per published field, in this order,
+# but for ``accuracy_m``: the receiver's stated accuracy is a function of ``fix`` and
+# ``extrapolated`` (``gateway.core.records.stated_accuracy_m``), derived again on reading, as
+# the cab's own store does
 SEED_COLUMNS: tuple[tuple[str, str], ...] = (
     ("machine_id", "text"), ("id", "bigint"), ("row", "smallint"), ("utc", "timestamptz"),
     ("lat", "double precision"), ("lon", "double precision"), ("fix", "text"),
@@ -120,6 +123,13 @@ END $fn$""",
     # (and the gap list) back for ever; ``seed_coverage`` stays what is really committed.
     2: [
         "CREATE INDEX seed_records_geom_gist ON seed_records USING gist (geom)",
+        # version 1 databases made before the float columns were widened: float4 lost the
+        # cab's last digits (a no-op where they are double precision already)
+        "ALTER TABLE seed_records ALTER COLUMN speed_kmh TYPE double precision, "
+        "ALTER COLUMN heading_deg TYPE double precision, "
+        "ALTER COLUMN spacing_m TYPE double precision, "
+        "ALTER COLUMN roll_deg TYPE double precision, "
+        "ALTER COLUMN pitch_deg TYPE double precision",
         "CREATE TABLE seed_void (machine_id text NOT NULL, lo bigint NOT NULL, "
         "hi bigint NOT NULL, PRIMARY KEY (machine_id, lo), CHECK (lo <= hi))",
     ],
