@@ -35,6 +35,7 @@ BENCHMARKS = [
     ("bench_multichannel", "multi-channel metering (paper B)"),
     ("bench_dashboard", "dashboard seed map render time (headless chromium)"),
     ("bench_report", "field report and export on a day-sized store"),
+    ("bench_ingest", "farm server: ten cabs through mosquitto into PostgreSQL"),
 ]
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "latest.md"

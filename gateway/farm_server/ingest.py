@@ -206,12 +206,13 @@ class Ingest:
         db = self._db
         done = []
         try:
-            for machine_id in list(work.seeds):
-                result = db.write_seeds(machine_id, work.seeds[machine_id])
-                del work.seeds[machine_id]
-                done.append(result)
-                self.stats.seeds_committed += result.new_seeds
-                self.stats.seeds_duplicate += result.duplicate_seeds
+            if work.seeds:
+                # every machine of the flush in one transaction: one commit, all or nothing
+                done = db.write_seed_batches(work.seeds)
+                work.seeds = {}
+                for result in done:
+                    self.stats.seeds_committed += result.new_seeds
+                    self.stats.seeds_duplicate += result.duplicate_seeds
             self.stats.alarms_committed += db.write_alarms(work.alarms)
             work.alarms = []
             db.write_states(work.states)
