@@ -284,16 +284,20 @@ class IngestDatabase:
             ).fetchall():
                 ranges[m].append((int(lo), int(hi)))
             covered = {m: IdRanges(ranges[m]) for m in machines}
-            fresh = {m: [r for i, r in sorted(uniques[m].items()) if i not in covered[m]]
-                     for m in machines}
+            fresh: dict[str, list[SeedRecord]] = {}
+            for m in machines:
+                ids = sorted(uniques[m])
+                top = ranges[m][-1][1] if ranges[m] else 0
+                if ids and ids[0] <= top:  # some may be covered (a replay); else all new
+                    ids = [i for i in ids if i not in covered[m]]
+                fresh[m] = [uniques[m][i] for i in ids]
+                covered[m].add_ids(ids)
             changed = [m for m in machines if fresh[m]]
             if changed:
                 if staging:
                     self._insert_through_staging(cur, fresh)
                 else:
                     self._copy_seeds(cur, fresh)
-                for m in changed:
-                    covered[m].add_ids(r.id for r in fresh[m])
                 cur.execute("DELETE FROM seed_coverage WHERE machine_id = ANY(%s)", (changed,))
                 cur.executemany(
                     "INSERT INTO seed_coverage (machine_id, lo, hi) VALUES (%s, %s, %s)",

@@ -254,8 +254,11 @@ class Ingest:
         for result in done:
             self.committed[result.machine_id] = result
             self._log_gaps(result)
-            if client is not None:
-                await self._publish_watermark(client, result)
+        if client is not None and done:
+            # every machine's watermark at once: one broker round trip a flush, not one per
+            # machine (each is one topic, and a flush publishes it once; the next flush only
+            # starts after these PUBACKs, so a machine's watermarks never overtake)
+            await asyncio.gather(*(self._publish_watermark(client, r) for r in done))
 
     def _log_gaps(self, result: Committed) -> None:
         gaps = result.gaps()
