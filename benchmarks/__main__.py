@@ -37,6 +37,7 @@ BENCHMARKS = [
     ("bench_dashboard", "dashboard seed map render time (headless chromium)"),
     ("bench_report", "field report and export on a day-sized store"),
     ("bench_fleet_dashboard", "fleet dashboard: a day of 1 M seeds from the farm database"),
+    ("bench_ingest", "farm server: ten cabs through mosquitto into PostgreSQL"),
 ]
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "latest.md"

@@ -2,12 +2,15 @@
 and the per-machine coverage of committed seed ids that the watermark is computed from.
 
 Exactly once. At-least-once delivery, replays and two ingest processes in a share group
-all hand us records twice. Each write transaction takes a per-machine advisory lock, reads
-the machine's committed id ranges (``seed_coverage``), drops every record already covered,
-COPYs the rest into a temporary staging table and moves it with ``INSERT … ON CONFLICT DO
-NOTHING`` (the unique key is the backstop), then merges the new ids into ``seed_coverage``
-before the commit. So the coverage is what the database holds, in the same transaction, and
-the watermark published after the commit is never ahead of it.
+all hand us records twice. A flush is one write transaction for every machine in it: it
+takes the machines' advisory locks (in key order, so two ingest processes never deadlock),
+reads their committed id ranges (``seed_coverage``), drops every record already covered,
+binary-COPYs the rest straight into ``seed_records`` (the PostGIS point sent as EWKB), then
+merges the new ids into ``seed_coverage`` before the one commit. So the coverage is what the
+database holds, in the same transaction, and the watermark published after the commit is
+never ahead of it. The unique key is the backstop: should the table ever hold a row the
+coverage does not list, the COPY fails on it and the transaction is done again through a
+temporary staging table and ``INSERT … ON CONFLICT DO NOTHING``.
 
 Partitions. ``seed_records``, ``alarm_events`` and ``state_samples`` are partitioned by day
 (native range partitioning on ``utc``, BRIN on ``utc``). Days are created on demand through
@@ -21,7 +24,8 @@ replayed id whatever its time, so no id is stored twice.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Sequence
+import struct
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime
 
@@ -63,6 +67,22 @@ ALARM_COLUMNS: tuple[tuple[str, str], ...] = (
     ("active", "boolean"), ("severity", "text"), ("message", "text"),
 )
 PARTITIONED = ("seed_records", "alarm_events", "state_samples")
+
+
+# what the seed COPY sends: every published field, then the point as EWKB (point type 1
+# with the SRID flag, SRID 4326, x = lon, y = lat); binary COPY hands it to geometry's own
+# binary input, so a bytea dumper carries it
+_EWKB_POINT = struct.Struct("<BIIdd")
+_EWKB_POINT_SRID = 0x20000001
+_SEED_NAMES = sql.SQL(", ").join(sql.Identifier(n) for n, _ in SEED_COLUMNS)
+_COPY_TYPES = [kind for _, kind in SEED_COLUMNS] + ["bytea"]
+_COPY_SEEDS = sql.SQL("COPY seed_records ({}, geom) FROM STDIN (FORMAT BINARY)").format(
+    _SEED_NAMES)
+_COPY_STAGING = sql.SQL("COPY seed_staging ({}, geom) FROM STDIN (FORMAT BINARY)").format(
+    _SEED_NAMES)
+_INSERT_FROM_STAGING = sql.SQL(
+    "INSERT INTO seed_records ({names}, geom) SELECT {names}, geom FROM seed_staging "
+    "ON CONFLICT DO NOTHING").format(names=_SEED_NAMES)
 
 
 def _seed_table_sql() -> str:
@@ -244,12 +264,6 @@ class IngestDatabase:
         check_schema(self.conn)
         self.conn.commit()
         self._days: set[date] = set()
-        self.conn.execute(
-            "CREATE TEMP TABLE seed_staging (LIKE seed_records INCLUDING DEFAULTS) "
-            "ON COMMIT DELETE ROWS"
-        )
-        self.conn.execute("ALTER TABLE seed_staging DROP COLUMN geom")
-        self.conn.commit()
 
     def close(self) -> None:
         self.conn.close()
@@ -282,44 +296,116 @@ class IngestDatabase:
 
         ``pending_from``: the machine said it will send no id below this one again; the ids
         below it that are not committed are recorded in ``seed_void`` (not missing)."""
-        unique = {r.id: r for r in records}
-        self._ensure_days(r.utc for r in unique.values())
-        with self.conn.transaction():
-            self.conn.execute("SELECT pg_advisory_xact_lock(hashtext(%s))", (machine_id,))
-            covered = self._ranges("seed_coverage", machine_id)
-            void = self._ranges("seed_void", machine_id)
-            fresh = [r for i, r in sorted(unique.items()) if i not in covered]
-            if fresh:
-                names = sql.SQL(", ").join(sql.Identifier(n) for n, _ in SEED_COLUMNS)
-                with self.conn.cursor() as cur:
-                    with cur.copy(sql.SQL("COPY seed_staging ({}) FROM STDIN (FORMAT BINARY)")
-                                  .format(names)) as copy:
-                        copy.set_types([kind for _, kind in SEED_COLUMNS])
-                        for r in fresh:
-                            copy.write_row((
-                                machine_id, r.id, r.row, r.utc, r.lat, r.lon, r.fix,
-                                r.speed_kmh, r.heading_deg, r.heading_source, r.extrapolated,
-                                r.method, r.spacing_m, r.attitude, r.roll_deg, r.pitch_deg,
-                            ))
-                    cur.execute(sql.SQL(
-                        "INSERT INTO seed_records ({names}, geom) SELECT {names}, "
-                        "ST_SetSRID(ST_MakePoint(lon, lat), 4326) FROM seed_staging "
-                        "ON CONFLICT DO NOTHING").format(names=names))
-                    cur.execute("TRUNCATE seed_staging")
-                covered.add_ids(r.id for r in fresh)
-                self._store_ranges("seed_coverage", machine_id, covered)
-            if pending_from > 1:
-                done = IdRanges([*covered, *void])
-                never = list(done.gaps(0, pending_from - 1))
-                if never:
-                    for lo, hi in never:
-                        void.add(lo, hi)
-                    self._store_ranges("seed_void", machine_id, void)
-                    log.info("%s: ids %s will never come (the machine skipped them or had "
-                             "them delivered before); not counted as missing", machine_id,
-                             ", ".join(f"{lo}–{hi}" for lo, hi in never[:5]))
-        return Committed(machine_id, list(covered), len(fresh), len(records) - len(fresh),
-                         list(void))
+        return self.write_seed_batches({machine_id: records}, {machine_id: pending_from})[0]
+
+    def write_seed_batches(self, batches: Mapping[str, Sequence[SeedRecord]],
+                           pending_from: Mapping[str, int] | None = None) -> list[Committed]:
+        """Commit, in one transaction, the records each machine's coverage lacks; return each
+        machine's coverage after (in machine id order). All or nothing.
+
+        ``pending_from`` (per machine): it will send no id below this one again; the ids below
+        it that are not committed are recorded in ``seed_void``, so they do not hold its
+        watermark back."""
+        machines = sorted(batches)
+        if not machines:
+            return []
+        uniques = {m: {r.id: r for r in batches[m]} for m in machines}
+        pending = {m: (pending_from or {}).get(m, 0) for m in machines}
+        self._ensure_days(r.utc for u in uniques.values() for r in u.values())
+        try:
+            covered, void, fresh = self._write_seeds(machines, uniques, pending, staging=False)
+        except psycopg.errors.UniqueViolation:
+            # a row the coverage does not list (it cannot happen through this class, the
+            # key says so): again, through the staging table's ON CONFLICT DO NOTHING
+            log.warning("seed_records holds rows seed_coverage does not list; written "
+                        "through ON CONFLICT DO NOTHING")
+            covered, void, fresh = self._write_seeds(machines, uniques, pending, staging=True)
+        return [Committed(m, list(covered[m]), fresh[m], len(batches[m]) - fresh[m],
+                          list(void[m])) for m in machines]
+
+    def _write_seeds(self, machines: list[str], uniques: dict[str, dict[int, SeedRecord]],
+                     pending: dict[str, int], *, staging: bool,
+                     ) -> tuple[dict[str, IdRanges], dict[str, IdRanges], dict[str, int]]:
+        """One transaction: lock the machines (advisory, in key order, so two ingest
+        processes never deadlock), read their coverage, COPY what it lacks, merge the new
+        ids into it, and declare void what a machine will never send (``pending``).
+        Returns (coverage after, void after, new records) per machine."""
+        with self.conn.transaction(), self.conn.cursor() as cur:
+            cur.execute(
+                "SELECT pg_advisory_xact_lock(h) FROM (SELECT DISTINCT hashtext(m) AS h "
+                "FROM unnest(%s::text[]) AS m ORDER BY h) AS keys", (machines,))
+            ranges: dict[str, list[tuple[int, int]]] = {m: [] for m in machines}
+            for m, lo, hi in cur.execute(
+                "SELECT machine_id, lo, hi FROM seed_coverage WHERE machine_id = ANY(%s) "
+                "ORDER BY machine_id, lo", (machines,),
+            ).fetchall():
+                ranges[m].append((int(lo), int(hi)))
+            covered = {m: IdRanges(ranges[m]) for m in machines}
+            fresh: dict[str, list[SeedRecord]] = {}
+            for m in machines:
+                ids = sorted(uniques[m])
+                top = ranges[m][-1][1] if ranges[m] else 0
+                if ids and ids[0] <= top:  # some may be covered (a replay); else all new
+                    ids = [i for i in ids if i not in covered[m]]
+                fresh[m] = [uniques[m][i] for i in ids]
+                covered[m].add_ids(ids)
+            changed = [m for m in machines if fresh[m]]
+            if changed:
+                if staging:
+                    self._insert_through_staging(cur, fresh)
+                else:
+                    self._copy_seeds(cur, fresh)
+                cur.execute("DELETE FROM seed_coverage WHERE machine_id = ANY(%s)", (changed,))
+                cur.executemany(
+                    "INSERT INTO seed_coverage (machine_id, lo, hi) VALUES (%s, %s, %s)",
+                    [(m, lo, hi) for m in changed for lo, hi in covered[m]])
+            void = {m: IdRanges() for m in machines}
+            for m, lo, hi in cur.execute(
+                "SELECT machine_id, lo, hi FROM seed_void WHERE machine_id = ANY(%s) "
+                "ORDER BY machine_id, lo", (machines,),
+            ).fetchall():
+                void[m].add(int(lo), int(hi))
+            for m in machines:
+                if pending[m] > 1:
+                    never = list(IdRanges([*covered[m], *void[m]]).gaps(0, pending[m] - 1))
+                    if never:
+                        for lo, hi in never:
+                            void[m].add(lo, hi)
+                        self._store_ranges("seed_void", m, void[m])
+                        log.info("%s: ids %s will never come (the machine skipped them or "
+                                 "had them delivered before); not counted as missing", m,
+                                 ", ".join(f"{lo}–{hi}" for lo, hi in never[:5]))
+        return covered, void, {m: len(fresh[m]) for m in machines}
+
+    def _copy_seeds(self, cur: psycopg.Cursor[TupleRow],
+                    fresh: Mapping[str, Sequence[SeedRecord]]) -> None:
+        """Binary COPY straight into ``seed_records``, the point as EWKB (what
+        ``ST_SetSRID(ST_MakePoint(lon, lat), 4326)`` makes): one COPY for every machine."""
+        with cur.copy(_COPY_SEEDS) as copy:
+            copy.set_types(_COPY_TYPES)
+            write = copy.write_row
+            point = _EWKB_POINT.pack
+            for machine_id, records in fresh.items():
+                for r in records:
+                    write((machine_id, r.id, r.row, r.utc, r.lat, r.lon, r.fix, r.speed_kmh,
+                           r.heading_deg, r.heading_source, r.extrapolated, r.method,
+                           r.spacing_m, r.attitude, r.roll_deg, r.pitch_deg,
+                           point(1, _EWKB_POINT_SRID, 4326, r.lon, r.lat)))
+
+    def _insert_through_staging(self, cur: psycopg.Cursor[TupleRow],
+                                fresh: Mapping[str, Sequence[SeedRecord]]) -> None:
+        cur.execute("CREATE TEMP TABLE IF NOT EXISTS seed_staging "
+                    "(LIKE seed_records INCLUDING DEFAULTS) ON COMMIT DELETE ROWS")
+        with cur.copy(_COPY_STAGING) as copy:
+            copy.set_types(_COPY_TYPES)
+            for machine_id, records in fresh.items():
+                for r in records:
+                    copy.write_row((
+                        machine_id, r.id, r.row, r.utc, r.lat, r.lon, r.fix, r.speed_kmh,
+                        r.heading_deg, r.heading_source, r.extrapolated, r.method,
+                        r.spacing_m, r.attitude, r.roll_deg, r.pitch_deg,
+                        _EWKB_POINT.pack(1, _EWKB_POINT_SRID, 4326, r.lon, r.lat)))
+        cur.execute(_INSERT_FROM_STAGING)
 
     def coverage(self, machine_id: str) -> Committed:
         covered = self._ranges("seed_coverage", machine_id)

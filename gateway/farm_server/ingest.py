@@ -220,13 +220,13 @@ class Ingest:
         db = self._db
         done = []
         try:
-            for machine_id in list(work.seeds):
-                result = db.write_seeds(machine_id, work.seeds[machine_id],
-                                        self._pending_from.get(machine_id, 0))
-                del work.seeds[machine_id]
-                done.append(result)
-                self.stats.seeds_committed += result.new_seeds
-                self.stats.seeds_duplicate += result.duplicate_seeds
+            if work.seeds:
+                # every machine of the flush in one transaction: one commit, all or nothing
+                done = db.write_seed_batches(work.seeds, self._pending_from)
+                work.seeds = {}
+                for result in done:
+                    self.stats.seeds_committed += result.new_seeds
+                    self.stats.seeds_duplicate += result.duplicate_seeds
             self.stats.alarms_committed += db.write_alarms(work.alarms)
             work.alarms = []
             db.write_states(work.states)
@@ -268,8 +268,11 @@ class Ingest:
         for result in done:
             self.committed[result.machine_id] = result
             self._log_gaps(result)
-            if client is not None:
-                await self._publish_watermark(client, result)
+        if client is not None and done:
+            # every machine's watermark at once: one broker round trip a flush, not one per
+            # machine (each is one topic, and a flush publishes it once; the next flush only
+            # starts after these PUBACKs, so a machine's watermarks never overtake)
+            await asyncio.gather(*(self._publish_watermark(client, r) for r in done))
 
     def _log_gaps(self, result: Committed) -> None:
         gaps = result.gaps()
