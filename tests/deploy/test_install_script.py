@@ -65,6 +65,11 @@ def test_a_fresh_install_puts_everything_in_place(tmp_path: Path, root: Path) ->
     assert (root / "etc/udev/rules.d/99-sowgate.rules").read_bytes() == rule
     assert (root / CONFIG).read_bytes() == (REPO / "examples/sowgate.toml").read_bytes()
     assert "ok" in done.stdout  # check-config ran on it
+    # the unit's device classes narrowed to the example config's ports
+    devices = (root / "etc/systemd/system/sowgate.service.d/devices.conf").read_text()
+    assert devices.splitlines()[:2] == ["[Service]", "DeviceAllow="]
+    assert "DeviceAllow=/dev/sowgate-rs485 rw" in devices.splitlines()
+    assert "/dev/sowgate-rs485" in done.stdout
     assert "nothing started" in done.stdout
     assert not (root / "opt/sowgate/previous").exists()
     nothing = install(bundle, root, "--rollback")
@@ -73,6 +78,7 @@ def test_a_fresh_install_puts_everything_in_place(tmp_path: Path, root: Path) ->
     assert current(root) == "1.0.0"
 
 
+@pytest.mark.timeout(600)  # five installs, each a venv and ensurepip (~10 s idle, 60 s busy)
 def test_an_upgrade_keeps_config_rule_store_and_calibration_and_rolls_back(
     tmp_path: Path, root: Path
 ) -> None:
@@ -93,6 +99,9 @@ def test_an_upgrade_keeps_config_rule_store_and_calibration_and_rolls_back(
     assert installed_version(root) == "sowgate 1.1.0"
     assert "kept /etc/sowgate/sowgate.toml" in up.stdout
     assert {p: p.read_bytes() for p in kept} == kept
+    # regenerated from the kept config, which names no port: no device at all
+    devices = root / "etc/systemd/system/sowgate.service.d/devices.conf"
+    assert devices.read_text().split() == ["[Service]", "DeviceAllow="]
 
     back = install(make_bundle(tmp_path / "c", "1.1.0"), root, "--rollback")
     assert back.returncode == 0, back.stderr
