@@ -38,7 +38,7 @@ ROOT = BUILD / "root"
 DISK = BUILD / "disk.img"
 DOC = REPO / "docs" / "deployment.md"
 BEGIN, END = "<!-- system-test:begin -->", "<!-- system-test:end -->"
-BOOT_TIMEOUT_S = 600.0  # one boot of the guest, its checks and poweroff
+BOOT_TIMEOUT_S = 1500.0  # one boot of the guest, its checks and poweroff (a loaded host: slow)
 # guest port -> which simulated device (the udev rule in the image names them like the
 # shipped 99-sowgate.rules does for USB adapters)
 PORTS = {"ttyS1": "rs485", "ttyS2": "gnss", "ttyS3": "seeds", "ttyS4": "hmi"}
