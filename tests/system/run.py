@@ -104,10 +104,15 @@ def sh(*cmd: str, **kw: Any) -> subprocess.CompletedProcess[str]:
     return subprocess.run(cmd, check=True, text=True, capture_output=True, **kw)
 
 
+CACHE_NOTE = ["debootstrap and kernel cached in build/"]
+
+
 def build_image(bundle: Path, upgrade: Path, config_text: str) -> dict[str, str]:
     """The guest's disk: the cached Debian root, the bundle installed by install.sh."""
     rows: dict[str, str] = {}
     started = time.monotonic()
+    if not (BUILD / "base.done").exists() or not (BUILD / "kernel.done").exists():
+        CACHE_NOTE[0] = "no build/ cache: debootstrap and kernel included"
     sh("sh", str(REPO / "tests" / "system" / "build_base.sh"), str(BUILD), timeout=900)
     rows["base"] = f"{time.monotonic() - started:.0f} s"
     if ROOT.exists():
@@ -400,8 +405,9 @@ async def run(bundle: Path) -> list[dict[str, Any]]:
         rows += [json.loads(line) for line in guest.read_text().splitlines() if line.strip()]
     else:
         rows.append({"check": "guest", "ok": False, "detail": "no results from the guest"})
-    rows.append({"check": "total", "ok": True,
-                 "detail": f"{time.monotonic() - started:.0f} s for the whole run"})
+    rows.append({"check": "total", "ok": True, "seconds": time.monotonic() - started,
+                 "detail": f"{time.monotonic() - started:.0f} s for run.py (the bundle's "
+                           f"build before it: make's); {CACHE_NOTE[0]}"})
     return rows
 
 
@@ -418,8 +424,11 @@ def table(rows: list[dict[str, Any]]) -> str:
                            capture_output=True, text=True).stdout.strip()
     rank = {name: n for n, name in enumerate(ORDER)}
     rows = sorted(rows, key=lambda r: rank.get(r["check"], len(ORDER)))
+    took = next((r.get("seconds") for r in rows if r["check"] == "total"), None)
     lines = [f"Run {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, commit {commit}"
-             f"{' (with uncommitted changes)' if dirty else ''}, `make system-test`: "
+             f"{' (with uncommitted changes)' if dirty else ''}, `make system-test`"
+             + (f" ({int(took) // 60} min {int(took) % 60} s, {CACHE_NOTE[0]})" if took else "")
+             + ": "
              f"{sum(r['ok'] and not r.get('limit') for r in rows)} of "
              f"{sum(not r.get('limit') for r in rows)} checks hold.", "",
              "| check | result | what was seen |", "|---|---|---|"]
