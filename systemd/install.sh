@@ -11,7 +11,8 @@
 #     python3-venv), and that the bundle is complete (SHA256SUMS)
 #  2. creates a virtualenv in /opt/sowgate/<version>/ and installs sowgate and every dependency
 #     from the bundle's wheels only (pip --no-index: no network), at the versions of
-#     constraints.txt; a half-built one never replaces a working one
+#     constraints.txt (an upgrade starts from a copy of the current version's packages, so
+#     pip installs only what differs); a half-built one never replaces a working one
 #  3. copies the units, the udev rule and the example configs to /opt/sowgate/<version>/share
 #  4. points /opt/sowgate/current at it and /usr/bin/sowgate at /opt/sowgate/current/bin/sowgate;
 #     the version it replaces is kept as /opt/sowgate/previous (for --rollback), older ones
@@ -35,7 +36,7 @@ while [ $# -gt 0 ]; do
         --root) ROOT=$(cd "$2" && pwd); shift 2 ;;
         --root=*) ROOT=$(cd "${1#--root=}" && pwd); shift ;;
         --rollback) ROLLBACK=1; shift ;;
-        -h|--help) sed -n '2,28p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,29p' "$0"; exit 0 ;;
         *) echo "install.sh: unknown argument $1 (see --help)" >&2; exit 64 ;;
     esac
 done
@@ -159,6 +160,19 @@ failed() {
 }
 say "installing sowgate $VERSION into /opt/sowgate/$VERSION from the bundle's wheels (offline)"
 python3 -m venv "$FINAL" || failed "python3 -m venv failed (apt install python3-venv)"
+# An upgrade starts from a copy of the running version's packages: pip then installs only what
+# this bundle pins differently (sowgate itself at least) instead of all ~50 wheels again, which
+# takes minutes on a Raspberry Pi. Only for the same python (the site-packages path matches).
+run=$(readlink "$OPT/current" 2>/dev/null || true)
+if [ -n "$run" ] && [ "$run" != "$VERSION" ]; then
+    for site in "$OPT/$run"/lib/python3*/site-packages; do
+        new_site="$FINAL/lib/$(basename "$(dirname "$site")")/site-packages"
+        if [ -d "$site" ] && [ -d "$new_site" ]; then
+            cp -a "$site/." "$new_site/" || failed "could not copy $run's packages"
+            say "started from $run's packages; pip installs what this bundle pins differently"
+        fi
+    done
+fi
 "$FINAL/bin/python" -m pip install --quiet --no-index --disable-pip-version-check \
     --find-links "$HERE/wheels" --constraint "$HERE/constraints.txt" "sowgate==$VERSION" \
     || failed "pip could not install the bundle's wheels (above); nothing was changed"

@@ -78,14 +78,14 @@ def _wheel(folder: Path, name: str, version: str, files: dict[str, str],
 
 
 def make_bundle(out: Path, version: str, *, arch: str | None = None,
-                with_dependency: bool = True) -> Path:
+                with_dependency: bool = True, dep_version: str = "1.0") -> Path:
     """The unpacked bundle folder of a stand-in sowgate ``version``."""
     wheels = out / f"wheels-{version}"
     wheels.mkdir(parents=True)
     main = _wheel(wheels, "sowgate", version,
                   {"fake_sowgate.py": _MODULE.format(version=version)},
-                  [f"{DEPENDENCY}==1.0"], {"sowgate": "fake_sowgate:main"})
-    dep = _wheel(wheels, DEPENDENCY, "1.0", {f"{DEPENDENCY}.py": "X = 1\n"}, [], {})
+                  [f"{DEPENDENCY}=={dep_version}"], {"sowgate": "fake_sowgate:main"})
+    dep = _wheel(wheels, DEPENDENCY, dep_version, {f"{DEPENDENCY}.py": "X = 1\n"}, [], {})
     tarball = write_bundle(out, version, arch or platform.machine(),
                            [main, dep] if with_dependency else [main])
     with tarfile.open(tarball) as tar:

@@ -95,6 +95,7 @@ def test_an_upgrade_keeps_config_rule_store_and_calibration_and_rolls_back(
 
     up = install(make_bundle(tmp_path / "b", "1.1.0"), root)
     assert up.returncode == 0, up.stderr
+    assert "started from 1.0.0's packages" in up.stdout  # pip installs only what differs
     assert (current(root), previous(root)) == ("1.1.0", "1.0.0")
     assert installed_version(root) == "sowgate 1.1.0"
     assert "kept /etc/sowgate/sowgate.toml" in up.stdout
@@ -130,8 +131,10 @@ def test_a_bad_config_exits_78_and_a_missing_wheel_keeps_the_installed_version(
     assert (root / CONFIG).read_text() == "broken = true\n"  # never replaced by the example
     assert current(root) == "1.0.0"  # installed, waiting for a good config
 
-    # pip may use the bundle's wheels only: one missing and nothing changes
-    broken = install(make_bundle(tmp_path / "b", "1.1.0", with_dependency=False), root)
+    # pip may use the bundle's wheels only: one missing and nothing changes (a new pin: the
+    # copy of 1.0.0's packages an upgrade starts from does not have it either)
+    broken = install(make_bundle(tmp_path / "b", "1.1.0", with_dependency=False,
+                                 dep_version="2.0"), root)
     assert broken.returncode not in (0, 78)
     assert "pip could not install the bundle's wheels" in broken.stderr
     assert "sowgate-fake-dep" in broken.stderr.lower().replace("_", "-")
