@@ -20,7 +20,8 @@ from tests.deploy.fake_bundle import make_bundle
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = "etc/sowgate/sowgate.toml"
-pytestmark = pytest.mark.slow  # ~10 s an install (python3 -m venv + ensurepip on a busy box)
+# ~10 s an install (python3 -m venv + ensurepip), over a minute on a busy box
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
 def install(bundle: Path, root: Path, *args: str) -> subprocess.CompletedProcess[str]:
@@ -78,7 +79,6 @@ def test_a_fresh_install_puts_everything_in_place(tmp_path: Path, root: Path) ->
     assert current(root) == "1.0.0"
 
 
-@pytest.mark.timeout(600)  # five installs, each a venv and ensurepip (~10 s idle, 60 s busy)
 def test_an_upgrade_keeps_config_rule_store_and_calibration_and_rolls_back(
     tmp_path: Path, root: Path
 ) -> None:
