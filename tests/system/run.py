@@ -372,9 +372,10 @@ async def run(bundle: Path) -> list[dict[str, Any]]:
 
     rows: list[dict[str, Any]] = []
     started = time.monotonic()
-    # three rounds of the demo's field work (~15 min): the seed tubes follow the drive without
-    # looping, so the whole run (~8 min) must fit in one pass
-    drive = Drive(legs=demo_drive().legs * 3)
+    # eight rounds of the demo's field work (~40 min): the seed tubes follow the drive without
+    # looping, so the whole run must fit in one pass (three rounds ran out during a slow run's
+    # clock step: nothing sowed any more)
+    drive = Drive(legs=demo_drive().legs * 8)
     async with SimulatedMachine(drive=drive, loop_drive=True, with_gnss=True,
                                 with_seed_tubes=True) as machine:
         import tomli_w
