@@ -73,11 +73,12 @@ demo: $(STAMP)
 # on one worker: the fault matrix's campaign is a session fixture (once per worker otherwise)
 # and module fixtures are shared (xdist_group marks do nothing under pytest 9.2).
 TEST_WORKERS ?= 2
-test: $(STAMP) mosquitto postgis chromium poppler isoxml-js
+test: $(STAMP) mosquitto postgis chromium poppler isoxml-js system-test-tools
 	$(BIN)/ruff check gateway drivers protocol simulator tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/lint-imports
 	$(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(MAKE) system-test
 
 # The fault matrix alone (also part of `make test`, which writes its table to
 # build/reliability.md): regenerates docs/reliability.md from this run. Needs root (tmpfs).
@@ -104,13 +105,23 @@ dist: $(STAMP)
 system-test-tools:
 	@command -v qemu-system-x86_64 >/dev/null && command -v debootstrap >/dev/null && \
 	  test -x /bin/busybox && command -v depmod >/dev/null || \
-	  { (apt-get update -qq && apt-get install -y -qq --no-install-recommends qemu-system-x86 \
-	      qemu-utils debootstrap busybox-static kmod e2fsprogs) || \
-	    { echo "the system test needs: apt-get install qemu-system-x86 debootstrap busybox-static kmod" >&2; exit 1; }; }
+	  { (apt-get -o DPkg::Lock::Timeout=600 update -qq && \
+	     apt-get -o DPkg::Lock::Timeout=600 install -y -qq --no-install-recommends \
+	      qemu-system-x86 qemu-utils debootstrap busybox-static kmod e2fsprogs >/dev/null) || \
+	    { echo "make test/system-test: cannot install the system test's tools (needs root and \
+apt): apt-get install qemu-system-x86 qemu-utils debootstrap busybox-static kmod e2fsprogs" >&2; \
+	      exit 1; }; }
+	@test "$$(id -u)" = 0 || { echo "make test/system-test: the system test needs root \
+(debootstrap, chroot, mkfs -d): run make as root" >&2; exit 1; }
 
+# The bundle is built into build/system-test/dist (not dist/): the run leaves nothing outside
+# build/. Non-root or no apt: it fails naming what is missing, it never skips.
+ST_DIST := build/system-test/dist
 system-test: $(STAMP) system-test-tools
-	$(MAKE) dist DIST_ARCHES=x86_64
-	$(BIN)/python tests/system/run.py dist/sowgate-*-linux-x86_64.tar.gz
+	rm -rf build/lib build/bdist.* $(ST_DIST)   # setuptools would reuse stale files
+	$(BIN)/pip wheel --no-deps --quiet -w $(ST_DIST) .
+	$(BIN)/python systemd/bundle.py --wheel $(ST_DIST)/sowgate-*.whl --arch x86_64 --out $(ST_DIST)
+	$(BIN)/python tests/system/run.py $(ST_DIST)/sowgate-*-linux-x86_64.tar.gz
 
 schemas: $(STAMP)
 	$(BIN)/python -m gateway.link.payloads --write docs/schemas

@@ -11,7 +11,8 @@
 #     python3-venv), and that the bundle is complete (SHA256SUMS)
 #  2. creates a virtualenv in /opt/sowgate/<version>/ and installs sowgate and every dependency
 #     from the bundle's wheels only (pip --no-index: no network), at the versions of
-#     constraints.txt; a half-built one never replaces a working one
+#     constraints.txt (an upgrade starts from a copy of the current version's packages, so
+#     pip installs only what differs); a half-built one never replaces a working one
 #  3. copies the units, the udev rule and the example configs to /opt/sowgate/<version>/share
 #  4. points /opt/sowgate/current at it and /usr/bin/sowgate at /opt/sowgate/current/bin/sowgate;
 #     the version it replaces is kept as /opt/sowgate/previous (for --rollback), older ones
@@ -19,9 +20,12 @@
 #  5. installs sowgate.service and sowgate-dashboard.service in /etc/systemd/system, and the
 #     udev rule in /etc/udev/rules.d only if there is none yet (it holds your adapters' serials)
 #  6. creates /etc/sowgate/sowgate.toml from the example only if there is none
-#  7. runs `sowgate check-config /etc/sowgate/sowgate.toml`
-#  8. only if the config passes: systemctl daemon-reload, enable and restart sowgate (and
-#     restart the dashboard if it runs). A bad config: exit 78, the service is left alone.
+#  7. runs `sowgate check-config /etc/sowgate/sowgate.toml`; a bad config: exit 78, the
+#     service is left alone
+#  8. writes /etc/systemd/system/sowgate.service.d/devices.conf from `sowgate check-config
+#     --systemd-device-allow`: the unit's device classes narrowed to the configured ports
+#  9. systemctl daemon-reload, enable and restart sowgate (and restart the dashboard if it
+#     runs)
 # The record store (/var/lib/sowgate), calibration files and /etc/sowgate are never touched.
 set -eu
 
@@ -32,7 +36,7 @@ while [ $# -gt 0 ]; do
         --root) ROOT=$(cd "$2" && pwd); shift 2 ;;
         --root=*) ROOT=$(cd "${1#--root=}" && pwd); shift ;;
         --rollback) ROLLBACK=1; shift ;;
-        -h|--help) sed -n '2,26p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,29p' "$0"; exit 0 ;;
         *) echo "install.sh: unknown argument $1 (see --help)" >&2; exit 64 ;;
     esac
 done
@@ -43,6 +47,7 @@ export PIP_CONFIG_FILE=/dev/null
 unset PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_FIND_LINKS PIP_CONSTRAINT PIP_REQUIRE_VIRTUALENV 2>/dev/null || true
 OPT="$ROOT/opt/sowgate"
 CONFIG=/etc/sowgate/sowgate.toml
+DROPIN_DIR=/etc/systemd/system/sowgate.service.d
 EX_CONFIG=78
 
 say() { echo "install.sh: $*"; }
@@ -80,6 +85,18 @@ check_and_restart() {
     if ! "$OPT/$version/bin/sowgate" check-config "$ROOT$CONFIG"; then
         die "$CONFIG does not pass sowgate $version's check-config (above): sowgate was NOT \
 restarted. Fix it, then: sowgate check-config $CONFIG && systemctl restart sowgate" $EX_CONFIG
+    fi
+    # the unit's device classes narrowed to the ports this config names
+    mkdir -p "$ROOT$DROPIN_DIR"
+    if "$OPT/$version/bin/sowgate" check-config --systemd-device-allow "$ROOT$CONFIG" \
+            > "$ROOT$DROPIN_DIR/devices.conf.new" 2>/dev/null; then
+        mv "$ROOT$DROPIN_DIR/devices.conf.new" "$ROOT$DROPIN_DIR/devices.conf"
+        say "$DROPIN_DIR/devices.conf: sowgate may open $(grep '^DeviceAllow=.' \
+"$ROOT$DROPIN_DIR/devices.conf" | cut -d= -f2 | cut -d' ' -f1 | tr '\n' ' ')and no other device"
+    else  # a version from before the option (a rollback): the drop-in there stays
+        rm -f "$ROOT$DROPIN_DIR/devices.conf.new"
+        say "WARNING: sowgate $version cannot write $DROPIN_DIR/devices.conf; \
+$( [ -e "$ROOT$DROPIN_DIR/devices.conf" ] && echo "the one there is kept" || echo "the unit's device classes apply")" >&2
     fi
     if systemd_running; then
         systemctl daemon-reload
@@ -143,6 +160,19 @@ failed() {
 }
 say "installing sowgate $VERSION into /opt/sowgate/$VERSION from the bundle's wheels (offline)"
 python3 -m venv "$FINAL" || failed "python3 -m venv failed (apt install python3-venv)"
+# An upgrade starts from a copy of the running version's packages: pip then installs only what
+# this bundle pins differently (sowgate itself at least) instead of all ~50 wheels again, which
+# takes minutes on a Raspberry Pi. Only for the same python (the site-packages path matches).
+run=$(readlink "$OPT/current" 2>/dev/null || true)
+if [ -n "$run" ] && [ "$run" != "$VERSION" ]; then
+    for site in "$OPT/$run"/lib/python3*/site-packages; do
+        new_site="$FINAL/lib/$(basename "$(dirname "$site")")/site-packages"
+        if [ -d "$site" ] && [ -d "$new_site" ]; then
+            cp -a "$site/." "$new_site/" || failed "could not copy $run's packages"
+            say "started from $run's packages; pip installs what this bundle pins differently"
+        fi
+    done
+fi
 "$FINAL/bin/python" -m pip install --quiet --no-index --disable-pip-version-check \
     --find-links "$HERE/wheels" --constraint "$HERE/constraints.txt" "sowgate==$VERSION" \
     || failed "pip could not install the bundle's wheels (above); nothing was changed"
@@ -163,6 +193,6 @@ for dir in "$OPT"/*/; do
     esac
 done
 
-# 5.-8.
+# 5.-9.
 install_units "$FINAL/share"
 check_and_restart "$VERSION"

@@ -74,7 +74,9 @@ def check_settings(settings: Settings) -> tuple[list[str], list[str]]:
     problems: list[str] = input_file_problems(settings)
     problems += output_location_problems(settings, create=False)
     problems += dashboard_problems(settings)
-    warnings: list[str] = settings.deprecation_notes()
+    from gateway.config.startup import credential_notes
+
+    warnings: list[str] = settings.deprecation_notes() + credential_notes(settings)
     p = settings.prescription
     undriven = [c.name for c in undriven_channels(settings)]
     if undriven:
@@ -130,6 +132,13 @@ def cmd_check_config(args: argparse.Namespace) -> int:
         print(f"note: {line}", file=sys.stderr)
     if problems:
         return config_problems(problems)
+    if args.systemd_device_allow:
+        from gateway.app.systemd_devices import device_allow_dropin
+
+        # stdout is the drop-in only (install.sh writes it to sowgate.service.d/devices.conf)
+        print(f"{args.file}: ok", file=sys.stderr)
+        sys.stdout.write(device_allow_dropin(settings, args.file))
+        return 0
     print(f"{args.file}: ok (machine {settings.machine.id}, {settings.machine.rows} rows)")
     print(parts_summary(settings))
     return 0
@@ -240,6 +249,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("check-config", help="validate a config file (exit 78 if invalid)")
     c.add_argument("file", type=Path)
+    c.add_argument(
+        "--systemd-device-allow",
+        action="store_true",
+        help="if the config passes, print the systemd drop-in that lets sowgate.service open "
+        "exactly the configured ports (install.sh writes it to "
+        "/etc/systemd/system/sowgate.service.d/devices.conf)",
+    )
     c.set_defaults(func=cmd_check_config)
 
     _add_plugin_commands(sub)

@@ -100,6 +100,34 @@ def file_problem(path: str | os.PathLike[str]) -> str | None:
     return regular_file_problem(path)
 
 
+CREDENTIALS_ROOT = "/run/credentials/"
+
+
+def credential_elsewhere(path: str | os.PathLike[str]) -> str | None:
+    """The unit whose systemd credential ``path`` is (``/run/credentials/<unit>/<name>``, put
+    there by ``LoadCredential=`` while that unit runs), when this process is not that unit;
+    None for any other path, or inside the unit (``$CREDENTIALS_DIRECTORY``), where the file
+    is checked like any other. ``check-config`` run by the fitter or install.sh cannot see a
+    credential: it names it instead of calling it missing."""
+    text = os.fspath(path)
+    if not text.startswith(CREDENTIALS_ROOT):
+        return None
+    folder = os.path.dirname(text)
+    if os.environ.get("CREDENTIALS_DIRECTORY", "").rstrip("/") == folder:
+        return None
+    return folder.removeprefix(CREDENTIALS_ROOT) or None
+
+
+def credential_notes(settings: Settings) -> list[str]:
+    """``check-config``'s notes on the files that are systemd credentials of a unit."""
+    named = [("mqtt.password_file", settings.mqtt.password_file),
+             ("dashboard.password_file", settings.dashboard.password_file)]
+    return [f"{key}: {path} is a systemd credential of {unit} (LoadCredential=): it exists "
+            f"only inside that service, which checks it when it starts (exit 78 if missing)"
+            for key, path in named
+            if path is not None and (unit := credential_elsewhere(path)) is not None]
+
+
 def input_file_problems(settings: Settings) -> list[str]:
     """``key: problem (got path)`` for every file an enabled part reads and cannot read.
 
@@ -126,7 +154,7 @@ def input_file_problems(settings: Settings) -> list[str]:
         else:
             files.append(("prescription.path", rx))
     for key, path in files:
-        if path is None:
+        if path is None or credential_elsewhere(path) is not None:
             continue
         problem = file_problem(path)
         if problem is not None:
@@ -146,7 +174,9 @@ def dashboard_problems(settings: Settings) -> list[str]:
     d = settings.dashboard
     controls = [c for c in DASHBOARD_COMMANDS if c in settings.commands.enabled]
     problems: list[str] = []
-    if d.password_file is not None:
+    if d.password_file is not None and credential_elsewhere(d.password_file) is not None:
+        pass  # inside its unit only: checked there at start (credential_notes)
+    elif d.password_file is not None:
         problem = file_problem(d.password_file)
         if problem is None and not Path(d.password_file).read_text(
                 encoding="utf-8", errors="replace").strip():

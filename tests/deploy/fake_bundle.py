@@ -3,7 +3,8 @@
 The real bundle's 48 wheels take ~25 s to install; install.sh does not care what sowgate
 does, only that pip installs it and its dependencies offline and that ``sowgate --version``
 and ``sowgate check-config`` answer. The stand-in answers like the real one (check-config:
-exit 78 when the config says ``broken = true``) and depends on a second wheel, so a missing
+exit 78 when the config says ``broken = true``; ``--systemd-device-allow``: a drop-in with the
+config's ``port =`` lines) and depends on a second wheel, so a missing
 dependency shows that nothing is fetched from a network.
 """
 
@@ -34,10 +35,17 @@ def main():
         print("sowgate " + VERSION)
         return 0
     if args[:1] == ["check-config"]:
-        text = open(args[1]).read()
+        dropin = "--systemd-device-allow" in args
+        text = open([a for a in args[1:] if not a.startswith("--")][0]).read()
         if "broken = true" in text:
             print("machine.broken: not a key", file=sys.stderr)
             return 78
+        if dropin:  # like the real one: the configured ports replace the unit's classes
+            ports = [ln.split("=", 1)[1].split("#")[0].strip().strip('"')
+                     for ln in text.splitlines() if ln.strip().startswith("port =")]
+            print("[Service]\\nDeviceAllow="
+                  + "".join("\\nDeviceAllow=" + p + " rw" for p in ports))
+            return 0
         print(args[1] + ": ok")
         return 0
     return 64
@@ -70,14 +78,14 @@ def _wheel(folder: Path, name: str, version: str, files: dict[str, str],
 
 
 def make_bundle(out: Path, version: str, *, arch: str | None = None,
-                with_dependency: bool = True) -> Path:
+                with_dependency: bool = True, dep_version: str = "1.0") -> Path:
     """The unpacked bundle folder of a stand-in sowgate ``version``."""
     wheels = out / f"wheels-{version}"
     wheels.mkdir(parents=True)
     main = _wheel(wheels, "sowgate", version,
                   {"fake_sowgate.py": _MODULE.format(version=version)},
-                  [f"{DEPENDENCY}==1.0"], {"sowgate": "fake_sowgate:main"})
-    dep = _wheel(wheels, DEPENDENCY, "1.0", {f"{DEPENDENCY}.py": "X = 1\n"}, [], {})
+                  [f"{DEPENDENCY}=={dep_version}"], {"sowgate": "fake_sowgate:main"})
+    dep = _wheel(wheels, DEPENDENCY, dep_version, {f"{DEPENDENCY}.py": "X = 1\n"}, [], {})
     tarball = write_bundle(out, version, arch or platform.machine(),
                            [main, dep] if with_dependency else [main])
     with tarfile.open(tarball) as tar:

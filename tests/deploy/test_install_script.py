@@ -20,7 +20,8 @@ from tests.deploy.fake_bundle import make_bundle
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = "etc/sowgate/sowgate.toml"
-pytestmark = pytest.mark.slow  # ~10 s an install (python3 -m venv + ensurepip on a busy box)
+# ~10 s an install (python3 -m venv + ensurepip), over a minute on a busy box
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
 def install(bundle: Path, root: Path, *args: str) -> subprocess.CompletedProcess[str]:
@@ -65,6 +66,11 @@ def test_a_fresh_install_puts_everything_in_place(tmp_path: Path, root: Path) ->
     assert (root / "etc/udev/rules.d/99-sowgate.rules").read_bytes() == rule
     assert (root / CONFIG).read_bytes() == (REPO / "examples/sowgate.toml").read_bytes()
     assert "ok" in done.stdout  # check-config ran on it
+    # the unit's device classes narrowed to the example config's ports
+    devices = (root / "etc/systemd/system/sowgate.service.d/devices.conf").read_text()
+    assert devices.splitlines()[:2] == ["[Service]", "DeviceAllow="]
+    assert "DeviceAllow=/dev/sowgate-rs485 rw" in devices.splitlines()
+    assert "/dev/sowgate-rs485" in done.stdout
     assert "nothing started" in done.stdout
     assert not (root / "opt/sowgate/previous").exists()
     nothing = install(bundle, root, "--rollback")
@@ -89,10 +95,14 @@ def test_an_upgrade_keeps_config_rule_store_and_calibration_and_rolls_back(
 
     up = install(make_bundle(tmp_path / "b", "1.1.0"), root)
     assert up.returncode == 0, up.stderr
+    assert "started from 1.0.0's packages" in up.stdout  # pip installs only what differs
     assert (current(root), previous(root)) == ("1.1.0", "1.0.0")
     assert installed_version(root) == "sowgate 1.1.0"
     assert "kept /etc/sowgate/sowgate.toml" in up.stdout
     assert {p: p.read_bytes() for p in kept} == kept
+    # regenerated from the kept config, which names no port: no device at all
+    devices = root / "etc/systemd/system/sowgate.service.d/devices.conf"
+    assert devices.read_text().split() == ["[Service]", "DeviceAllow="]
 
     back = install(make_bundle(tmp_path / "c", "1.1.0"), root, "--rollback")
     assert back.returncode == 0, back.stderr
@@ -121,8 +131,10 @@ def test_a_bad_config_exits_78_and_a_missing_wheel_keeps_the_installed_version(
     assert (root / CONFIG).read_text() == "broken = true\n"  # never replaced by the example
     assert current(root) == "1.0.0"  # installed, waiting for a good config
 
-    # pip may use the bundle's wheels only: one missing and nothing changes
-    broken = install(make_bundle(tmp_path / "b", "1.1.0", with_dependency=False), root)
+    # pip may use the bundle's wheels only: one missing and nothing changes (a new pin: the
+    # copy of 1.0.0's packages an upgrade starts from does not have it either)
+    broken = install(make_bundle(tmp_path / "b", "1.1.0", with_dependency=False,
+                                 dep_version="2.0"), root)
     assert broken.returncode not in (0, 78)
     assert "pip could not install the bundle's wheels" in broken.stderr
     assert "sowgate-fake-dep" in broken.stderr.lower().replace("_", "-")
