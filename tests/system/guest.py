@@ -380,7 +380,8 @@ def check_can(peer: CanPeer) -> None:
     # what this row proves is AF_CAN under the shipped RestrictAddressFamilies: frames both
     # ways, every command answered. A feedback_lost under emulation (the guest's CPU is ~20x
     # slower, the daemon's CAN poll can miss its deadline once) is reported, not judged: the
-    # alarm's logic is proven on python-can's virtual bus (tests/integration/test_can_supervision.py)
+    # alarm's logic is proven on python-can's virtual bus
+    # (tests/integration/test_can_supervision.py)
     result("can", peer.commands > 0 and peer.enabled > 0 and not peer.error
            and peer.statuses >= peer.commands - 1,
            f"vcan0 {'up' if 'UP' in link else 'DOWN'} (vcan module from the initrd); the daemon "
