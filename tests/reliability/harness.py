@@ -93,7 +93,8 @@ class DaemonProcess:
     async def kill(self) -> int:
         """SIGKILL: what an OOM kill or a watchdog reset looks like to the daemon."""
         assert self.proc is not None
-        self.proc.send_signal(signal.SIGKILL)
+        with contextlib.suppress(ProcessLookupError):  # already ended (and reaped) on its own
+            self.proc.send_signal(signal.SIGKILL)
         return await self._reap()
 
     async def stop(self, timeout: float = STOP_TIMEOUT_S) -> int:

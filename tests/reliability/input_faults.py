@@ -242,7 +242,8 @@ async def _run_process(
     try:
         code = await asyncio.wait_for(proc.wait(), timeout)
     except TimeoutError:
-        proc.kill()
+        with contextlib.suppress(ProcessLookupError):  # it may end as the timeout fires
+            proc.kill()
         await proc.wait()
         code = None
     return code, err_path.read_text(errors="replace")

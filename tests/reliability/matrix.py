@@ -43,6 +43,9 @@ GROUPS: dict[str, Callable[[Path], Awaitable[dict[str, RowResult]]]] = {
 }
 
 
+RUN_AFTER_THE_OTHERS = frozenset({"farm"})
+
+
 async def run_campaign(tmp: Path, wanted: Iterable[str]) -> dict[str, RowResult]:
     """Run the groups the ``wanted`` rows belong to, concurrently; a result for every row."""
     wanted = set(wanted)
@@ -69,8 +72,13 @@ async def run_campaign(tmp: Path, wanted: Iterable[str]) -> dict[str, RowResult]
         return out
 
     results: dict[str, RowResult] = {}
-    for part in await asyncio.gather(*(one(g) for g in groups)):
-        results.update(part)
+    # the farm rows run three cabs' simulated machines, two ingests and a PostgreSQL of their
+    # own: side by side with the rest they starve the other groups' simulators in this event
+    # loop (rows timed out "waiting for metering" on a quiet 2-core box), so they come after
+    alone = [g for g in groups if g in RUN_AFTER_THE_OTHERS]
+    for phase in ([g for g in groups if g not in alone], alone):
+        for part in await asyncio.gather(*(one(g) for g in phase)):
+            results.update(part)
     for name in wanted:
         results.setdefault(name, RowResult(problems=["the row produced no result"]))
     return results
