@@ -279,7 +279,10 @@ async def group_config(tmp: Path) -> dict[str, RowResult]:
         if table in run_tables:
             continue  # the run path is the same load_config: one process per table suffices
         run_tables.add(table)
-        run_code, run_err = await _run_process(path, {"SOWGATE_STATE_DIR": str(tmp / "st")})
+        # no time bound in this row's invariant (config_fuzz_files judges the 10 s): the
+        # campaign's other groups share the 2 cores, and one error exit took > 10 s there
+        run_code, run_err = await _run_process(path, {"SOWGATE_STATE_DIR": str(tmp / "st")},
+                                               timeout=30.0)
         values.check(run_code == EXIT_CONFIG and _names(case, run_err),
                      f"{case.what}: `sowgate run` exit {run_code}: {run_err.strip()[:200]}")
         tracebacks += "Traceback" in run_err
