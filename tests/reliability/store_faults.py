@@ -28,6 +28,7 @@ from tests.reliability.harness import (
     RowResult,
     Steady,
     TracedMachine,
+    check_graceful_stop,
     dashboard,
     finish_row,
     mqtt_overrides,
@@ -292,14 +293,14 @@ async def group_rollover(tmp: Path) -> dict[str, RowResult]:
                                  "the stored seeds delivered")
                 years = sorted({json.loads(p)["records"][0]["utc"][:4] for p in dash.on("seeds")})
                 code = await daemon.stop()
-                res.check(code == 0, f"graceful stop exited {code}")
+                check_graceful_stop(res, code, daemon)
                 kept_at_stop = seed_ids(db)
                 await daemon.start()  # the start prunes
                 await eventually(lambda: daemon.has_open(tubes.device_path), 30.0, "seed port")
                 await asyncio.sleep(5.0)
                 res.check(daemon.running, "daemon exited after the restart")
                 code = await daemon.stop()
-                res.check(code == 0, f"graceful stop exited {code}")
+                check_graceful_stop(res, code, daemon)
                 after = seed_ids(db)
                 deleted = sorted(set(kept_at_stop) - set(after))
                 res.check(not deleted, f"{len(deleted)} of {len(kept_at_stop)} delivered "
