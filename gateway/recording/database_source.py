@@ -28,10 +28,10 @@ from typing import Any
 import psycopg
 from psycopg.rows import TupleRow
 
-from gateway.core.records import AlarmEvent, SeedRecord, us_to_utc
+from gateway.core.records import AlarmEvent, SeedRecord
 from gateway.recording.runs import Run
-from gateway.recording.store.queries import QUERY_CHUNK_ROWS
-from gateway.recording.store.schema import StoredSeedRow, StoreError, fast_record
+from gateway.recording.store.queries import QUERY_CHUNK_ROWS, seed_from_stored
+from gateway.recording.store.schema import StoredSeedRow, StoreError
 
 # The store's STORED_SEED_COLUMNS, from the farm server's seed_records (its MQTT names):
 # the three re-positioning fields are not published, so NULL here as in an older store.
@@ -111,14 +111,7 @@ class DatabaseSource:
     ) -> Iterator[SeedRecord]:
         for chunk in self.query_seed_rows(since, until, rows):
             for r in chunk:
-                yield fast_record({
-                    "row": r[2], "utc": us_to_utc(r[1]), "lat": r[3], "lon": r[4],
-                    "fix": r[5], "speed_kmh": r[6], "heading_deg": r[7],
-                    "heading_source": r[8], "extrapolated": bool(r[9]), "method": r[10],
-                    "spacing_m": r[11], "attitude": r[12], "roll_deg": r[13],
-                    "pitch_deg": r[14], "delay_ms": None, "offset_east_m": None,
-                    "offset_north_m": None, "id": r[0], "machine_id": self.machine_id,
-                })
+                yield seed_from_stored(r, self.machine_id)
 
     def seed_time_span(
         self, since: datetime | None = None, until: datetime | None = None

@@ -38,16 +38,7 @@ class StoreQueries:
         raise NotImplementedError
 
     def _seed(self, r: tuple[Any, ...]) -> SeedRecord:
-        # Rows were validated as SeedDrops on the way in; skip re-validation on the hot path.
-        return fast_record({
-            "row": r[2], "utc": us_to_utc(r[1]), "lat": r[3], "lon": r[4], "fix": r[5],
-            "speed_kmh": r[6], "heading_deg": r[7], "heading_source": r[8],
-            "extrapolated": bool(r[9]), "method": r[10], "spacing_m": r[11],
-            "attitude": r[12], "roll_deg": r[13], "pitch_deg": r[14], "delay_ms": r[15],
-            "offset_east_m": r[16], "offset_north_m": r[17],
-            "accuracy_m": stated_accuracy_m(r[5], bool(r[9])), "id": r[0],
-            "machine_id": self.machine_id,
-        })
+        return seed_from_stored(r, self.machine_id)
 
     def _span_ids(self, since_us: int | None, until_us: int | None) -> tuple[int, int] | None:
         """The id range holding every seed with ``since <= utc < until`` (None: no seed).
@@ -207,3 +198,19 @@ class StoreQueries:
 
     def integrity_check(self) -> str:
         return str(self._reader.execute("PRAGMA integrity_check").fetchone()[0])
+
+
+def seed_from_stored(r: StoredSeedRow, machine_id: str) -> SeedRecord:
+    """A ``SeedRecord`` from a stored tuple (``STORED_SEED_COLUMNS``), whichever reader made it
+    (the cab's store or the farm database): one mapping, so both give the same record.
+
+    Rows were validated as SeedDrops on the way in; no re-validation on the hot path."""
+    return fast_record({
+        "row": r[2], "utc": us_to_utc(r[1]), "lat": r[3], "lon": r[4], "fix": r[5],
+        "speed_kmh": r[6], "heading_deg": r[7], "heading_source": r[8],
+        "extrapolated": bool(r[9]), "method": r[10], "spacing_m": r[11],
+        "attitude": r[12], "roll_deg": r[13], "pitch_deg": r[14], "delay_ms": r[15],
+        "offset_east_m": r[16], "offset_north_m": r[17],
+        "accuracy_m": stated_accuracy_m(r[5], bool(r[9])), "id": r[0],
+        "machine_id": machine_id,
+    })
