@@ -78,6 +78,9 @@ class TruthEpoch:
 um982_sentences = epoch_sentences
 
 
+# An epoch written later than this after its due time counts as late (see late_epochs)
+LATE_EPOCH_S = 0.05
+
 # binary bytes that would end a line or start a sentence become 0x00 (see binary_output)
 _NO_LINE_OR_START = bytes(0 if b in b"\n$#" else b for b in range(256))
 
@@ -157,6 +160,9 @@ class Um982Emulator(StartClose):
         self._leap_midnight: datetime | None = None
         self.truth: deque[TruthEpoch] = deque(maxlen=TRUTH_CAPACITY)
         self.epochs_written = 0
+        # (epoch instant, seconds written after its due time) for writes > 50 ms late or
+        # skipped (starved): the fault matrix tells the simulator's lateness from the daemon's
+        self.late_epochs: deque[tuple[float, float]] = deque(maxlen=10_000)
         self.lines_corrupted = 0
         self.bytes_dropped = 0  # written while nobody read and the pty buffer was full
 
@@ -330,6 +336,7 @@ class Um982Emulator(StartClose):
             if delay > 0:
                 await asyncio.sleep(delay)
             elif delay < -period:  # we were starved (loaded CI box): skip, don't burst
+                self.late_epochs.append((t_epoch, -delay))
                 k += math.ceil(-delay / period)
                 continue
             lines = self.sample_epoch(k)
@@ -339,5 +346,8 @@ class Um982Emulator(StartClose):
             )
             self._garbage.clear()
             self._write(payload)
+            late = self._clock() - (t_epoch + self.output_latency_s)
+            if late > LATE_EPOCH_S:
+                self.late_epochs.append((t_epoch, late))
             self.epochs_written += 1
             k += 1

@@ -23,6 +23,7 @@ from tests.reliability.harness import (
     dashboard,
     finish_row,
     fmt_s,
+    late_epochs_note,
     mqtt_overrides,
     records_vs_edges,
     recovered_after,
@@ -246,6 +247,7 @@ def _judge_gnss_window(res: RowResult, gnss: Any, db: Path, window: tuple[float,
     res.lost = f"{len(poor)} of {len(seeds)} seeds of the window without an RTK epoch"
     res.check(bool(seeds), "no seed recorded while the binary output was on")
     res.check(not poor, f"{len(poor)} of {len(seeds)} seeds recorded during the binary output "
-                        "were extrapolated or not RTK-fixed: sentences after it were dropped")
+                        "were extrapolated or not RTK-fixed: sentences after it were dropped"
+                        + late_epochs_note(gnss, window))
 
 

@@ -31,6 +31,7 @@ from tests.reliability.harness import (
     dashboard,
     edge_mono,
     finish_row,
+    late_epochs_note,
     mqtt_overrides,
     sowing_drive,
 )
@@ -136,6 +137,8 @@ async def group_gnss_time(tmp: Path) -> dict[str, RowResult]:
                     if name == "gnss_time_step_back_1h" else None
                 )
                 _judge(res, tubes, records, stamp_of, (w0, w1), skip)
+                if res.problems:
+                    res.problems[-1] += late_epochs_note(gnss, (w0, w1))
                 seen = dash.alarms_between(w0, w1 + ALARM_WAIT_S)
                 res.check(alarms[name] in seen,
                           f"{alarms[name]} not published (seen: {sorted(seen)})")

@@ -323,6 +323,16 @@ def edges_since(tubes: SeedTubeEmulator, n0: int) -> int:
     return len(tubes.truth) - n0
 
 
+def late_epochs_note(gnss: Any, window: tuple[float, float]) -> str:
+    """The simulated receiver's own lateness in ``window`` (host monotonic), for a row's
+    problem text: an epoch the simulator wrote late is not the daemon's doing."""
+    late = [s for t, s in gnss.late_epochs if window[0] - 1.0 <= t <= window[1]]
+    if not late:
+        return " (the simulator wrote every epoch of the window on time)"
+    return (f" ({len(late)} epochs of the window written late or skipped by the simulator, "
+            f"up to {max(late) * 1000:.0f} ms)")
+
+
 def edge_mono(tubes: SeedTubeEmulator, t_edge: float) -> float:
     assert tubes.t0_mono is not None
     return tubes.t0_mono + t_edge
