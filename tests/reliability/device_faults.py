@@ -154,7 +154,7 @@ def _junk(rng: random.Random, n: int, banned: bytes) -> bytes:
 async def group_serial(tmp: Path) -> dict[str, RowResult]:
     out: dict[str, RowResult] = {}
     rng = random.Random(7)
-    machine = TracedMachine(drive=sowing_drive(55.0), with_gnss=True, with_seed_tubes=True)
+    machine = TracedMachine(drive=sowing_drive(75.0), with_gnss=True, with_seed_tubes=True)
     with Mosquitto() as broker:
         async with dashboard(broker.port), machine:
             tubes, gnss, hmi = machine.seed_tubes, machine.gnss, machine.hmi

@@ -211,7 +211,9 @@ def loop_ext4(image: Path, mountpoint: Path, size_mb: int = 64) -> Iterator[Path
 
 async def group_freeze(tmp: Path) -> dict[str, RowResult]:
     res = RowResult()
-    machine = TracedMachine(drive=sowing_drive(FREEZE_S + 25.0), with_gnss=True,
+    # long enough that a slow start on a loaded box cannot end the pass during the freeze (the
+    # tractor slowing down read as the duty falling); the group waits for the end of the pass
+    machine = TracedMachine(drive=sowing_drive(FREEZE_S + 50.0), with_gnss=True,
                             with_seed_tubes=True)
     with loop_ext4(tmp / "card.img", tmp / "card") as card, Mosquitto() as broker:
         async with dashboard(broker.port) as dash, machine:
@@ -236,6 +238,9 @@ async def group_freeze(tmp: Path) -> dict[str, RowResult]:
                 thaw = await asyncio.create_subprocess_exec("fsfreeze", "--unfreeze", str(card))
                 res.check(await thaw.wait() == 0, "fsfreeze --unfreeze failed")
                 t_thawed = time.monotonic()
+                res.check(machine.pose().speed_kmh > 0.0,
+                          "the pass ended before the thaw (the daemon started too slowly for "
+                          "this drive): the duty judged includes the tractor stopping")
                 during = machine.duty_between(t_frozen, t_thawed)
                 low = min(during, default=0.0)
                 res.check(bool(during) and low >= steady.low - DUTY_TOLERANCE_PCT,
