@@ -128,6 +128,8 @@ class SeedRecorder:
         self.store = store
         self.on_records = on_records
         self._clock = clock
+        # the previous flush's clock reading (see _position_due)
+        self._expire_before: float | None = None
         self._log = RateLimitedLog(log, clock=clock)
         self.positioner = SeedPositioner(
             settings.positioning, baseline_offset_deg=settings.gnss.heading_offset_deg
@@ -261,9 +263,21 @@ class SeedRecorder:
         return self._store(want_records=True)
 
     def _position_due(self) -> None:
-        """The queued events, and the seeds whose epoch never came (GNSS outage)."""
+        """The queued events, and the seeds whose epoch never came (GNSS outage).
+
+        A seed is given up on (extrapolated) only if it was overdue already at the previous
+        flush: a loop that stalled (a loaded box, a long GC) wakes with the seed lines and
+        the receiver's epochs of the stall in its buffers, and the GNSS reader's task may
+        queue its epochs after this flush has run. Judged against the time of this flush,
+        the seeds of the stall were extrapolated (up to a metre off, stamped with the last
+        epoch) while their epochs sat unread; judged against the previous flush, every task
+        has had its turn since. A real GNSS outage costs one flush interval more of waiting.
+        """
         self._position_queued()
-        self._take_quiet(self.positioner.poll(self._clock()))
+        now = self._clock()
+        expire_before, self._expire_before = self._expire_before, now
+        if expire_before is not None:
+            self._take_quiet(self.positioner.poll(expire_before))
 
     def _flush_quietly(self) -> None:
         """``flush`` for the periodic loop (nobody reads its return value), then commit."""

@@ -255,7 +255,7 @@ class SeedPositioner:
             self.clock.reset()
         elif not check.usable:  # an outlier (counted by the guard) or a repeated epoch
             self.stats.epochs_ignored += check.verdict == "repeat"
-            return self._expire(epoch.t_mono)
+            return [] if self._defer else self._expire(epoch.t_mono)
         utc_s = check.gnss_s
         if self.frame is None:
             alt0 = epoch.alt_m if epoch.alt_m is not None else 0.0
@@ -305,7 +305,10 @@ class SeedPositioner:
         replayed: list[Landing] = []
         while self._before_fix:
             replayed += self.add_edge(*self._before_fix.popleft())
-        return out + replayed + self._resolve_ready() + self._expire(epoch.t_mono)
+        # in a batch (defer_resolution) the epochs after this one may be next in it: the
+        # recorder's poll expires what is overdue once the batch is in
+        expired = [] if self._defer else self._expire(epoch.t_mono)
+        return out + replayed + self._resolve_ready() + expired
 
     def add_attitude(self, t_mono: float, roll_deg: float) -> None:
         """An inclinometer roll reading (degrees, as the sensor reads it) taken at ``t_mono``;
@@ -349,7 +352,9 @@ class SeedPositioner:
         )
         if len(pending) > MAX_PENDING_SEEDS:
             out += self._overflow()
-        if pending and t_mono - pending[0][1] > self.settings.pending_timeout_s:
+        # a batch (defer_resolution) may hold this edge's epochs further on: the recorder's
+        # poll expires what is overdue, once the batch is in
+        if pending and not self._defer and t_mono - pending[0][1] > self.settings.pending_timeout_s:
             out += self._expire(t_mono)
         return out
 
@@ -394,7 +399,7 @@ class SeedPositioner:
                 out += self._resolve_ready()
             if len(pending) > MAX_PENDING_SEEDS:
                 out += self._overflow()
-            if pending and t_mono - pending[0][1] > timeout:
+            if pending and not defer and t_mono - pending[0][1] > timeout:
                 out += self._expire(t_mono)
         return out
 

@@ -252,3 +252,34 @@ async def test_the_periodic_loop_commits_what_it_stored_in_the_same_burst(
     """The outbox sees stored seeds at once, not at the store's next commit tick."""
     await four_seeds_through_the_loop(store, until=lambda _r: bool(store.pending_seeds(10)))
     assert [r.id for r in store.pending_seeds(10)] == [1, 2, 3, 4]
+
+
+def test_a_stalled_loop_does_not_extrapolate_seeds_whose_epochs_wait_in_its_buffers(
+    store: RecordStore,
+) -> None:
+    """The loop stalls 1.25 s → 2.0 s (a loaded box). On waking, the seed line's task runs
+    first: the lines of the stall are stamped 2.0 s and queued ahead of the receiver's epochs
+    of the stall, which arrive stamped 2.0 s too. The seeds sown before the stall have waited
+    longer than ``pending_timeout_s`` by the stamps of the later edges, yet their epochs are
+    right behind in the queue, or still in the GNSS task's buffer when the flush runs: they
+    are interpolated, never extrapolated from the last epoch before the stall."""
+    import dataclasses
+
+    now = [MONO0 + 1.25]
+    rec = SeedRecorder(settings(), store, clock=lambda: now[0])
+    before = [(1 + i % 6, 1.0 + 0.04 * i) for i in range(6)]  # 1.0–1.2 s, before the stall
+    feed(rec, before, until=1.15)  # the epochs up to 1.1 s arrived before the stall
+    rec.flush()  # the flush tick just before the stall
+    now[0] = MONO0 + 2.0
+    for row in range(1, 7):  # the seed lines of the stall: one read, one stamp
+        rec.on_edge(SeedEdgeEvent(row, MONO0 + 2.0))
+    rec.flush()  # the flush tick runs before the GNSS task has queued the stall's epochs
+    for k in range(12, 21):  # 1.2–2.0 s: arrive on waking, stamped 2.0 s
+        epoch = epoch_from_pose(DRIVE.pose_at(k * 0.1), FRAME)
+        rec.on_epoch(dataclasses.replace(epoch, t_mono=MONO0 + 2.0))
+    now[0] = MONO0 + 2.5
+    records = rec.flush()
+    assert len(records) == len(before)  # the stall's own seeds wait for the epochs after 2.0 s
+    assert not [r for r in records if r.extrapolated]
+    assert rec.positioner.stats.extrapolated == 0
+    assert {r.row for r in records} == set(range(1, 7))
