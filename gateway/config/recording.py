@@ -156,7 +156,9 @@ class PositioningSection(Section):
     # fixed delay between a seed breaking the beam and the host stamping its edge
     seed_edge_latency_ms: float = Field(0.0, ge=0, le=1000)
     # a seed waits this long past its landing instant for the epoch that brackets it, then it
-    # is extrapolated (at most one epoch ahead) and flagged
+    # is extrapolated (at most one epoch ahead) and flagged; the daemon judges "overdue" at
+    # its previous 0.5 s flush, so a loop stall cannot extrapolate seeds whose epochs wait in
+    # its buffers (the wait is up to one flush longer in a real outage)
     pending_timeout_s: float = Field(0.5, gt=0, le=5)
     # a row's spacing restarts (None) after a gap this long: raised at the headland, stopped
     spacing_reset_gap_s: float = Field(3.0, gt=0, le=60)
