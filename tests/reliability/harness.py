@@ -57,6 +57,18 @@ def dashboard(port: int) -> contextlib.AbstractAsyncContextManager[Subscriber]:
 PYMODBUS_LINE = re.compile(r"^\S+ \S+ [A-Z]+ pymodbus[.\w]*: ")
 
 
+def _unit_nice() -> int:
+    """``Nice=`` of systemd/sowgate.service: the rows run the daemon as the unit does."""
+    unit = Path(__file__).resolve().parents[2] / "systemd" / "sowgate.service"
+    for line in unit.read_text().splitlines():
+        if line.startswith("Nice="):
+            return int(line.removeprefix("Nice="))
+    return 0
+
+
+UNIT_NICE = _unit_nice()
+
+
 class DaemonProcess:
     """``sowgate run`` in its own process, its log in ``log_path`` (appended across restarts)."""
 
@@ -79,6 +91,9 @@ class DaemonProcess:
                 "run", "--config", str(self.config),
                 env=self.env, stdout=asyncio.subprocess.DEVNULL, stderr=log,
             )
+        # at the priority the shipped unit gives it (its Nice=), as on the cab box
+        with contextlib.suppress(PermissionError, ProcessLookupError):
+            os.setpriority(os.PRIO_PROCESS, self.proc.pid, UNIT_NICE)
         self.starts += 1
 
     @property
