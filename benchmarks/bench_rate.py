@@ -29,11 +29,13 @@ The error is true mass over true area against the target.
 from __future__ import annotations
 
 import io
+import multiprocessing as mp
 import os
 import random
 import statistics
 import tempfile
 from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -769,53 +771,68 @@ def hopper_rows(crop: str, drills: list[DrillTruth], dirs: dict[int, tuple[Path,
                 seed: int) -> dict[tuple[str, ...], list[float]]:
     """Every hopper-scale row of one crop: (row, σ or case, minutes) -> rate errors %."""
     out: dict[tuple[str, ...], list[float]] = {}
-    gears = list(GEARS_KMH.values())
     for i, drill in enumerate(drills):
-        rot, spd = dirs[i]
-        for gi, kmh in [(i % len(gears), gears[i % len(gears)])]:  # one gear per drill
-            s = seed + 100 * i + gi
-            base = hopper_session(drill, [spd], None, kmh, s)
-            for m, e in base.errors.items():
-                out.setdefault(("hopper", "none", f"{m:g}"), []).append(e)
-            costly = i < N_DRILLS_COSTLY
-            for sigma in HOPPER_SIGMAS_KG:
-                if sigma != 2.0 and not costly:
-                    continue
-                r = hopper_session(drill, [spd], sigma, kmh, s)
-                for m, e in r.errors.items():
-                    out.setdefault(("hopper", f"{sigma:g}", f"{m:g}"), []).append(e)
-                    out.setdefault(("hopper_applied", f"{sigma:g}", f"{m:g}"), []).append(
+        _merge(out, hopper_drill(crop, i, drill, dirs[i], seed))
+    return out
+
+
+def _merge(into: dict[tuple[str, ...], list[float]],
+           part: dict[tuple[str, ...], list[float]]) -> None:
+    for k, v in part.items():
+        into.setdefault(k, []).extend(v)
+
+
+def hopper_drill(crop: str, i: int, drill: DrillTruth, dirs: tuple[Path, Path],
+                 seed: int) -> dict[tuple[str, ...], list[float]]:
+    """The hopper-scale rows of the ``i``-th drill of a crop (its own seeds: independent of
+    the other drills, so the draws can run in any order or process)."""
+    out: dict[tuple[str, ...], list[float]] = {}
+    gears = list(GEARS_KMH.values())
+    rot, spd = dirs
+    for gi, kmh in [(i % len(gears), gears[i % len(gears)])]:  # one gear per drill
+        s = seed + 100 * i + gi
+        base = hopper_session(drill, [spd], None, kmh, s)
+        for m, e in base.errors.items():
+            out.setdefault(("hopper", "none", f"{m:g}"), []).append(e)
+        costly = i < N_DRILLS_COSTLY
+        for sigma in HOPPER_SIGMAS_KG:
+            if sigma != 2.0 and not costly:
+                continue
+            r = hopper_session(drill, [spd], sigma, kmh, s)
+            for m, e in r.errors.items():
+                out.setdefault(("hopper", f"{sigma:g}", f"{m:g}"), []).append(e)
+                out.setdefault(("hopper_applied", f"{sigma:g}", f"{m:g}"), []).append(
+                    float(r.applied[m]))
+        if crop == "wheat" and costly:
+            for key, _label, dist in HOPPER_SENSITIVITY:
+                r = hopper_session(drill, [spd], 2.0, kmh, s, disturbances=dist)
+                for m in HOPPER_SENSITIVITY_MARKS:
+                    out.setdefault(("sens", key, f"{m:g}"), []).append(r.errors[m])
+                    out.setdefault(("sens_applied", key, f"{m:g}"), []).append(
                         float(r.applied[m]))
-            if crop == "wheat" and costly:
-                for key, _label, dist in HOPPER_SENSITIVITY:
-                    r = hopper_session(drill, [spd], 2.0, kmh, s, disturbances=dist)
-                    for m in HOPPER_SENSITIVITY_MARKS:
-                        out.setdefault(("sens", key, f"{m:g}"), []).append(r.errors[m])
-                        out.setdefault(("sens_applied", key, f"{m:g}"), []).append(
-                            float(r.applied[m]))
-            for case, prog, during in (("drift", 1.0, False), ("drift_during", 0.0, True)):
-                both = hopper_session(drill, [rot, spd], 2.0, kmh, s, progress=prog,
-                                      drift_during=during)
-                alone = hopper_session(drill, [rot, spd], None, kmh, s, progress=prog,
-                                       drift_during=during)
-                for m in HOPPER_MARKS_MIN:
-                    out.setdefault((case, "both", f"{m:g}"), []).append(both.errors[m])
-                    out.setdefault((case, "rotation", f"{m:g}"), []).append(alone.errors[m])
-            if crop == "wheat":
-                # issue 25: 5 % drift during the run; a drill 26 % off its model
-                sign = 1.0 if drill.lot_drift >= 0 else -1.0
-                d5 = replace(drill, lot_drift=sign * HOPPER_DRIFT_DURING)
-                both = hopper_session(d5, [rot, spd], 2.0, kmh, s, drift_during=True)
-                alone = hopper_session(d5, [rot, spd], None, kmh, s, drift_during=True)
-                off = replace(drill, discharge_factor=drill.discharge_factor * HOPPER_OFF_MODEL)
-                far = hopper_session(off, [rot, spd], 2.0, kmh, s)
-                for m in HOPPER_MARKS_MIN:
-                    out.setdefault(("drift5", "both", f"{m:g}"), []).append(both.errors[m])
-                    out.setdefault(("drift5", "rotation", f"{m:g}"), []).append(
-                        alone.errors[m])
-                    out.setdefault(("off26", "err", f"{m:g}"), []).append(far.errors[m])
-                    out.setdefault(("off26", "alarm", f"{m:g}"), []).append(
-                        float(far.out_of_range[m]))
+        for case, prog, during in (("drift", 1.0, False), ("drift_during", 0.0, True)):
+            both = hopper_session(drill, [rot, spd], 2.0, kmh, s, progress=prog,
+                                  drift_during=during)
+            alone = hopper_session(drill, [rot, spd], None, kmh, s, progress=prog,
+                                   drift_during=during)
+            for m in HOPPER_MARKS_MIN:
+                out.setdefault((case, "both", f"{m:g}"), []).append(both.errors[m])
+                out.setdefault((case, "rotation", f"{m:g}"), []).append(alone.errors[m])
+        if crop == "wheat":
+            # issue 25: 5 % drift during the run; a drill 26 % off its model
+            sign = 1.0 if drill.lot_drift >= 0 else -1.0
+            d5 = replace(drill, lot_drift=sign * HOPPER_DRIFT_DURING)
+            both = hopper_session(d5, [rot, spd], 2.0, kmh, s, drift_during=True)
+            alone = hopper_session(d5, [rot, spd], None, kmh, s, drift_during=True)
+            off = replace(drill, discharge_factor=drill.discharge_factor * HOPPER_OFF_MODEL)
+            far = hopper_session(off, [rot, spd], 2.0, kmh, s)
+            for m in HOPPER_MARKS_MIN:
+                out.setdefault(("drift5", "both", f"{m:g}"), []).append(both.errors[m])
+                out.setdefault(("drift5", "rotation", f"{m:g}"), []).append(
+                    alone.errors[m])
+                out.setdefault(("off26", "err", f"{m:g}"), []).append(far.errors[m])
+                out.setdefault(("off26", "alarm", f"{m:g}"), []).append(
+                    float(far.out_of_range[m]))
     return out
 
 
@@ -1018,6 +1035,77 @@ def scale_resolution_table() -> str:
     return "\n".join(lines)
 
 
+@dataclass
+class Draw:
+    """Everything one truth drill (one draw) contributes to the tables."""
+
+    per_draw: dict[tuple[str, ...], float]
+    drill_row: str
+    speed_live: float
+    speed_logged: float
+    attempts: list[int]
+    hopper: dict[tuple[str, ...], list[float]]
+    drive: list[tuple[str, float, float]]  # (filter, rate error %, waste g): first 3 drills
+
+
+def run_draw(ci: int, crop: str, i: int, root: Path) -> Draw:
+    """One draw: the drill's calibrations, its runs, surface, hopper and field-drive rows.
+
+    Every random stream here is seeded from (crop, i) alone and the drill's calibrations
+    live in its own directories under ``root``, so draws are independent: they run in any
+    order, in any process, with the same figures."""
+    drills = field_drills(crop, N_DRILLS, seed=13)
+    drill = drills[i]
+    gears = list(GEARS_KMH.values())
+    seed = 1000 * (ci + 1) + i
+    s = build_session(drill, seed, root, costly=i < N_DRILLS_COSTLY)
+    res = run_session(drill, s, seed)
+    assert s.speed_cal is not None
+    # one figure per draw: the drill's mean error over its runs
+    per_draw = {k: statistics.fmean(v) for k, v in res.items()}
+    dirs = (root / f"{crop}-{seed}-rot", root / f"{crop}-{seed}-speed")
+    per_draw.update(surface_rows(drill, list(dirs), gears[i % len(gears)], seed))
+    row = (
+        f"| {crop} {i + 1} | {drill.discharge_factor - 1:+.1%} | "
+        f"{getattr(drill.curve, 'knee', 0.0):.1%} | "
+        f"{drill.motor_slope:.4f} | {drill.motor_offset_rpm:+.2f} | "
+        f"{drill.motor_saturation_rpm:.0f} / {drill.motor_slip:.1%} | "
+        f"{drill.radar_bias:+.1%} | {s.speed_cal.live_err_pct:+.2f} | "
+        f"{per_draw[('main', 'none')]:+.2f} | "
+        f"{per_draw[('main', 'both')]:+.2f} |"
+    )
+    # the hopper scale: its own sessions on the same drill and calibrations
+    hopper = hopper_drill(crop, i, drill, dirs, seed=50_000 * (ci + 1))
+    # the field drive: both filters on the first three calibrated drills
+    drive = []
+    if i < 3:
+        for filt in ("mean", "trend"):
+            e, w = field_drive(filt, drill, list(dirs), seed=7 + i)
+            drive.append((filt, e, w))
+    return Draw(per_draw, row, s.speed_cal.live_err_pct, s.speed_cal.samples_err_pct,
+                s.rotation_attempts, hopper, drive)
+
+
+def _workers() -> int:
+    """Processes for the draws: ``SOWGATE_BENCH_WORKERS`` (default 2, the in-cab computer's
+    cores and the quiet-machine budget of a full run; 1 runs them in this process)."""
+    return max(1, int(os.environ.get("SOWGATE_BENCH_WORKERS", "2")))
+
+
+def run_draws(root: Path) -> dict[tuple[int, int], Draw]:
+    """Every (crop, drill) draw, in a pool of ``_workers()`` processes. The costly draws
+    (ten rotation tests each) are handed out first so the pool ends together."""
+    jobs = [(ci, crop, i) for ci, crop in enumerate(CROPS) for i in range(N_DRILLS)]
+    jobs.sort(key=lambda j: (j[2] >= N_DRILLS_COSTLY, j[2], j[0]))
+    n = _workers()
+    if n == 1:
+        return {(ci, i): run_draw(ci, crop, i, root) for ci, crop, i in jobs}
+    # fork: the workers inherit the imported modules (and the environment's draw count)
+    with ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("fork")) as pool:
+        futures = {(ci, i): pool.submit(run_draw, ci, crop, i, root) for ci, crop, i in jobs}
+        return {k: f.result() for k, f in futures.items()}
+
+
 def run() -> dict[str, object]:
     summary: dict[str, object] = {}
     errs: dict[tuple[str, ...], list[float]] = {}
@@ -1028,48 +1116,24 @@ def run() -> dict[str, object]:
     speed_logged: list[float] = []
     attempts: list[int] = []
     with tempfile.TemporaryDirectory(prefix="bench_rate-") as tmp:
-        root = Path(tmp)
-        for ci, crop in enumerate(CROPS):
-            drills = field_drills(crop, N_DRILLS, seed=13)
-            gears = list(GEARS_KMH.values())
-            for i, drill in enumerate(drills):
-                seed = 1000 * (ci + 1) + i
-                s = build_session(drill, seed, root, costly=i < N_DRILLS_COSTLY)
-                res = run_session(drill, s, seed)
-                assert s.speed_cal is not None
-                speed_live.append(s.speed_cal.live_err_pct)
-                speed_logged.append(s.speed_cal.samples_err_pct)
-                attempts += s.rotation_attempts
-                # one figure per draw: the drill's mean error over its runs
-                per_draw = {k: statistics.fmean(v) for k, v in res.items()}
-                per_draw.update(surface_rows(
-                    drill, [root / f"{crop}-{seed}-rot", root / f"{crop}-{seed}-speed"],
-                    gears[i % len(gears)], seed))
-                for k, e in per_draw.items():
-                    errs.setdefault(k, []).append(e)
-                    by_crop[crop].setdefault(k, []).append(e)
-                drill_rows.append(
-                    f"| {crop} {i + 1} | {drill.discharge_factor - 1:+.1%} | "
-                    f"{getattr(drill.curve, 'knee', 0.0):.1%} | "
-                    f"{drill.motor_slope:.4f} | {drill.motor_offset_rpm:+.2f} | "
-                    f"{drill.motor_saturation_rpm:.0f} / {drill.motor_slip:.1%} | "
-                    f"{drill.radar_bias:+.1%} | {s.speed_cal.live_err_pct:+.2f} | "
-                    f"{per_draw[('main', 'none')]:+.2f} | "
-                    f"{per_draw[('main', 'both')]:+.2f} |"
-                )
-            # the hopper scale: its own sessions on the same drills and calibrations
-            hopper_errs[crop] = hopper_rows(crop, drills, {
-                i: (root / f"{crop}-{1000 * (ci + 1) + i}-rot",
-                    root / f"{crop}-{1000 * (ci + 1) + i}-speed")
-                for i in range(len(drills))}, seed=50_000 * (ci + 1))
-            # the field drive: both filters on three calibrated drills
-            for i, drill in enumerate(drills[:3]):
-                dirs = [root / f"{crop}-{1000 * (ci + 1) + i}-rot",
-                        root / f"{crop}-{1000 * (ci + 1) + i}-speed"]
-                for filt in ("mean", "trend"):
-                    e, w = field_drive(filt, drill, dirs, seed=7 + i)
-                    errs.setdefault(("drive", crop, filt), []).append(e)
-                    errs.setdefault(("drive_waste", crop, filt), []).append(w)
+        draws = run_draws(Path(tmp))
+    # gathered in the order a single process ran them: crop by crop, drill by drill
+    for ci, crop in enumerate(CROPS):
+        hopper_errs[crop] = {}
+        for i in range(N_DRILLS):
+            dr = draws[(ci, i)]
+            speed_live.append(dr.speed_live)
+            speed_logged.append(dr.speed_logged)
+            attempts += dr.attempts
+            for k, e in dr.per_draw.items():
+                errs.setdefault(k, []).append(e)
+                by_crop[crop].setdefault(k, []).append(e)
+            drill_rows.append(dr.drill_row)
+            _merge(hopper_errs[crop], dr.hopper)
+        for i in range(min(3, N_DRILLS)):
+            for filt, e, w in draws[(ci, i)].drive:
+                errs.setdefault(("drive", crop, filt), []).append(e)
+                errs.setdefault(("drive_waste", crop, filt), []).append(w)
 
     n_main = len(errs[("main", "none")])
     parts = [
