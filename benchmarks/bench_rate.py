@@ -1100,8 +1100,10 @@ def run_draws(root: Path) -> dict[tuple[int, int], Draw]:
     n = _workers()
     if n == 1:
         return {(ci, i): run_draw(ci, crop, i, root) for ci, crop, i in jobs}
-    # fork: the workers inherit the imported modules (and the environment's draw count)
-    with ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("fork")) as pool:
+    # spawn, not fork: ``python -m benchmarks`` runs this under a progress bar's thread, and
+    # a forked child could inherit a lock that thread holds; the workers import this module
+    # afresh (the draw count comes with the environment)
+    with ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn")) as pool:
         futures = {(ci, i): pool.submit(run_draw, ci, crop, i, root) for ci, crop, i in jobs}
         return {k: f.result() for k, f in futures.items()}
 
