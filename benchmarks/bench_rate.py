@@ -602,7 +602,9 @@ def surface_markdown(by_crop: dict[str, dict[tuple[str, ...], list[float]]],
         "",
         "What the surface itself adds (each pass minus the same pass, same draws, on the "
         "surface the radar was calibrated on; the rows above also hold the drill's rotation "
-        "test and speed calibration residuals):\n",
+        "test and speed calibration residuals; a surface constant over the pass adds nothing "
+        "with RTK learning by construction, as the learnt ratios scale with it: the learner's "
+        "own error is in the speed table below):\n",
         "| surface | " + " | ".join(f"{who}: {crop}" for who in ("calibrated radar", "rtk")
                                     for crop in CROPS) + " |",
         "|---" * (1 + 2 * len(CROPS)) + "|",
