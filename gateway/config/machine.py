@@ -224,8 +224,9 @@ def _radar_only() -> list[SpeedSourceName]:
 
 class RadarScaleSection(Section):
     """Learning the radar's scale against an RTK-fixed GNSS (``gateway.control.radar_scale``):
-    on straight passes at steady speed, the median of GNSS / raw radar over ``window_s``
-    replaces the radar's calibrated factor; ``radar.scale_drift`` while it is more than
+    on straight passes at steady speed, GNSS / raw radar over ``window_s`` of such driving
+    (restarted within seconds when the scale steps: another surface) replaces the radar's
+    calibrated factor; ``radar.scale_drift`` while it is more than
     ``alarm_pct`` from that factor. Needs ``[gnss]``; without an RTK-fixed fix it learns
     nothing and the calibrated factor stays."""
 
