@@ -39,29 +39,6 @@ def pytest_configure(config: pytest.Config) -> None:
             f"-n {workers} needs --dist loadfile (got --dist {dist}): the fault matrix and "
             "module fixtures expect each test file on one worker"
         )
-    # keep the collection's order (see pytest_collection_modifyitems): --no-loadscope-reorder
-    if hasattr(config.option, "loadscopereorder"):
-        config.option.loadscopereorder = False
-
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Long files first, so the two workers end together: --dist loadfile hands out whole
-    files in the collection's order, and xdist's default (--loadscope-reorder) sorts them by
-    their number of tests, most first, which sent the one-test files that take a minute (the
-    wheel's install, the hopper scale's drive) last, for one worker to run alone at the end.
-    Files with a ``slow`` test and tests/integration (the daemon against the simulated machine
-    in real time) go first; the many short files fill in behind them. Stable: each file's
-    tests stay together and in order (module fixtures are shared). xdist's reordering is
-    turned off in pytest_configure (the controller schedules; it does not collect)."""
-
-    def path(item: pytest.Item) -> str:
-        return item.nodeid.split("::", 1)[0]
-
-    long_files = {path(i) for i in items if i.get_closest_marker("slow") is not None}
-    items.sort(
-        key=lambda i: 0 if path(i) in long_files or path(i).startswith("tests/integration/")
-        else 1
-    )
 
 
 def _fd_targets() -> dict[int, str]:
