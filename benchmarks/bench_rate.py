@@ -406,9 +406,9 @@ def build_session(drill: DrillTruth, seed: int, root: Path, costly: bool = True)
         return d
 
     def rotate(truth: DrillTruth, protocol: Protocol, name: str,
-               runs: MeterRuns | None = None) -> Path:
+               runs: MeterRuns | None = None, stream: random.Random = rng) -> Path:
         d = newdir(name)
-        s.rotation_attempts.append(rotation_test(truth, model0, protocol, rng, d, runs))
+        s.rotation_attempts.append(rotation_test(truth, model0, protocol, stream, d, runs))
         return d
 
     def speedcal(truth: DrillTruth, name: str) -> tuple[Path, SpeedCalResult]:
@@ -422,7 +422,9 @@ def build_session(drill: DrillTruth, seed: int, root: Path, costly: bool = True)
     s.rotation_seconds = advised_seconds(first, crop)
     rot = root / f"{crop}-{seed}-rot"
     if s.rotation_seconds > ROTATION_SECONDS:
-        rotate(drill, Protocol(seconds=s.rotation_seconds), "rot")
+        # its own random stream: the rows after it see the same draws with or without it
+        rotate(drill, Protocol(seconds=s.rotation_seconds), "rot",
+               stream=random.Random(seed * 7919 + 1))
     else:
         shutil.copytree(first, rot)
     spd, s.speed_cal = speedcal(drill, "speed")
