@@ -25,7 +25,7 @@ from typing import Any
 
 from gateway.app.live_calibration import LiveCalibration
 from gateway.calibration import fits as cal
-from gateway.calibration import lots
+from gateway.calibration import lots, weighing
 from gateway.config import Settings
 from gateway.control.controller import Controller, ControlOutputs
 from gateway.control.work_state import Mode
@@ -134,13 +134,14 @@ class RotationTestSession:
                 f"{change:+.0f} % from the value it replaces (more than "
                 f"{cal.LARGE_CHANGE_PCT:g} %): check the masses; confirm to save anyway"
             )
+        advice = weighing.weighing_advice(duties, masses, seconds)  # paper A's ±2 g scale
         key = lots.rotation_key(crop, lot)
         entry = cal.to_entry(
             fit.result(),
             channel=crop, crop=crop, seed_lot=lot, model="paper_a", source="hmi",
             outlets_weighed=self.settings.machine.rows, outlets=self.settings.machine.rows,
             weighed_mass_g=masses, replaces=replaces, accepted_poor_fit=[],
-            accepted_large_change=large)
+            accepted_large_change=large, weighing=advice.to_entry())
         try:
             cal.CalibrationStore(self.live.state_dir).save(key, entry)
         except (cal.CalibrationError, OSError) as exc:
@@ -150,6 +151,10 @@ class RotationTestSession:
         notes = self.live.reload()
         self.runs, self.crop = [], None
         mine = [n for n in notes if crop in n]
+        if advice.short:  # the CLI says it at length (gateway.calibration.weighing)
+            log.warning("%s: %s", key, " ".join(advice.messages(crop, "{:.4g} % duty")))
+            mine.append(f"runs too short for a +-{advice.scale_g:g} g scale: "
+                        f"rotation_test_s {advice.advised_seconds:g}")
         return (f"saved {key}: R = {line.slope:.4f}K {line.intercept:+.2f}, R2 {line.r2:.3f}/"
                 f"{quad.r2:.3f}; {'; '.join(mine) or 'applied'}")
 

@@ -41,7 +41,7 @@ from rich.table import Table
 from drivers.errors import DriverError
 from gateway.calibration import drive as drive_mod
 from gateway.calibration import fits as cal
-from gateway.calibration import lots, presence
+from gateway.calibration import lots, presence, weighing
 from gateway.config import ConfigError, CropModel, Settings, load_config, state_dir
 from gateway.core.errors import GatewayError
 
@@ -107,6 +107,10 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
                    "channel's [[channel]] outlets in --config, 1 without one; paper A: all "
                    "machine.rows). g/rev is stored "
                    "per outlet; paper A's eq. 6 is scaled to the whole machine by rows/N")
+    r.add_argument("--scale-g", type=float, default=weighing.DEFAULT_SCALE_G, metavar="G",
+                   help="the scale's stated error per weighing, ± G grams (taken as one "
+                   "standard deviation; default %(default)g, paper A's): each set point's "
+                   "uncertainty and the run length it needs are worked out from it")
     r.add_argument("--accept-poor-fit", action="store_true",
                    help="save a fit that fails a quality gate (CV, R², set-point span); "
                    "logged and recorded in the entry")
@@ -566,7 +570,39 @@ def _tell_daemon(console: Console, state: Path, key: str | None) -> None:
                   "log and the calibration.* alarms).")
 
 
+def _weighing_advice(args: argparse.Namespace, console: Console, set_points: Sequence[float],
+                     weighed: Sequence[float], seconds: float,
+                     label: str) -> dict[str, object]:
+    """Each set point's weighing uncertainty on the stated scale, and what to do about the
+    ones too uncertain for the rate (``gateway.calibration.weighing``): a warning with the
+    numbers, never a refusal. Returns what the calibration entry keeps of it."""
+    advice = weighing.weighing_advice(set_points, weighed, seconds, args.scale_g)
+    lines = advice.messages(args.channel, label)
+    if lines:
+        console.print("[yellow]warning[/]: the runs were too short for this scale:")
+        for line in lines:
+            console.print(f"  - {line}", highlight=False)
+    elif advice.set_points:
+        worst = max(advice.set_points, key=lambda p: p.se_pct)
+        console.print(
+            f"weighing: every set point's mean within ±{advice.target_pct:g} % on a "
+            f"±{advice.scale_g:g} g scale (worst ±{worst.se_pct:.2f} % at "
+            f"{label.format(worst.set_point)})", highlight=False)
+    scattered = weighing.unexplained_scatter(set_points, weighed, args.scale_g)
+    if scattered:
+        console.print(
+            "[yellow]warning[/]: runs of one set point disagree by more than the scale "
+            "explains at "
+            + "; ".join(f"{label.format(p.set_point)} (±{p.scatter_pct:.1f} % between its "
+                        f"{p.runs} runs, the scale ±{p.scale_pct:.1f} %)" for p in scattered)
+            + ": something else differed between those runs (timing, the flow); repeat "
+            "those set points", highlight=False)
+    return advice.to_entry()
+
+
 def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
+    if not args.scale_g > 0:  # before the runs, not after twenty minutes of them
+        raise cal.CalibrationError(f"--scale-g must be > 0 g (got {args.scale_g:g})")
     settings = _settings(args)
     _check_rotation_target(settings, args.channel, args.model)
     outlets = _outlets(args, settings)
@@ -619,6 +655,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
             "residual g/min per outlet"), rows))
         console.print(f"g/rev = {fit.grams_per_rev:.2f}  CV {fit.cv_pct:.2f} %  R² {fit.r2:.4f}")
         console.print(f"{fit.grams_per_rev:.2f} g/rev per outlet ({outlets.describe()})")
+        advice = _weighing_advice(args, console, speeds, weighed, seconds, "{:.4g} r/min")
         problems = cal.grams_per_rev_problems(fit)
         by_speed = cal.grams_per_rev_by_speed(runs)
         if by_speed is not None:
@@ -640,7 +677,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
             result, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
             outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
             replaces=replaces, accepted_poor_fit=problems,
-            accepted_large_change=large))
+            accepted_large_change=large, weighing=advice))
         _activate_lot(console, store, settings, args.channel, lot)
         _saved(console, key, f"{fit.grams_per_rev:.2f} g/rev per outlet", store.path.parent)
         return EXIT_OK
@@ -697,14 +734,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
             + "".join(f"; set points {', '.join(f'{k:g}' for k in grp)} pooled: their "
                       "difference is within the noise" for grp in meter_own.pooled)
             + ")")
-    vague = cal.imprecise_set_points(duties, rates)
-    if vague:
-        console.print(
-            "[yellow]warning[/]: the weighings scatter more than the rate can take at duty "
-            + "; ".join(f"{v.set_point:g} % (mean known to ±{v.se_pct:.1f} % from {v.runs} "
-                        f"runs: {v.runs_needed} needed)" for v in vague)
-            + f"; repeat those set points, run them longer or weigh on a finer scale to get "
-            f"each under ±{cal.SET_POINT_SE_LIMIT_PCT:g} %")
+    advice = _weighing_advice(args, console, duties, weighed, seconds, "{:.4g} % duty")
     problems = pfit.problems
     _check_quality(problems, args, console)
     previous_a = _previous_paper_a(store, settings, args.channel, lot)
@@ -729,7 +759,7 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         channel=args.channel, crop=crop or args.channel, seed_lot=lot, model="paper_a",
         outlets_weighed=outlets.weighed,
         outlets=outlets.total, weighed_mass_g=weighed, replaces=replaces_a,
-        accepted_poor_fit=problems, accepted_large_change=large))
+        accepted_poor_fit=problems, accepted_large_change=large, weighing=advice))
     _activate_lot(console, store, settings, args.channel, lot)
     _saved(console, key, "eq. 5 and eq. 6 for the whole machine", store.path.parent)
     return EXIT_OK

@@ -60,7 +60,9 @@ async def test_a_rotation_test_from_the_touchscreen_is_run_fitted_and_applied(
         for duty in DUTIES:
             await one_run(rig, duty)
         hmi.rotation_test("save")
-        await hmi.wait_text("t_msg", lambda s: s.startswith("saved rotation.wheat"))
+        saved = await hmi.wait_text("t_msg", lambda s: s.startswith("saved rotation.wheat"))
+        # 1 s runs catch 30-60 g: too short on paper A's ±2 g scale; the screen (ASCII) says so
+        assert "runs too short for a +-2 g scale: rotation_test_s 30" in saved
         wheat = rig.daemon.controller.crop_model
         assert wheat.motor_slope == pytest.approx(0.70, rel=0.01)
         assert wheat.meter_b == pytest.approx(132.212, rel=0.02)
@@ -68,6 +70,7 @@ async def test_a_rotation_test_from_the_touchscreen_is_run_fitted_and_applied(
         assert entry is not None and entry["source"] == "hmi"
         assert (entry["crop"], entry["seed_lot"]) == ("wheat", "default")
         assert entry["outlets_weighed"] == rig.daemon.settings.machine.rows
+        assert entry["weighing"]["advised_seconds"] > SECONDS
 
 
 async def test_stop_ends_a_run_at_once_and_work_cannot_start_one(tmp_path: Path) -> None:

@@ -1,0 +1,175 @@
+"""What the rotation test's scale can tell, and how long the runs must be for it (issue 25 §3).
+
+A rotation test's catch is weighed once per run on a scale of stated error ±σ (one standard
+deviation). That error is per weighing: it does not shrink with the run, so a set point's
+relative uncertainty is σ / catch, and over ``n`` runs of the same set point σ / (catch · √n).
+A run twice as long halves it; twice the runs only divide it by √2 — longer runs, not more of
+them, are what a small catch needs (rapeseed: 25–150 g in 60 s on a ±2 g scale, 1.5–8 % a
+weighing; ``benchmarks/bench_rate.py``: 3 × 60 s leaves rapeseed at ~1.7 % rate error p90,
+3 × 180 s at ~0.6 %).
+
+``weighing_advice`` works from the numbers in front of the CLI (set points, weighed masses, run
+length, the scale's σ) and from nothing about the drill: for each set point its uncertainty and
+the run length (at the same number of runs) that brings it to ``SET_POINT_SE_LIMIT_PCT``, or
+the scale that would do at the current length. It advises, it never refuses: the readings
+can be consistent and still too small for the rate wanted.
+
+``unexplained_scatter`` is the other question: repeats of a set point that disagree by more
+than the scale explains are not weighing noise (timing, a bridging hopper, a leak): those set
+points are to be repeated, whatever the scale.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from gateway.calibration.fits import SET_POINT_SE_LIMIT_PCT
+
+# paper A weighs each catch on a scale of ±2 g (taken as one standard deviation)
+DEFAULT_SCALE_G = 2.0
+# advised run lengths are rounded up to this (a stopwatch figure a farmer can keep)
+ROUND_SECONDS = 30.0
+# scales one can buy: the advice names the coarsest of these that would do
+SCALE_STEPS_G = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0)
+# repeats whose scatter is beyond this many times what the scale explains are not weighing
+# noise. With 3 runs the sample SD's square is σ²·χ²₂/2: P(> 2² times) = e⁻⁴ ≈ 2 % per set
+# point when the scale is all there is.
+SCATTER_FACTOR = 2.0
+
+
+@dataclass(frozen=True)
+class SetPointWeighing:
+    """One set point's weighing: its catches, their uncertainty, the run that would do."""
+
+    set_point: float
+    runs: int
+    mean_mass_g: float  # mean catch per run (what was on the scale)
+    per_weighing_pct: float  # σ / catch
+    se_pct: float  # of its mean over its runs: per_weighing_pct / √runs
+    seconds_needed: float  # run length for se_pct <= the target at the same runs (rounded up)
+    scale_needed_g: float  # the coarsest usual scale that would do at the current length
+
+
+@dataclass(frozen=True)
+class WeighingAdvice:
+    scale_g: float
+    seconds: float
+    target_pct: float
+    set_points: tuple[SetPointWeighing, ...]
+
+    @property
+    def short(self) -> tuple[SetPointWeighing, ...]:
+        """The set points whose runs were too short for the target on this scale."""
+        return tuple(p for p in self.set_points if p.se_pct > self.target_pct)
+
+    @property
+    def advised_seconds(self) -> float:
+        """The run length that brings every set point to the target (the current one when
+        it already does)."""
+        return max([self.seconds] + [p.seconds_needed for p in self.short])
+
+    def messages(self, what: str, label: str = "{:g}") -> list[str]:
+        """The advice as sentences, one per short set point, then what to do.
+
+        ``what``: the channel or crop (``rapeseed``); ``label``: how a set point is said
+        (``"{:g} % duty"``)."""
+        short = self.short
+        if not short:
+            return []
+        out = []
+        for p in short:
+            over = (f" (±{p.se_pct:.1f} % over its {p.runs} runs)" if p.runs > 1 else "")
+            out.append(
+                f"{what} at {label.format(p.set_point)}: {p.mean_mass_g:.3g} g in "
+                f"{self.seconds:g} s on a ±{self.scale_g:g} g scale is "
+                f"±{p.per_weighing_pct:.1f} %{over}; run this set point for at least "
+                f"{p.seconds_needed:g} s (or weigh on a ±{p.scale_needed_g:g} g scale)")
+        names = ", ".join(label.format(p.set_point) for p in short)
+        out.append(
+            f"each set point's mean is to be within ±{self.target_pct:g} % for the rate to "
+            f"land within 1 %: run the test again with --seconds {self.advised_seconds:g} "
+            f"(the longest needed above, for {names}; as many runs per set point as now). "
+            "Longer runs, not more of them: the scale's error is per weighing, so a run twice "
+            "as long halves it and twice the runs only divide it by 1.4")
+        return out
+
+    def to_entry(self) -> dict[str, object]:
+        """What calibration.json keeps of it (so a later look, or a script, knows what was
+        advised)."""
+        return {"scale_g": self.scale_g, "seconds": self.seconds,
+                "target_pct": self.target_pct, "advised_seconds": self.advised_seconds,
+                "short_set_points": [p.set_point for p in self.short],
+                "se_pct": {f"{p.set_point:g}": round(p.se_pct, 3) for p in self.set_points}}
+
+
+def _round_up(seconds: float) -> float:
+    return ROUND_SECONDS * math.ceil(seconds / ROUND_SECONDS - 1e-9)
+
+
+def _scale_for(scale_g: float, se_pct: float, target_pct: float) -> float:
+    need = scale_g * target_pct / se_pct
+    fit = [s for s in SCALE_STEPS_G if s <= need * (1 + 1e-9)]
+    return fit[-1] if fit else SCALE_STEPS_G[0]
+
+
+def weighing_advice(set_points: Sequence[float], masses_g: Sequence[float], seconds: float,
+                    scale_g: float = DEFAULT_SCALE_G,
+                    target_pct: float = SET_POINT_SE_LIMIT_PCT) -> WeighingAdvice:
+    """Each set point's relative weighing uncertainty from the scale's σ and its catches,
+    and the run length that brings it to ``target_pct`` (see the module docstring).
+
+    ``masses_g``: what was on the scale for each run (in run order, ``set_points`` giving
+    each run's set point); ``seconds``: the runs' length."""
+    if len(set_points) != len(masses_g):
+        raise ValueError(f"{len(set_points)} set points for {len(masses_g)} masses")
+    if not (scale_g > 0 and seconds > 0 and target_pct > 0):
+        raise ValueError("scale σ, run length and target must be positive")
+    by_key: dict[float, list[float]] = {}
+    for k, m in zip(set_points, masses_g, strict=True):
+        by_key.setdefault(float(k), []).append(float(m))
+    points = []
+    for k, ms in sorted(by_key.items()):
+        mean = statistics.fmean(ms)
+        if mean <= 0:  # nothing caught: no uncertainty to speak of, the fit says the rest
+            continue
+        per = scale_g / mean * 100.0
+        se = per / math.sqrt(len(ms))
+        # the catch grows with the run, the scale's error does not: se ∝ 1 / seconds
+        needed = _round_up(seconds * se / target_pct) if se > target_pct else seconds
+        points.append(SetPointWeighing(k, len(ms), mean, per, se, needed,
+                                       _scale_for(scale_g, se, target_pct)))
+    return WeighingAdvice(scale_g, seconds, target_pct, tuple(points))
+
+
+@dataclass(frozen=True)
+class ScatteredSetPoint:
+    set_point: float
+    runs: int
+    scatter_pct: float  # the runs' own SD, % of their mean
+    scale_pct: float  # what the scale explains of it (σ / mean catch), %
+
+
+def unexplained_scatter(set_points: Sequence[float], masses_g: Sequence[float],
+                        scale_g: float = DEFAULT_SCALE_G,
+                        target_pct: float = SET_POINT_SE_LIMIT_PCT,
+                        factor: float = SCATTER_FACTOR) -> list[ScatteredSetPoint]:
+    """The repeated set points whose mean is known to worse than ``target_pct`` from their
+    runs' own scatter, a scatter more than ``factor`` times the scale's error: something other
+    than weighing differs between their runs (timing, flow); repeat them. (Wheat's runs scatter
+    by ~0.5 % of a kilogram catch from the operator's timing: beyond the scale, but its mean
+    is within the target, so not named.)"""
+    by_key: dict[float, list[float]] = {}
+    for k, m in zip(set_points, masses_g, strict=True):
+        by_key.setdefault(float(k), []).append(float(m))
+    out = []
+    for k, ms in sorted(by_key.items()):
+        mean = statistics.fmean(ms)
+        if len(ms) < 2 or mean <= 0:
+            continue
+        sd = statistics.stdev(ms)
+        if sd > factor * scale_g and sd / mean / math.sqrt(len(ms)) * 100.0 > target_pct:
+            out.append(ScatteredSetPoint(k, len(ms), sd / mean * 100.0, scale_g / mean * 100.0))
+    return out
