@@ -62,15 +62,19 @@ WATERMARK_REFRESH_S = 5.0
 # Back-pressure (docs/farm-server.md). Ingest acknowledges a QoS 1 message once its records
 # are queued (not on receipt, paho's default), and reads nothing while ``max_queued_rows``
 # wait for the database (or are being committed). MQTT 5 Receive Maximum: the broker sends
-# at most this many messages ingest has not acknowledged, and keeps the rest. Received and not
-# read yet, ingest keeps at most UNREAD_MAXIMUM messages: mosquitto 2.0.11 (Debian 12) lets
-# more than the Receive Maximum through once acknowledgements have come (measured: 4
-# PUBACKs let 15 more in past a maximum of 5), so past this bound a message is acknowledged
-# and dropped, counted as ``queue_full``: not lost, since no watermark covers its records and
-# the cab publishes them again. Memory: max_queued_rows rows (≈ 0.3 kB each) plus at most
-# UNREAD_MAXIMUM payloads.
+# at most this many messages ingest has not acknowledged, and keeps the rest. But mosquitto
+# 2.0.11 (Debian 12) lets more than the Receive Maximum through once acknowledgements have
+# come (measured: 4 PUBACKs let 15 more in past a maximum of 5), so ingest also stops reading
+# its socket when UNREAD_MAXIMUM messages are received and not read yet (TCP's flow control
+# then holds the broker), and reads it again below UNREAD_RESUME. Nothing is dropped; memory
+# is max_queued_rows rows (≈ 0.3 kB each) plus UNREAD_MAXIMUM payloads (and the few more one
+# read of the socket may bring: paho reads a packet more for each of its own in flight).
+# A socket not read for longer than the keepalive ends the connection: with the database away
+# that long, ingest reconnects, and what was in flight is published again by the cabs, as
+# after any lost connection.
 RECEIVE_MAXIMUM = 32
 UNREAD_MAXIMUM = 64
+UNREAD_RESUME = 16
 PAUSE_LOG_INTERVAL_S = 10.0
 
 
@@ -97,6 +101,7 @@ class IngestStats:
     paused_s: float = 0.0
     peak_queued_rows: int = 0
     peak_unread_messages: int = 0
+    socket_pauses: int = 0  # times the socket was not read at UNREAD_MAXIMUM messages
 
 
 def gap_text(machine_id: str, gaps: list[tuple[int, int]]) -> str:
@@ -317,9 +322,7 @@ class Ingest:
             self.committed[result.machine_id] = result
             self._log_gaps(result)
         if client is not None and done:
-            # every machine's watermark at once: one broker round trip a flush, not one per
-            # machine (each is one topic, and a flush publishes it once; the next flush only
-            # starts after these PUBACKs, so a machine's watermarks never overtake)
+            # every machine's watermark at once, not waiting for PUBACKs (_publish_watermark)
             await asyncio.gather(*(self._publish_watermark(client, r) for r in done))
 
     def _log_gaps(self, result: Committed) -> None:
@@ -372,8 +375,15 @@ class Ingest:
                 await self._publish_watermark(client, result)
 
     async def _publish_watermark(self, client: aiomqtt.Client, result: Committed) -> None:
-        await client.publish(f"{self.prefix}/{result.machine_id}/ingested",
-                             self.watermark_payload(result), qos=1, retain=True)
+        """QoS 1 and retained, handed to paho without waiting for the PUBACK: ingest may have
+        stopped reading its socket (back-pressure), and a flush must not wait on that. The
+        broker takes one connection's publishes in order, so a machine's watermarks never
+        overtake; a lost one is published again (every WATERMARK_REFRESH_S, and at connect)."""
+        info = client._client.publish(
+            f"{self.prefix}/{result.machine_id}/ingested", self.watermark_payload(result),
+            qos=1, retain=True)
+        if info.rc != 0:
+            raise aiomqtt.MqttCodeError(info.rc, "could not publish the watermark")
         self.stats.watermarks_published += 1
 
     # -- the MQTT session ----------------------------------------------------------------------
@@ -415,21 +425,48 @@ class Ingest:
         properties = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
         properties.ReceiveMaximum = RECEIVE_MAXIMUM
         ingest = self
+        loop = asyncio.get_running_loop()
+        paused_fd: list[int] = []  # the socket ingest stopped reading, if it did
+
+        def read_socket() -> None:
+            """aiomqtt's own socket reader (``Client._on_socket_open``), registered again
+            when ingest reads its socket again."""
+            try:
+                while True:
+                    paho.loop_read()
+                    pending = getattr(paho.socket(), "pending", None)
+                    if pending is not None and pending() > 0:  # TLS
+                        continue
+                    break
+            except Exception as exc:
+                if not client._disconnected.done():
+                    client._disconnected.set_exception(exc)
+
+        def pause_socket() -> None:
+            sock = paho.socket()
+            if paused_fd or sock is None:
+                return
+            paused_fd.append(sock.fileno())
+            loop.remove_reader(paused_fd[0])
+            ingest.stats.socket_pauses += 1
+
+        def resume_socket() -> None:
+            if paused_fd:
+                fd = paused_fd.pop()
+                sock = paho.socket()
+                if sock is not None and sock.fileno() == fd:
+                    loop.add_reader(fd, read_socket)
 
         class Received(asyncio.Queue[aiomqtt.Message]):
-            """aiomqtt's queue of messages received and not read yet: at most UNREAD_MAXIMUM;
-            past that a message is acknowledged and dropped (``queue_full``)."""
+            """aiomqtt's queue of messages received and not read yet: at UNREAD_MAXIMUM the
+            socket is not read any more (see UNREAD_MAXIMUM)."""
 
             def put_nowait(self, item: aiomqtt.Message) -> None:
-                if self.qsize() >= UNREAD_MAXIMUM:
-                    if item.qos:
-                        paho.ack(item.mid, item.qos)
-                    ingest._reject("queue_full", f"{self.qsize()} messages not read yet, "
-                                   f"{ingest._rows + ingest._committing} rows queued")
-                    return
                 super().put_nowait(item)
                 stats = ingest.stats
                 stats.peak_unread_messages = max(stats.peak_unread_messages, self.qsize())
+                if self.qsize() >= UNREAD_MAXIMUM:
+                    pause_socket()
 
         client = mqtt_client(self.mqtt, self.client_id, protocol=aiomqtt.ProtocolVersion.V5,
                              properties=properties, queue_type=Received)
@@ -455,6 +492,8 @@ class Ingest:
                     self.accept(message.topic.value, payload)
                     if message.qos:
                         paho.ack(message.mid, message.qos)
+                    if paused_fd and len(client.messages) < UNREAD_RESUME:
+                        resume_socket()
 
     def unread_messages(self) -> int:
         """Messages received from the broker and not read (so not acknowledged) yet."""

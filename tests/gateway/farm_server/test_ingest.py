@@ -268,14 +268,14 @@ async def test_a_flood_while_the_database_is_away_stays_bounded_and_loses_nothin
 ) -> None:
     """Back-pressure: with the database away, ingest queues at most ``max_queued_rows`` (and
     one batch over), then reads nothing more and acknowledges nothing more; the broker keeps
-    what it does not send, and what it sends anyway past UNREAD_MAXIMUM is dropped and counted
-    (mosquitto 2.0.11 lets more through than the Receive Maximum). Once the database is back
-    and the cab has published again what no watermark covers, every record is committed
-    exactly once."""
+    what it does not send, and past UNREAD_MAXIMUM messages received and not read ingest does
+    not read its socket (mosquitto 2.0.11 lets more through than the Receive Maximum). Once the
+    database is back (and the cab has published again what no watermark covers, were anything
+    lost) every record is committed exactly once."""
     from gateway.farm_server.ingest import RECEIVE_MAXIMUM, UNREAD_MAXIMUM
     from tests.gateway.farm_server.conftest import database_away
 
-    batches, per, cap = 80, 500, 1000  # 40 000 records, 2.5 x RECEIVE_MAXIMUM messages
+    batches, per, cap = 160, 500, 1000  # 80 000 records, 5 x RECEIVE_MAXIMUM messages
 
     async def publish_uncovered(client: aiomqtt.Client, seen: dict[str, dict[str, object]]
                                 ) -> None:
@@ -297,7 +297,8 @@ async def test_a_flood_while_the_database_is_away_stays_bounded_and_loses_nothin
                              "ingest paused with its receive window full",
                              detail=lambda: (ingest.stats, ingest.unread_messages()))
             assert ingest.stats.peak_queued_rows < cap + per
-            assert ingest.stats.peak_unread_messages <= UNREAD_MAXIMUM
+            # (plus the few packets one read of the socket may bring past it)
+            assert ingest.stats.peak_unread_messages <= UNREAD_MAXIMUM + 16
             assert ingest.stats.messages <= cap // per + 1  # read: the cap's worth, no more
             assert ingest.stats.seeds_committed == 0
         finally:
@@ -309,6 +310,6 @@ async def test_a_flood_while_the_database_is_away_stays_bounded_and_loses_nothin
                          "every record committed",
                          detail=lambda: (ingest.stats, broker.log.read_text()[-2000:]))
         assert ingest.stats.peak_queued_rows < cap + per
-        assert ingest.stats.peak_unread_messages <= UNREAD_MAXIMUM
+        assert ingest.stats.peak_unread_messages <= UNREAD_MAXIMUM + 16
     assert rows(database, "SELECT count(*), count(DISTINCT id), max(id) FROM seed_records") \
         == [(batches * per, batches * per, batches * per)]
