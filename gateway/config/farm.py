@@ -185,6 +185,7 @@ class FarmServerSection(Section):
     # machines accepted: further machine ids are counted, logged and dropped
     max_machines: int = Field(1000, ge=1, le=100_000)
     max_payload_bytes: int = Field(4_000_000, ge=1024, le=64_000_000)
-    # rows waiting for the database (it is away): past this, messages are dropped and counted
-    # (queue_full); safe, because the cabs publish again what no watermark covers
+    # rows waiting for the database (≈ 0.3 kB each, as binary COPY rows): at this many ingest
+    # stops reading from the broker until a commit makes room (back-pressure; the broker keeps
+    # the rest, and the cabs publish again whatever no watermark covers)
     max_queued_rows: int = Field(1_000_000, ge=1000, le=50_000_000)

@@ -24,7 +24,6 @@ replayed id whatever its time, so no id is stored twice.
 from __future__ import annotations
 
 import logging
-import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime
@@ -34,6 +33,7 @@ from psycopg import sql
 from psycopg.rows import TupleRow
 
 from gateway.core.records import AlarmEvent, SeedRecord
+from gateway.farm_server.rows import COPY_SIGNATURE, COPY_TRAILER, SeedRows, rows_of_records
 from gateway.link.payloads import StatePayload
 from gateway.recording.id_ranges import IdRanges
 
@@ -69,13 +69,9 @@ ALARM_COLUMNS: tuple[tuple[str, str], ...] = (
 PARTITIONED = ("seed_records", "alarm_events", "state_samples")
 
 
-# what the seed COPY sends: every published field, then the point as EWKB (point type 1
-# with the SRID flag, SRID 4326, x = lon, y = lat); binary COPY hands it to geometry's own
-# binary input, so a bytea dumper carries it
-_EWKB_POINT = struct.Struct("<BIIdd")
-_EWKB_POINT_SRID = 0x20000001
+# what the seed COPY sends: every published field, then the point as EWKB; the rows come
+# ready in binary COPY format (``gateway.farm_server.rows``)
 _SEED_NAMES = sql.SQL(", ").join(sql.Identifier(n) for n, _ in SEED_COLUMNS)
-_COPY_TYPES = [kind for _, kind in SEED_COLUMNS] + ["bytea"]
 _COPY_SEEDS = sql.SQL("COPY seed_records ({}, geom) FROM STDIN (FORMAT BINARY)").format(
     _SEED_NAMES)
 _COPY_STAGING = sql.SQL("COPY seed_staging ({}, geom) FROM STDIN (FORMAT BINARY)").format(
@@ -268,9 +264,8 @@ class IngestDatabase:
     def close(self) -> None:
         self.conn.close()
 
-    def _ensure_days(self, stamps: Iterable[datetime]) -> None:
-        days = {t.astimezone(UTC).date() for t in stamps} - self._days
-        for day in sorted(days):
+    def _ensure_days(self, days: Iterable[date]) -> None:
+        for day in sorted(set(days) - self._days):
             self.conn.execute("SELECT sowgate_ensure_day(%s)", (day,))
             self.conn.commit()
             self._days.add(day)
@@ -300,6 +295,12 @@ class IngestDatabase:
 
     def write_seed_batches(self, batches: Mapping[str, Sequence[SeedRecord]],
                            pending_from: Mapping[str, int] | None = None) -> list[Committed]:
+        """``write_seed_rows`` for validated records."""
+        return self.write_seed_rows({m: rows_of_records(m, records)
+                                     for m, records in batches.items()}, pending_from)
+
+    def write_seed_rows(self, batches: Mapping[str, SeedRows],
+                        pending_from: Mapping[str, int] | None = None) -> list[Committed]:
         """Commit, in one transaction, the records each machine's coverage lacks; return each
         machine's coverage after (in machine id order). All or nothing.
 
@@ -309,9 +310,9 @@ class IngestDatabase:
         machines = sorted(batches)
         if not machines:
             return []
-        uniques = {m: {r.id: r for r in batches[m]} for m in machines}
+        uniques = {m: dict(zip(batches[m].ids, batches[m].rows, strict=True)) for m in machines}
         pending = {m: (pending_from or {}).get(m, 0) for m in machines}
-        self._ensure_days(r.utc for u in uniques.values() for r in u.values())
+        self._ensure_days(d for m in machines for d in batches[m].days)
         try:
             covered, void, fresh = self._write_seeds(machines, uniques, pending, staging=False)
         except psycopg.errors.UniqueViolation:
@@ -323,7 +324,7 @@ class IngestDatabase:
         return [Committed(m, list(covered[m]), fresh[m], len(batches[m]) - fresh[m],
                           list(void[m])) for m in machines]
 
-    def _write_seeds(self, machines: list[str], uniques: dict[str, dict[int, SeedRecord]],
+    def _write_seeds(self, machines: list[str], uniques: dict[str, dict[int, bytes]],
                      pending: dict[str, int], *, staging: bool,
                      ) -> tuple[dict[str, IdRanges], dict[str, IdRanges], dict[str, int]]:
         """One transaction: lock the machines (advisory, in key order, so two ingest
@@ -341,7 +342,7 @@ class IngestDatabase:
             ).fetchall():
                 ranges[m].append((int(lo), int(hi)))
             covered = {m: IdRanges(ranges[m]) for m in machines}
-            fresh: dict[str, list[SeedRecord]] = {}
+            fresh: dict[str, list[bytes]] = {}
             for m in machines:
                 ids = sorted(uniques[m])
                 top = ranges[m][-1][1] if ranges[m] else 0
@@ -378,33 +379,19 @@ class IngestDatabase:
         return covered, void, {m: len(fresh[m]) for m in machines}
 
     def _copy_seeds(self, cur: psycopg.Cursor[TupleRow],
-                    fresh: Mapping[str, Sequence[SeedRecord]]) -> None:
-        """Binary COPY straight into ``seed_records``, the point as EWKB (what
-        ``ST_SetSRID(ST_MakePoint(lon, lat), 4326)`` makes): one COPY for every machine."""
+                    fresh: Mapping[str, Sequence[bytes]]) -> None:
+        """Binary COPY straight into ``seed_records``: one COPY for every machine, its rows
+        already in COPY format (the point as EWKB, what ``ST_SetSRID(ST_MakePoint(lon, lat),
+        4326)`` makes)."""
         with cur.copy(_COPY_SEEDS) as copy:
-            copy.set_types(_COPY_TYPES)
-            write = copy.write_row
-            point = _EWKB_POINT.pack
-            for machine_id, records in fresh.items():
-                for r in records:
-                    write((machine_id, r.id, r.row, r.utc, r.lat, r.lon, r.fix, r.speed_kmh,
-                           r.heading_deg, r.heading_source, r.extrapolated, r.method,
-                           r.spacing_m, r.attitude, r.roll_deg, r.pitch_deg,
-                           point(1, _EWKB_POINT_SRID, 4326, r.lon, r.lat)))
+            _write_rows(copy, fresh)
 
     def _insert_through_staging(self, cur: psycopg.Cursor[TupleRow],
-                                fresh: Mapping[str, Sequence[SeedRecord]]) -> None:
+                                fresh: Mapping[str, Sequence[bytes]]) -> None:
         cur.execute("CREATE TEMP TABLE IF NOT EXISTS seed_staging "
                     "(LIKE seed_records INCLUDING DEFAULTS) ON COMMIT DELETE ROWS")
         with cur.copy(_COPY_STAGING) as copy:
-            copy.set_types(_COPY_TYPES)
-            for machine_id, records in fresh.items():
-                for r in records:
-                    copy.write_row((
-                        machine_id, r.id, r.row, r.utc, r.lat, r.lon, r.fix, r.speed_kmh,
-                        r.heading_deg, r.heading_source, r.extrapolated, r.method,
-                        r.spacing_m, r.attitude, r.roll_deg, r.pitch_deg,
-                        _EWKB_POINT.pack(1, _EWKB_POINT_SRID, 4326, r.lon, r.lat)))
+            _write_rows(copy, fresh)
         cur.execute(_INSERT_FROM_STAGING)
 
     def coverage(self, machine_id: str) -> Committed:
@@ -435,7 +422,7 @@ class IngestDatabase:
         """Insert alarm events (unique per machine and id); returns how many were new."""
         if not events:
             return 0
-        self._ensure_days(e.utc for e in events)
+        self._ensure_days(_day(e.utc) for e in events)
         with self.conn.transaction(), self.conn.cursor() as cur:
             cur.executemany(
                 "INSERT INTO alarm_events (machine_id, id, utc, code, active, severity, "
@@ -448,7 +435,7 @@ class IngestDatabase:
     def write_states(self, states: Sequence[StatePayload]) -> None:
         if not states:
             return
-        self._ensure_days(s.utc for s in states)
+        self._ensure_days(_day(s.utc) for s in states)
         with self.conn.transaction(), self.conn.cursor() as cur:
             cur.executemany(
                 "INSERT INTO state_samples (machine_id, utc, work_state, speed_kmh, "
@@ -467,3 +454,15 @@ class IngestDatabase:
                 "ON CONFLICT (machine_id) DO UPDATE SET status = EXCLUDED.status, utc = now()",
                 (machine_id, status),
             )
+
+
+def _write_rows(copy: psycopg.Copy, fresh: Mapping[str, Sequence[bytes]]) -> None:
+    copy.write(COPY_SIGNATURE)
+    for rows in fresh.values():
+        if rows:
+            copy.write(b"".join(rows))
+    copy.write(COPY_TRAILER)
+
+
+def _day(t: datetime) -> date:
+    return t.astimezone(UTC).date()

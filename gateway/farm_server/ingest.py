@@ -33,11 +33,14 @@ from dataclasses import dataclass, field
 
 import aiomqtt
 import orjson
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
 from pydantic import ValidationError
 
 from gateway.config import FarmServerSection, MqttSection
-from gateway.core.records import AlarmEvent, SeedRecord
+from gateway.core.records import AlarmEvent
 from gateway.farm_server.db import Committed, IngestDatabase
+from gateway.farm_server.rows import RowEncoder, SeedRows, parse_seed_batch, rows_of_records
 from gateway.link.mqtt import mqtt_client
 from gateway.link.payloads import SeedBatch, StatePayload
 
@@ -56,6 +59,23 @@ SUMMARY_INTERVAL_S = 60.0  # an INFO line with the counters and the gaps
 # that sent seeds meanwhile (two ingest processes publish in any order: the retained one may be
 # the older of two, until this puts the database's newest coverage on top again)
 WATERMARK_REFRESH_S = 5.0
+# Back-pressure (docs/farm-server.md). Ingest acknowledges a QoS 1 message once its records
+# are queued (not on receipt, paho's default), and reads nothing while ``max_queued_rows``
+# wait for the database (or are being committed). MQTT 5 Receive Maximum: the broker sends
+# at most this many messages ingest has not acknowledged, and keeps the rest. But mosquitto
+# 2.0.11 (Debian 12) lets more than the Receive Maximum through once acknowledgements have
+# come (measured: 4 PUBACKs let 15 more in past a maximum of 5), so ingest also stops reading
+# its socket when UNREAD_MAXIMUM messages are received and not read yet (TCP's flow control
+# then holds the broker), and reads it again below UNREAD_RESUME. Nothing is dropped; memory
+# is max_queued_rows rows (≈ 0.3 kB each) plus UNREAD_MAXIMUM payloads (and the few more one
+# read of the socket may bring: paho reads a packet more for each of its own in flight).
+# A socket not read for longer than the keepalive ends the connection: with the database away
+# that long, ingest reconnects, and what was in flight is published again by the cabs, as
+# after any lost connection.
+RECEIVE_MAXIMUM = 32
+UNREAD_MAXIMUM = 64
+UNREAD_RESUME = 16
+PAUSE_LOG_INTERVAL_S = 10.0
 
 
 class Rejected(Exception):
@@ -75,6 +95,13 @@ class IngestStats:
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     watermarks_published: int = 0
     commit_failures: int = 0
+    # back-pressure: times reading stopped at max_queued_rows, seconds stopped in all, and
+    # the most rows queued and messages received but not yet read at any moment
+    paused: int = 0
+    paused_s: float = 0.0
+    peak_queued_rows: int = 0
+    peak_unread_messages: int = 0
+    socket_pauses: int = 0  # times the socket was not read at UNREAD_MAXIMUM messages
 
 
 def gap_text(machine_id: str, gaps: list[tuple[int, int]]) -> str:
@@ -90,7 +117,7 @@ def gap_text(machine_id: str, gaps: list[tuple[int, int]]) -> str:
 class _Work:
     """What one flush commits; what is left in it after a failure was not committed."""
 
-    seeds: dict[str, list[SeedRecord]]
+    seeds: dict[str, SeedRows]
     alarms: list[AlarmEvent]
     states: list[StatePayload]
     status: dict[str, str]
@@ -108,13 +135,18 @@ class Ingest:
         self.stats = IngestStats()
         self.connected = asyncio.Event()
         self.committed: dict[str, Committed] = {}  # the latest coverage seen, per machine
-        self._seeds: dict[str, list[SeedRecord]] = {}
+        self._seeds: dict[str, SeedRows] = {}
+        self._encoders: dict[str, RowEncoder] = {}
         self._alarms: list[AlarmEvent] = []
         self._states: list[StatePayload] = []
         self._status: dict[str, str] = {}
         self._last_state: dict[str, float] = {}
         self._rows = 0
         self._flush_now = asyncio.Event()
+        self._room = asyncio.Event()  # set at the end of every flush
+        self._committing = 0  # rows of the flush under way
+        self._client: aiomqtt.Client | None = None
+        self._pause_logged = -1e9
         self._reject_logged: dict[str, float] = {}
         self._gap_logged: dict[str, float] = {}
         self._failure_logged = -1e9
@@ -148,10 +180,6 @@ class Ingest:
             raise Rejected("machine_id", "machine id not [A-Za-z0-9_.-]{1,64}")
         if len(payload) > self.farm.max_payload_bytes:
             raise Rejected("too_large", f"{len(payload)} bytes")
-        if self._rows >= self.farm.max_queued_rows and kind != "status":
-            # the database is not keeping up (or away): not stored now, and not lost either,
-            # since no watermark covers these records and the cab publishes them again
-            raise Rejected("queue_full", f"{self._rows} rows wait for the database")
         known = machine_id in self._seeds or machine_id in self.committed
         if not known and len(set(self._seeds) | set(self.committed)) >= self.farm.max_machines:
             raise Rejected("too_many_machines", f"over farm_server.max_machines for {machine_id}")
@@ -163,18 +191,37 @@ class Ingest:
             return
         try:
             if kind == "seeds":
-                batch = SeedBatch.model_validate_json(payload)
-                ids = [r.machine_id for r in batch.records]
-                if batch.machine_id != machine_id or any(i != machine_id for i in ids):
-                    raise Rejected("impersonation", "machine_id differs from the topic's")
+                encoder = self._encoders.get(machine_id)
+                if encoder is None:
+                    encoder = self._encoders[machine_id] = RowEncoder(machine_id)
+                # the cab's own shape, checked and encoded in one pass; anything else is
+                # judged by the pydantic models, as every other payload is
+                parsed = parse_seed_batch(payload, machine_id, encoder)
+                if parsed is not None:
+                    rows, min_id, pending_from = parsed.rows, parsed.min_id, parsed.pending_from
+                else:
+                    batch = SeedBatch.model_validate_json(payload)
+                    ids = [r.machine_id for r in batch.records]
+                    if batch.machine_id != machine_id or any(i != machine_id for i in ids):
+                        raise Rejected("impersonation", "machine_id differs from the topic's")
+                    try:
+                        rows = rows_of_records(machine_id, batch.records, encoder)
+                    except ValueError as exc:
+                        raise Rejected("invalid", f"seeds: {exc}") from None
+                    min_id = min((r.id for r in batch.records), default=0)
+                    pending_from = batch.pending_from
                 self._active.add(machine_id)
-                if batch.records:
-                    self._seeds.setdefault(machine_id, []).extend(batch.records)
-                    if batch.pending_from is not None:  # never above what it sends itself
-                        floor = min(batch.pending_from, min(r.id for r in batch.records))
+                if rows:
+                    queued = self._seeds.get(machine_id)
+                    if queued is None:
+                        self._seeds[machine_id] = rows
+                    else:
+                        queued.extend(rows)
+                    if pending_from is not None:  # never above what it sends itself
+                        floor = min(pending_from, min_id)
                         if floor > self._pending_from.get(machine_id, 0):
                             self._pending_from[machine_id] = floor
-                    self._rows += len(batch.records)
+                    self._rows += len(rows)
             elif kind == "alarms":
                 event = AlarmEvent.model_validate_json(payload)
                 if event.machine_id != machine_id:
@@ -200,6 +247,8 @@ class Ingest:
             raise Rejected("invalid", f"{kind}: {where}: {what}"[:300]) from None
         if self._rows >= self.farm.batch_rows:
             self._flush_now.set()
+        if self._rows + self._committing > self.stats.peak_queued_rows:
+            self.stats.peak_queued_rows = self._rows + self._committing
 
     def _reject(self, reason: str, detail: str) -> None:
         self.stats.rejected[reason] += 1
@@ -222,7 +271,7 @@ class Ingest:
         try:
             if work.seeds:
                 # every machine of the flush in one transaction: one commit, all or nothing
-                done = db.write_seed_batches(work.seeds, self._pending_from)
+                done = db.write_seed_rows(work.seeds, self._pending_from)
                 work.seeds = {}
                 for result in done:
                     self.stats.seeds_committed += result.new_seeds
@@ -250,28 +299,30 @@ class Ingest:
                 return
             work = _Work(self._seeds, self._alarms, self._states, self._status)
             self._seeds, self._alarms, self._states, self._status = {}, [], [], {}
-            self._rows = 0
+            self._committing, self._rows = self._rows, 0
             try:
                 done = await asyncio.to_thread(self._commit, work)
             except BaseException:
-                for machine_id, records in work.seeds.items():
-                    self._seeds.setdefault(machine_id, [])[:0] = records
+                for machine_id, rows in work.seeds.items():
+                    self._seeds.setdefault(machine_id, SeedRows()).prepend(rows)
                 self._alarms[:0] = work.alarms
                 self._states[:0] = work.states
                 for machine_id, text in work.status.items():
                     self._status.setdefault(machine_id, text)
-                self._rows = sum(map(len, self._seeds.values())) + len(self._alarms)
+                self._rows = (sum(map(len, self._seeds.values())) + len(self._alarms)
+                              + len(self._states))
                 done = work.done
                 for result in done:
                     self.committed[result.machine_id] = result
                 raise
+            finally:
+                self._committing = 0
+                self._room.set()
         for result in done:
             self.committed[result.machine_id] = result
             self._log_gaps(result)
         if client is not None and done:
-            # every machine's watermark at once: one broker round trip a flush, not one per
-            # machine (each is one topic, and a flush publishes it once; the next flush only
-            # starts after these PUBACKs, so a machine's watermarks never overtake)
+            # every machine's watermark at once, not waiting for PUBACKs (_publish_watermark)
             await asyncio.gather(*(self._publish_watermark(client, r) for r in done))
 
     def _log_gaps(self, result: Committed) -> None:
@@ -324,8 +375,15 @@ class Ingest:
                 await self._publish_watermark(client, result)
 
     async def _publish_watermark(self, client: aiomqtt.Client, result: Committed) -> None:
-        await client.publish(f"{self.prefix}/{result.machine_id}/ingested",
-                             self.watermark_payload(result), qos=1, retain=True)
+        """QoS 1 and retained, handed to paho without waiting for the PUBACK: ingest may have
+        stopped reading its socket (back-pressure), and a flush must not wait on that. The
+        broker takes one connection's publishes in order, so a machine's watermarks never
+        overtake; a lost one is published again (every WATERMARK_REFRESH_S, and at connect)."""
+        info = client._client.publish(
+            f"{self.prefix}/{result.machine_id}/ingested", self.watermark_payload(result),
+            qos=1, retain=True)
+        if info.rc != 0:
+            raise aiomqtt.MqttCodeError(info.rc, "could not publish the watermark")
         self.stats.watermarks_published += 1
 
     # -- the MQTT session ----------------------------------------------------------------------
@@ -343,9 +401,79 @@ class Ingest:
             self.connected.clear()
             await asyncio.sleep(RECONNECT_S)
 
+    async def _wait_for_room(self) -> None:
+        """Back-pressure: ``max_queued_rows`` wait for the database. Read nothing more (so
+        acknowledge nothing more: the broker keeps the rest, at most ``RECEIVE_MAXIMUM``
+        messages in flight to us) until a flush makes room."""
+        cap = self.farm.max_queued_rows
+        self.stats.paused += 1
+        now = time.monotonic()
+        if now - self._pause_logged >= PAUSE_LOG_INTERVAL_S:
+            self._pause_logged = now
+            log.warning("ingest: %d rows wait for the database (farm_server.max_queued_rows "
+                        "%d): reading from the broker paused until they are committed (%d "
+                        "pauses so far)", self._rows, cap, self.stats.paused)
+        self._flush_now.set()
+        try:
+            while self._rows + self._committing >= cap:
+                self._room.clear()
+                await self._room.wait()
+        finally:
+            self.stats.paused_s += time.monotonic() - now
+
     async def _session(self) -> None:
-        client = mqtt_client(self.mqtt, self.client_id,
-                             protocol=aiomqtt.ProtocolVersion.V5)
+        properties = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
+        properties.ReceiveMaximum = RECEIVE_MAXIMUM
+        ingest = self
+        loop = asyncio.get_running_loop()
+        paused_fd: list[int] = []  # the socket ingest stopped reading, if it did
+
+        def read_socket() -> None:
+            """aiomqtt's own socket reader (``Client._on_socket_open``), registered again
+            when ingest reads its socket again."""
+            try:
+                while True:
+                    paho.loop_read()
+                    pending = getattr(paho.socket(), "pending", None)
+                    if pending is not None and pending() > 0:  # TLS
+                        continue
+                    break
+            except Exception as exc:
+                if not client._disconnected.done():
+                    client._disconnected.set_exception(exc)
+
+        def pause_socket() -> None:
+            sock = paho.socket()
+            if paused_fd or sock is None:
+                return
+            paused_fd.append(sock.fileno())
+            loop.remove_reader(paused_fd[0])
+            ingest.stats.socket_pauses += 1
+
+        def resume_socket() -> None:
+            if paused_fd:
+                fd = paused_fd.pop()
+                sock = paho.socket()
+                if sock is not None and sock.fileno() == fd:
+                    loop.add_reader(fd, read_socket)
+
+        class Received(asyncio.Queue[aiomqtt.Message]):
+            """aiomqtt's queue of messages received and not read yet: at UNREAD_MAXIMUM the
+            socket is not read any more (see UNREAD_MAXIMUM)."""
+
+            def put_nowait(self, item: aiomqtt.Message) -> None:
+                super().put_nowait(item)
+                stats = ingest.stats
+                stats.peak_unread_messages = max(stats.peak_unread_messages, self.qsize())
+                if self.qsize() >= UNREAD_MAXIMUM:
+                    pause_socket()
+
+        client = mqtt_client(self.mqtt, self.client_id, protocol=aiomqtt.ProtocolVersion.V5,
+                             properties=properties, queue_type=Received)
+        self._client = client
+        # acknowledge a message once its records are queued, not on receipt (paho's default)
+        paho = client._client
+        paho.manual_ack_set(True)
         async with client:
             for kind in KINDS:
                 await client.subscribe(
@@ -357,9 +485,19 @@ class Ingest:
             async with asyncio.TaskGroup() as tg:
                 tg.create_task(self._flush_loop(client), name="ingest-flush")
                 async for message in client.messages:
+                    if self._rows + self._committing >= self.farm.max_queued_rows:
+                        await self._wait_for_room()
                     raw = message.payload
                     payload = raw if isinstance(raw, bytes) else str(raw or "").encode()
                     self.accept(message.topic.value, payload)
+                    if message.qos:
+                        paho.ack(message.mid, message.qos)
+                    if paused_fd and len(client.messages) < UNREAD_RESUME:
+                        resume_socket()
+
+    def unread_messages(self) -> int:
+        """Messages received from the broker and not read (so not acknowledged) yet."""
+        return len(self._client.messages) if self._client is not None else 0
 
     def summary(self) -> str:
         """One line for the journal: what came, what was committed, rejected, missing."""
@@ -369,7 +507,8 @@ class Ingest:
         missing = "; ".join(gap_text(m, g) for m, g in sorted(gaps.items())) or "no gaps"
         return (f"ingest: {st.messages} messages, {st.seeds_committed} seeds committed "
                 f"({st.seeds_duplicate} repeats dropped), {st.alarms_committed} alarms, "
-                f"{st.states_committed} states; rejected: {rejected}; {missing}")
+                f"{st.states_committed} states; rejected: {rejected}; reading paused "
+                f"{st.paused} times ({st.paused_s:.0f} s) at max_queued_rows; {missing}")
 
     async def _flush_loop(self, client: aiomqtt.Client) -> None:
         next_summary = time.monotonic() + SUMMARY_INTERVAL_S

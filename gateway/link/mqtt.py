@@ -33,6 +33,7 @@ from typing import Any
 
 import aiomqtt
 import orjson
+from paho.mqtt.properties import Properties
 
 from drivers.backoff import Backoff
 from drivers.tasks import raise_if_cancelled
@@ -642,6 +643,8 @@ def mqtt_client(
     clean_session: bool | None = None,
     max_inflight_messages: int | None = None,
     protocol: aiomqtt.ProtocolVersion | None = None,
+    properties: Properties | None = None,
+    queue_type: type[asyncio.Queue[aiomqtt.Message]] | None = None,
 ) -> aiomqtt.Client:
     """An aiomqtt client for the ``[mqtt]`` section (host, port, user, password file, TLS,
     keepalive). The daemon and the dashboard both connect with it, so a broker that takes one
@@ -669,6 +672,8 @@ def mqtt_client(
         tls_context=tls_context,
         tls_insecure=tls_insecure,
         protocol=protocol,
+        properties=properties,
+        queue_type=queue_type,
     )
 
 

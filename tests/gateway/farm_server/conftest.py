@@ -43,3 +43,13 @@ def broker() -> Iterator[Mosquitto]:
 def rows(url: str, sql: str) -> list[tuple[object, ...]]:
     with psycopg.connect(url) as conn:
         return conn.execute(sql.encode()).fetchall()
+
+
+def database_away(url: str, away: bool) -> None:
+    """Refuse (and end) every connection to this test database, or allow them again."""
+    name = url.rsplit("/", 1)[1]
+    with psycopg.connect(ADMIN_URL, autocommit=True) as admin:
+        admin.execute(f'ALTER DATABASE "{name}" ALLOW_CONNECTIONS {not away}'.encode())
+        if away:
+            admin.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                          "WHERE datname = %s", (name,))

@@ -241,34 +241,25 @@ async def test_the_ingest_user_works_with_only_the_documented_grants(
 async def test_the_database_away_loses_nothing_even_past_the_queue_cap(
     database: str, broker: Mosquitto, tmp_path: Path
 ) -> None:
-    import psycopg
-
-    from tests.gateway.farm_server.conftest import ADMIN_URL
-
-    name = database.rsplit("/", 1)[1]
-
-    def database_away(away: bool) -> None:
-        with psycopg.connect(ADMIN_URL, autocommit=True) as admin:
-            admin.execute(f'ALTER DATABASE "{name}" ALLOW_CONNECTIONS {not away}'.encode())
-            if away:
-                admin.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
-                              "WHERE datname = %s", (name,))
+    from tests.gateway.farm_server.conftest import database_away
 
     async with running_ingest(database, broker, max_queued_rows=1000) as ingest, \
             running_link(cab_settings(broker, 2.0), tmp_path / "cab.sqlite3") as cab:
         cab.store.append_seeds(drops(500))
         cab.store.flush()
         await eventually(lambda: cab.store.backlog() == 0, 60, "first 500 confirmed")
-        database_away(True)
+        database_away(database, True)
         try:
             cab.store.append_seeds(drops(3000))
             cab.store.flush()
-            await eventually(lambda: ingest.stats.rejected["queue_full"] > 0, 60,
+            # past the cap ingest stops reading: the broker holds the rest
+            await eventually(lambda: ingest.stats.paused > 0, 60,
                              "the queue cap reached", detail=lambda: ingest.stats)
+            assert ingest.stats.peak_queued_rows < 1000 + 500  # the cap and one batch
             assert cab.store.backlog() == 3000  # nothing confirmed while the database is away
             await eventually(lambda: ingest.stats.commit_failures > 0, 60, "commit failed")
         finally:
-            database_away(False)
+            database_away(database, False)
         await eventually(lambda: cab.store.backlog() == 0, 120, "every record confirmed",
                          detail=lambda: (cab.store.backlog(), ingest.stats, cab.link.stats))
     assert rows(database, "SELECT count(*), count(DISTINCT id), max(id) FROM seed_records")[0] \

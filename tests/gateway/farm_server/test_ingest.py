@@ -261,3 +261,55 @@ async def test_the_acl_lets_a_machine_publish_only_as_itself(
         await eventually(lambda: through(seen, "seeder-06") == 5, 30, "its own records")
         assert ingest.stats.messages == 1
     assert rows(database, "SELECT DISTINCT machine_id FROM seed_records") == [("seeder-06",)]
+
+
+async def test_a_flood_while_the_database_is_away_stays_bounded_and_loses_nothing(
+    database: str, broker: Mosquitto
+) -> None:
+    """Back-pressure: with the database away, ingest queues at most ``max_queued_rows`` (and
+    one batch over), then reads nothing more and acknowledges nothing more; the broker keeps
+    what it does not send, and past UNREAD_MAXIMUM messages received and not read ingest does
+    not read its socket (mosquitto 2.0.11 lets more through than the Receive Maximum). Once the
+    database is back (and the cab has published again what no watermark covers, were anything
+    lost) every record is committed exactly once."""
+    from gateway.farm_server.ingest import RECEIVE_MAXIMUM, UNREAD_MAXIMUM
+    from tests.gateway.farm_server.conftest import database_away
+
+    batches, per, cap = 160, 500, 1000  # 80 000 records, 5 x RECEIVE_MAXIMUM messages
+
+    async def publish_uncovered(client: aiomqtt.Client, seen: dict[str, dict[str, object]]
+                                ) -> None:
+        done = through(seen, "seeder-09") or 0
+        assert isinstance(done, int)
+        for k in range(batches):
+            if (k + 1) * per > done:
+                await client.publish("sowgate/seeder-09/seeds",
+                                     batch("seeder-09", 1 + k * per, (k + 1) * per), qos=1)
+
+    async with running_ingest(database, broker, max_queued_rows=cap) as ingest, \
+            watermarks(broker) as seen, cab(broker, "seeder-09") as client:
+        database_away(database, True)
+        try:
+            await publish_uncovered(client, seen)
+            # ingest stopped reading; the broker filled at least the window it allows
+            await eventually(lambda: ingest.stats.paused > 0
+                             and ingest.unread_messages() >= RECEIVE_MAXIMUM - 1, 60,
+                             "ingest paused with its receive window full",
+                             detail=lambda: (ingest.stats, ingest.unread_messages()))
+            assert ingest.stats.peak_queued_rows < cap + per
+            # (plus the few packets one read of the socket may bring past it)
+            assert ingest.stats.peak_unread_messages <= UNREAD_MAXIMUM + 16
+            assert ingest.stats.messages <= cap // per + 1  # read: the cap's worth, no more
+            assert ingest.stats.seeds_committed == 0
+        finally:
+            database_away(database, False)
+        await eventually(lambda: ingest.unread_messages() == 0 and ingest._rows == 0, 60,
+                         "what ingest held committed", detail=lambda: ingest.stats)
+        await publish_uncovered(client, seen)  # the cab's resend of what is not covered
+        await eventually(lambda: through(seen, "seeder-09") == batches * per, 60,
+                         "every record committed",
+                         detail=lambda: (ingest.stats, broker.log.read_text()[-2000:]))
+        assert ingest.stats.peak_queued_rows < cap + per
+        assert ingest.stats.peak_unread_messages <= UNREAD_MAXIMUM + 16
+    assert rows(database, "SELECT count(*), count(DISTINCT id), max(id) FROM seed_records") \
+        == [(batches * per, batches * per, batches * per)]
