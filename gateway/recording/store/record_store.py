@@ -65,8 +65,8 @@ PRUNE_INTERVAL_S = 3600.0
 PRUNE_CHUNK_ROWS = 5000
 # Seed records kept in memory while the store cannot write them (disk full, card gone
 # read-only or stalled): every row accepted and not committed, in order, under the ids they
-# were given, until a write succeeds. A held record costs about 415 bytes of memory (413
-# measured by benchmarks/bench_held_records.py), so the cap is about 99 MB, and at 2 000
+# were given, until a write succeeds. A held record costs about 430 bytes of memory (428
+# measured by benchmarks/bench_held_records.py), so the cap is about 103 MB, and at 2 000
 # seeds/s it rides out a full disk for 240 000 / 2 000 = 120 s. Past it, new records are
 # counted in ``records_lost`` (state payload, records.lost alarm), never dropped silently;
 # they take no ids.
