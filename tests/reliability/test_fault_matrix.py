@@ -10,10 +10,10 @@ from __future__ import annotations
 import pytest
 
 from tests.reliability.harness import RowResult
-from tests.reliability.rows import ROWS, ROWS_BY_NAME
+from tests.reliability.rows import FARM_FULL_SCALE, FARM_OFFLINE_S, ROWS, ROWS_BY_NAME
 
 # the campaign (about three minutes, the broker outage alone one) runs in the first row's setup
-CAMPAIGN_TIMEOUT_S = 600
+CAMPAIGN_TIMEOUT_S = 600 + (int(FARM_OFFLINE_S) + 300 if FARM_FULL_SCALE else 0)
 
 
 @pytest.mark.slow
