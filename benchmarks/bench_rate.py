@@ -630,37 +630,33 @@ def surface_markdown(by_crop: dict[str, dict[tuple[str, ...], list[float]]],
             for who in ("calibrated", "rtk"):
                 summary[f"surface_{label}_{who}_{c}_p90_pct"] = _stats(
                     by_crop[c][("surface", label, who)])[1]
-    parts += [
-        "",
-        "What the surface itself adds (each pass minus the same pass, same draws, on the "
-        "surface the radar was calibrated on; the rows above also hold the drill's rotation "
-        "test and speed calibration residuals; a surface constant over the pass adds nothing "
-        "with RTK learning by construction, as the learnt ratios scale with it: the learner's "
-        "own error is in the speed table below):\n",
-        "| surface | " + " | ".join(f"{who}: {crop}" for who in ("calibrated radar", "rtk")
-                                    for crop in CROPS) + " |",
-        "|---" * (1 + 2 * len(CROPS)) + "|",
-    ]
+    def table(kind: str, intro: str) -> None:
+        """One surface × (calibrated radar, rtk) × crop table of ``kind`` cells."""
+        parts.extend([
+            "", intro,
+            "| surface | " + " | ".join(f"{who}: {crop}" for who in ("calibrated radar", "rtk")
+                                        for crop in CROPS) + " |",
+            "|---" * (1 + 2 * len(CROPS)) + "|",
+        ])
+        for label in labels:
+            cells = [_cell(by_crop[c][(kind, label, who)])
+                     for who in ("calibrated", "rtk") for c in CROPS]
+            parts.append(f"| {label} | " + " | ".join(cells) + " |")
+
+    table("surface_effect",
+          "What the surface itself adds (each pass minus the same pass, same draws, on the "
+          "surface the radar was calibrated on; the rows above also hold the drill's rotation "
+          "test and speed calibration residuals; a surface constant over the pass adds nothing "
+          "with RTK learning by construction, as the learnt ratios scale with it: the learner's "
+          "own error is in the speed table below):\n")
     for label in labels:
-        cells = [_cell(by_crop[c][("surface_effect", label, who)])
-                 for who in ("calibrated", "rtk") for c in CROPS]
-        parts.append(f"| {label} | " + " | ".join(cells) + " |")
         for c in CROPS:
             summary[f"surface_effect_{label}_rtk_{c}_p90_pct"] = _stats(
                 by_crop[c][("surface_effect", label, "rtk")])[1]
-    parts += [
-        "",
-        "The speed sown on (the controller's, over the judged stretch, against the truth's "
-        "distance: what the learnt scale leaves of the surface and of the speed "
-        "calibration):\n",
-        "| surface | " + " | ".join(f"{who}: {crop}" for who in ("calibrated radar", "rtk")
-                                    for crop in CROPS) + " |",
-        "|---" * (1 + 2 * len(CROPS)) + "|",
-    ]
-    for label in labels:
-        cells = [_cell(by_crop[c][("surface_speed", label, who)])
-                 for who in ("calibrated", "rtk") for c in CROPS]
-        parts.append(f"| {label} | " + " | ".join(cells) + " |")
+    table("surface_speed",
+          "The speed sown on (the controller's, over the judged stretch, against the truth's "
+          "distance: what the learnt scale leaves of the surface and of the speed "
+          "calibration):\n")
     p90 = max(_stats(by_crop[c][("surface", "+4%", "rtk")])[1] for c in CROPS)
     effect = max(max(_stats(by_crop[c][("surface_effect", label, "rtk")])[1] for c in CROPS)
                  for label in ("+4%", "+4% mid-field"))
