@@ -393,8 +393,9 @@ async def drive_runs(
     after_run: Callable[[int, float | None], Awaitable[None]],
 ) -> list[float | None]:
     """Run each set point for ``seconds`` (one length for all, or one per run) (with
-    ``drive``; None: the operator runs the meter and this only times); ``after_run(i, turns)`` runs with the motor off (the catch is
-    weighed then). Returns each run's measured shaft turns (None without a shaft sensor).
+    ``drive``; None: the operator runs the meter and this only times); ``after_run(i,
+    turns)`` runs with the motor off (the catch is weighed then). Returns each run's measured
+    shaft turns (None without a shaft sensor).
 
     The motor is 0 between runs, and motor and fan are 0 when this returns or raises,
     whatever the reason (``close()`` in the ``finally``)."""

@@ -9,10 +9,10 @@ weighing; ``benchmarks/bench_rate.py``: 3 × 60 s leaves rapeseed at ~1.7 % rate
 3 × 180 s at ~0.6 %).
 
 ``weighing_advice`` works from the numbers in front of the CLI (set points, weighed masses, run
-lengths — one per set point if need be —, the scale's σ) and from nothing about the drill: for each set point its uncertainty and
-the run length (at the same number of runs) that brings it to ``SET_POINT_SE_LIMIT_PCT``, or
-the scale that would do at the current length. It advises, it never refuses: the readings
-can be consistent and still too small for the rate wanted.
+lengths, one per set point if need be, the scale's σ) and from nothing about the drill: for
+each set point its uncertainty and the run length (at the same number of runs) that brings it
+to ``SET_POINT_SE_LIMIT_PCT``, or the scale that would do at the current length. It advises,
+it never refuses: the readings can be consistent and still too small for the rate wanted.
 
 ``unexplained_scatter`` is the other question: repeats of a set point that disagree by more
 than the scale explains are not weighing noise (timing, a bridging hopper, a leak): those set
