@@ -14,8 +14,9 @@ Calibrations are done as a farmer does them, through the real CLI and the daemon
   switches the meter at the CLI's start/stop (reaction σ 0.2 s each), counts shaft turns to
   the nearest half turn, weighs with σ 2 g; where the CLI then warns that the runs were too
   short for that scale (``gateway.calibration.weighing``: rapeseed's small catches), the
-  farmer runs the whole test again with the run length it advised (``weighing.
-  advised_seconds`` in ``calibration.json``, what its warning says); that second test is the
+  farmer runs the whole test again with the run lengths it advised, one per set point
+  (``weighing.advised_seconds_by_set_point`` in ``calibration.json``, the ``--seconds``
+  list its warning says); that second test is the
   calibration used, the first stays as a sensitivity row;
 * speed calibration, live on a ``Controller`` as ``cmd/speed_cal`` does it: ``start`` at the
   first of two marks 50 m apart, ``finish`` with 50 m at the second (presses σ 0.15 s), at
