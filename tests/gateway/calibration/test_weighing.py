@@ -50,40 +50,41 @@ def rapeseed_test(seed: int = 11) -> tuple[KneeDrill, list[float], list[float]]:
 
 def test_the_example_catch_is_said_with_its_numbers() -> None:
     """38 g in 60 s on a ±2 g scale, three runs: ±5.3 % a weighing, ±3.0 % for the mean;
-    runs of 210 s bring it within 1 % (180 s leaves 1.01 %), a ±0.5 g scale would do at 60 s."""
+    runs of 300 s bring its mean within 1 % at p90 (±0.61 % one σ; 270 s leaves 0.68 %), a
+    ±0.2 g scale would do at 60 s."""
     advice = weighing.weighing_advice([20.0] * 3, [38.0] * 3, 60.0, 2.0)
     (p,) = advice.short
     assert p.per_weighing_pct == pytest.approx(5.26, abs=0.01)
     assert p.se_pct == pytest.approx(3.04, abs=0.01)
-    assert p.seconds_needed == 210.0 and p.scale_needed_g == 0.5
+    assert p.seconds_needed == 300.0 and p.scale_needed_g == 0.2
     text = " ".join(advice.messages("rapeseed", "{:g} % duty"))
     assert ("rapeseed at 20 % duty: 38 g in 60 s on a ±2 g scale is ±5.3 % (±3.0 % over its "
-            "3 runs); run this set point for at least 210 s (or weigh on a ±0.5 g scale)"
+            "3 runs); run this set point for at least 300 s (or weigh on a ±0.2 g scale)"
             ) in text
-    assert "--seconds 210 " in text and "Longer runs, not more of them" in text
+    assert "--seconds 300 " in text and "Longer runs, not more of them" in text
 
 
 def test_the_advice_gives_each_set_point_its_own_length() -> None:
-    """A 38 g catch needs 210 s, a 200 g one is within 1 % at 60 s: the advice's --seconds
-    list says 210 for the first and keeps 60 for the second, in the order the test ran them
+    """A 38 g catch needs 300 s, a 250 g one is within 1 % at 60 s: the advice's --seconds
+    list says 300 for the first and keeps 60 for the second, in the order the test ran them
     (not sorted), and the entry keeps both lists; advised_seconds stays the longest."""
-    advice = weighing.weighing_advice([40.0] * 3 + [20.0] * 3, [200.0] * 3 + [38.0] * 3,
+    advice = weighing.weighing_advice([40.0] * 3 + [20.0] * 3, [250.0] * 3 + [38.0] * 3,
                                       60.0, 2.0)
-    assert advice.advised_by_set_point == ((40.0, 60.0), (20.0, 210.0))
-    assert advice.seconds_option == "60,210" and advice.advised_seconds == 210.0
+    assert advice.advised_by_set_point == ((40.0, 60.0), (20.0, 300.0))
+    assert advice.seconds_option == "60,300" and advice.advised_seconds == 300.0
     text = " ".join(advice.messages("rapeseed", "{:g} % duty"))
-    assert ("run the test again with --seconds 60,210 (one length per set point, in the order "
+    assert ("run the test again with --seconds 60,300 (one length per set point, in the order "
             "of the set points; only 20 % duty longer;") in text
     entry = advice.to_entry()
-    assert entry["advised_seconds_by_set_point"] == [[40.0, 60.0], [20.0, 210.0]]
+    assert entry["advised_seconds_by_set_point"] == [[40.0, 60.0], [20.0, 300.0]]
     assert entry["seconds_by_set_point"] == [[40.0, 60.0], [20.0, 60.0]]
-    assert entry["advised_seconds"] == 210.0 and entry["advised_seconds_option"] == "60,210"
-    # the test run as advised: the long set point's catch is 210/60 as big, nothing short
-    again = weighing.weighing_advice([40.0] * 3 + [20.0] * 3, [200.0] * 3 + [133.0] * 3,
-                                     [60.0] * 3 + [210.0] * 3, 2.0)
-    assert again.short == () and again.seconds_option == "60,210"
+    assert entry["advised_seconds"] == 300.0 and entry["advised_seconds_option"] == "60,300"
+    # the test run as advised: the long set point's catch is 300/60 as big, nothing short
+    again = weighing.weighing_advice([40.0] * 3 + [20.0] * 3, [250.0] * 3 + [200.0] * 3,
+                                     [60.0] * 3 + [300.0] * 3, 2.0)
+    assert again.short == () and again.seconds_option == "60,300"
     (low,) = (p for p in again.set_points if p.set_point == 20.0)
-    assert low.seconds == 210.0 and low.se_pct < 1.0
+    assert low.seconds == 300.0 and low.se_pct < again.limit_pct
 
 
 def test_longer_runs_are_advised_not_more_of_them() -> None:
@@ -100,17 +101,17 @@ def test_the_advised_runs_on_the_truth_drill_bring_every_set_point_within_the_ta
     """A knee drill's rapeseed test at 60 s on ±2 g: the low set points are named with the
     length each needs. The test run again on the truth with those lengths, each set point its
     own (new scale noise, 400 times), puts every set point's mean within the target at
-    p90 ≤ 1.645 σ, and the second test's own advice asks at most one 30 s step more of a set
+    p90, and the second test's own advice asks at most one 30 s step more of a set
     point (each length is the shortest at the target, so its own noise can put it a hair
-    over); the set points that were within it keep their 60 s, so the test is shorter than
-    at the longest."""
+    over); the set points that need less run less, so the test is shorter than at the
+    longest."""
     drill, duties, _ = rapeseed_test()
     rng = random.Random(5)
     first = weighing.weighing_advice(duties, catches(drill, duties, 60.0, rng), 60.0, SCALE_G)
     assert first.short and min(duties) in {p.set_point for p in first.short}
     seconds = per_run(first, duties)
     assert max(seconds) == first.advised_seconds > 60.0
-    assert min(seconds) == 60.0 and sum(seconds) < first.advised_seconds * len(duties)
+    assert sum(seconds) < first.advised_seconds * len(duties)
     set_points = sorted(set(duties))
     errs: dict[float, list[float]] = {k: [] for k in set_points}
     for _ in range(400):
@@ -121,7 +122,7 @@ def test_the_advised_runs_on_the_truth_drill_bring_every_set_point_within_the_ta
             errs[k].append(abs(mean / true - 1.0) * 100.0)
     for k, e in errs.items():
         p90 = statistics.quantiles(e, n=10)[-1]
-        assert p90 <= 1.645 * first.target_pct * 1.15, (k, p90)  # 400 draws: p90 ±~10 %
+        assert p90 <= first.target_pct * 1.15, (k, p90)  # 400 draws: p90 ±~10 %
     again = weighing.weighing_advice(duties, catches(drill, duties, seconds, rng), seconds,
                                      SCALE_G)
     # each length is the shortest (to 30 s) at the target: the second test's own noise can
@@ -207,7 +208,7 @@ def test_the_cli_advises_paper_b_runs_too(tmp_path: Path) -> None:
     assert code == 0, out
     flat = " ".join(out.split())
     assert "deep at 10 r/min: 50 g in 30 s on a ±2 g scale is ±4.0 %" in flat
-    assert "for at least 120 s" in flat
+    assert "for at least 210 s" in flat
 
 
 def test_a_scale_of_no_error_is_refused(tmp_path: Path) -> None:
