@@ -11,7 +11,7 @@ weighing; ``benchmarks/bench_rate.py``: 3 × 60 s leaves rapeseed at ~1.7 % rate
 ``weighing_advice`` works from the numbers in front of the CLI (set points, weighed masses, run
 lengths, one per set point if need be, the scale's σ) and from nothing about the drill: for
 each set point its uncertainty and the run length (at the same number of runs) that brings it
-to ``SET_POINT_SE_LIMIT_PCT``, or the scale that would do at the current length. It advises,
+to ``SET_POINT_SE_LIMIT_PCT`` at p90, or the scale that would do at the current length. It advises,
 it never refuses: the readings can be consistent and still too small for the rate wanted.
 
 ``unexplained_scatter`` is the other question: repeats of a set point that disagree by more
