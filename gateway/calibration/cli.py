@@ -98,7 +98,10 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
                    "speed range, by its motor line)")
     r.add_argument("--rpm", type=_floats, default=None,
                    help="paper A: measured shaft r/min per run (default: the set speeds)")
-    r.add_argument("--seconds", type=float, default=None, help="run length (B 30 s, A 60 s)")
+    r.add_argument("--seconds", type=_floats, default=None, metavar="S[,S...]",
+                   help="run length (B 30 s, A 60 s): one for every run, or one per set point "
+                   "in the order of --duties/--speeds (repeats of a set point take its "
+                   "length), e.g. 300,240,120,60,60,60 as the weighing advice says")
     r.add_argument("--mass", type=_floats, default=None,
                    help="weighed grams per run, in run order (skips the prompts): the catch "
                    "of --outlets-weighed outlets together")
@@ -303,7 +306,8 @@ class _Screen:
     starts, every ``PROGRESS_EVERY_S`` while it runs, and when it is done (piped or logged,
     rich's bar printed nothing until every run was over)."""
 
-    def __init__(self, console: Console, labels: Sequence[str], seconds: float) -> None:
+    def __init__(self, console: Console, labels: Sequence[str],
+                 seconds: Sequence[float]) -> None:
         self.console, self.labels, self.seconds = console, labels, seconds
         self.progress: Progress | None = None
         self.task: Any = None
@@ -318,7 +322,7 @@ class _Screen:
                                    highlight=False)
             elif r.event == "progress" and r.elapsed_s >= self.next_report:
                 self.console.print(f"run {i + 1}/{n}: {self.next_report:g} s of "
-                                   f"{self.seconds:g} s", highlight=False)
+                                   f"{self.seconds[i]:g} s", highlight=False)
                 self.next_report += PROGRESS_EVERY_S
             elif r.event == "done":
                 self.console.print(f"run {i + 1}/{n}: done", highlight=False)
@@ -328,9 +332,9 @@ class _Screen:
                                      TimeRemainingColumn(), console=self.console)
             self.progress.start()
             self.task = self.progress.add_task(f"run {i + 1}/{n}: {self.labels[i]}",
-                                               total=self.seconds)
+                                               total=self.seconds[i])
         elif self.progress is not None:
-            self.progress.update(self.task, completed=min(r.elapsed_s, self.seconds))
+            self.progress.update(self.task, completed=min(r.elapsed_s, self.seconds[i]))
             if r.event == "done":
                 self.progress.stop()
                 self.progress = None
@@ -343,7 +347,7 @@ class _Screen:
 
 def _run_test(args: argparse.Namespace, console: Console, ask: Callable[[str], float],
               drive: drive_mod.MeterDrive | None, labels: Sequence[str],
-              setpoints: Sequence[float], seconds: float, outlets: Outlets, *,
+              setpoints: Sequence[float], seconds: Sequence[float], outlets: Outlets, *,
               ask_rpm: bool) -> TestRuns:
     """The runs (timed, or driven by ``drive``), then or between them the prompts.
 
@@ -570,8 +574,28 @@ def _tell_daemon(console: Console, state: Path, key: str | None) -> None:
                   "log and the calibration.* alarms).")
 
 
+def _run_lengths(args: argparse.Namespace, set_points: Sequence[float],
+                 default: float, option: str) -> list[float]:
+    """Each run's length from ``--seconds``: one value for every run, or one per distinct set
+    point in the order they first appear (``option``: where the set points came from)."""
+    given = list(args.seconds) if args.seconds is not None else [default]
+    bad = [t for t in given if not t > 0]
+    if bad:
+        raise cal.CalibrationError(f"--seconds must be > 0 s (got {bad[0]:g})")
+    keys = list(dict.fromkeys(float(k) for k in set_points))
+    if len(given) == 1:
+        return [given[0]] * len(set_points)
+    if len(given) != len(keys):
+        raise cal.CalibrationError(
+            f"--seconds has {len(given)} lengths for {len(keys)} set points: give one length "
+            f"for every run, or one per set point in the order of {option} (its repeats run "
+            "as long)")
+    by_key = dict(zip(keys, given, strict=True))
+    return [by_key[float(k)] for k in set_points]
+
+
 def _weighing_advice(args: argparse.Namespace, console: Console, set_points: Sequence[float],
-                     weighed: Sequence[float], seconds: float,
+                     weighed: Sequence[float], seconds: Sequence[float],
                      label: str) -> dict[str, object]:
     """Each set point's weighing uncertainty on the stated scale, and what to do about the
     ones too uncertain for the rate (``gateway.calibration.weighing``): a warning with the
@@ -619,13 +643,13 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     console.print(f"masses asked for: the catch of each run, {outlets.describe()}")
     if args.model == "grams_per_rev":
         speeds = args.speeds or list(DEFAULT_B_SPEEDS)
-        seconds = args.seconds or DEFAULT_B_SECONDS
+        seconds = _run_lengths(args, speeds, DEFAULT_B_SECONDS, "--speeds")
         if args.drive == "modbus":
             raise cal.CalibrationError(
                 "--drive modbus drives paper A's motor: its rotation test is --model paper_a")
         drive = drive_mod.CanMeterDrive(_need(settings, "--drive can"), args.channel) if (
             args.drive == "can") else None
-        labels = [f"{n:g} r/min for {seconds:g} s" for n in speeds]
+        labels = [f"{n:g} r/min for {t:g} s" for n, t in zip(speeds, seconds, strict=True)]
         done = _run_test(args, console, ask, drive, labels, speeds, seconds, outlets,
                          ask_rpm=False)
         weighed = done.masses
@@ -639,11 +663,11 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
                     raise cal.CalibrationError(
                         f"run {i + 1}: no shaft feedback from the controller; nothing saved"
                     )
-                rpm[i] = turns / (seconds / 60.0)
+                rpm[i] = turns / (seconds[i] / 60.0)
             console.print(_table("measured shaft speed", ("set r/min", "effective r/min"),
                                  list(zip(speeds, rpm, strict=True))))
-        runs = [cal.RotationRun(n, seconds, m, set_rpm=s if driven else None)
-                for n, m, s in zip(rpm, masses, speeds, strict=True)]
+        runs = [cal.RotationRun(n, t, m, set_rpm=s if driven else None)
+                for n, m, s, t in zip(rpm, masses, speeds, seconds, strict=True)]
         fit = cal.grams_per_rev(runs, args.min_stable_rpm)
         rows: list[tuple[Any, ...]] = [
             (r.rpm, r.mass_g * outlets.weighed, g, res) for r, g, res in
@@ -682,7 +706,6 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         _saved(console, key, f"{fit.grams_per_rev:.2f} g/rev per outlet", store.path.parent)
         return EXIT_OK
     # paper A: duty -> speed line and speed -> rate quadratic
-    seconds = args.seconds or DEFAULT_A_SECONDS
     drive_a: drive_mod.MeterDrive | None = None
     if args.drive == "can":
         raise cal.CalibrationError(
@@ -707,18 +730,20 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
                 raise cal.CalibrationError(f"--duties must be in 0..100 % (got {d:g})")
         drive_a = drive_mod.ModbusMeterDrive(s, fan_pct=fan, fan_settle_s=args.fan_settle)
         console.print(f"driving the motor on the PWM module, fan at {fan:g} %")
-    labels = [f"duty {d:g} % for {seconds:g} s" for d in duties]
+    seconds = _run_lengths(args, duties, DEFAULT_A_SECONDS, "--duties")
+    labels = [f"duty {d:g} % for {t:g} s" for d, t in zip(duties, seconds, strict=True)]
     done = _run_test(args, console, ask, drive_a, labels, duties, seconds, outlets, ask_rpm=True)
     assert done.rpm is not None
     rpm = done.rpm
     weighed = done.masses
     # eq. 6 is the whole machine's discharge: a catch from fewer rows scales up by rows/N
     scale = 1.0 if outlets.total is None else outlets.total / outlets.weighed
-    rates = [m * scale / (seconds / 60.0) for m in weighed]
+    # each run's catch over its own length: set points may run for different lengths
+    rates = [m * scale / (t / 60.0) for m, t in zip(weighed, seconds, strict=True)]
     wr = tuple(args.working_range) if args.working_range else (min(rpm), max(rpm))
     if len(wr) != 2:
         raise cal.CalibrationError("--working-range takes two numbers: lo,hi r/min")
-    pfit = cal.fit_paper_a(duties, rpm, rates, (wr[0], wr[1]))
+    pfit = cal.fit_paper_a(duties, rpm, rates, (wr[0], wr[1]), seconds=seconds)
     line, quad, meter_own = pfit.line, pfit.quad, pfit.meter_own
     console.print(_table(f"rotation test {args.channel} (paper A)",
                          ("duty %", "r/min", "g/min whole machine", "speed resid.",

@@ -388,16 +388,21 @@ def _settle(future: asyncio.Future[float], value: float | None,
 async def drive_runs(
     drive: MeterDrive | None,
     setpoints: Sequence[float],
-    seconds: float,
+    seconds: float | Sequence[float],
     report: Callable[[RunReport], None],
     after_run: Callable[[int, float | None], Awaitable[None]],
 ) -> list[float | None]:
-    """Run each set point for ``seconds`` (with ``drive``; None: the operator runs the meter
-    and this only times); ``after_run(i, turns)`` runs with the motor off (the catch is
-    weighed then). Returns each run's measured shaft turns (None without a shaft sensor).
+    """Run each set point for ``seconds`` (one length for all, or one per run) (with
+    ``drive``; None: the operator runs the meter and this only times); ``after_run(i,
+    turns)`` runs with the motor off (the catch is weighed then). Returns each run's measured
+    shaft turns (None without a shaft sensor).
 
     The motor is 0 between runs, and motor and fan are 0 when this returns or raises,
     whatever the reason (``close()`` in the ``finally``)."""
+    lengths = ([float(seconds)] * len(setpoints) if isinstance(seconds, (int, float))
+               else [float(t) for t in seconds])
+    if len(lengths) != len(setpoints):
+        raise ValueError(f"{len(lengths)} run lengths for {len(setpoints)} runs")
     turns: list[float | None] = []
     loop = asyncio.get_running_loop()
     error: BaseException | None = None
@@ -410,15 +415,16 @@ async def drive_runs(
             def progress(elapsed: float, i: int = i) -> None:
                 report(RunReport("progress", i, elapsed))
 
+            seconds_i = lengths[i]
             if drive is not None:
-                turns.append(await drive.run(setpoint, seconds, progress))
+                turns.append(await drive.run(setpoint, seconds_i, progress))
             else:
                 start = loop.time()
-                while (elapsed := loop.time() - start) < seconds:
+                while (elapsed := loop.time() - start) < seconds_i:
                     progress(elapsed)
-                    await asyncio.sleep(min(TICK_S, seconds - elapsed))
+                    await asyncio.sleep(min(TICK_S, seconds_i - elapsed))
                 turns.append(None)
-            report(RunReport("done", i, seconds))
+            report(RunReport("done", i, seconds_i))
             await after_run(i, turns[-1])
             if drive is not None:
                 await drive.check()

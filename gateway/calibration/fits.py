@@ -180,7 +180,8 @@ class MonotoneFit:
 
 
 def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
-                 groups: Sequence[float] | None = None) -> MonotoneFit:
+                 groups: Sequence[float] | None = None,
+                 weights: Sequence[float] | None = None) -> MonotoneFit:
     """Paper A's rotation test fitted with the drill's own shape (issue 25).
 
     Runs of one set point (``groups``: the set point of each run, e.g. its duty; default the
@@ -191,8 +192,18 @@ def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
     readings are inconsistent and CalibrationError names the set points to repeat. The knots
     left carry a monotone piecewise cubic (``gateway.core.monotone``), which the controller
     inverts exactly.
+
+    ``weights``: each run's length (default all equal). Set points may run for different
+    lengths (``--seconds 300,240,120,60,60,60``): a knot, and a pooled block, is then the
+    time-weighted mean of its runs' rates, i.e. its total catch over its total run time, not
+    a plain mean that would give a 60 s run as much say as a 300 s one. The fall test keeps
+    counting runs (the noise of a long run's set point is over-, not under-stated: pooled
+    rather than refused).
     """
     x, y = _arrays(xs, ys, 2, what)
+    w = np.ones(len(x)) if weights is None else np.asarray(list(weights), dtype=float)
+    if len(w) != len(x) or not bool(np.all(w > 0)):
+        raise CalibrationError(f"{what}: {len(w)} positive run lengths needed for {len(x)} runs")
     keys = list(groups) if groups is not None else x.tolist()
     if len(keys) != len(x):
         raise CalibrationError(f"{what}: {len(keys)} set points for {len(x)} runs")
@@ -209,15 +220,17 @@ def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
     run_cv = DEFAULT_RUN_CV
     if n_rep >= 3:  # enough repeats to measure the test's own noise (never below 0.5 %)
         run_cv = max(0.005, math.sqrt(sum((r - 1.0) ** 2 for r in rel) / n_rep))
-    # blocks: (set points, weight n, mean x, mean y), in order of mean x
+    # blocks: (set points, runs n, mean x, mean y, run time t), in order of mean x; the means
+    # weighted by run time (equal lengths: the plain means)
     blocks = sorted(
-        ([k], float(len(idx)), float(np.mean(x[idx])), float(np.mean(y[idx])))
+        ([k], float(len(idx)), float(np.average(x[idx], weights=w[idx])),
+         float(np.average(y[idx], weights=w[idx])), float(np.sum(w[idx])))
         for k, idx in by_key.items())
-    merged: list[tuple[list[float], float, float, float]] = []
+    merged: list[tuple[list[float], float, float, float, float]] = []
     for blk in blocks:
         merged.append(blk)
         while len(merged) > 1 and merged[-1][3] <= merged[-2][3]:
-            (k1, n1, x1, y1), (k2, n2, x2, y2) = merged[-2], merged[-1]
+            (k1, n1, x1, y1, t1), (k2, n2, x2, y2, t2) = merged[-2], merged[-1]
             level = max(abs(y1), abs(y2), 1e-9)
             se = run_cv * level * math.sqrt(1.0 / n1 + 1.0 / n2)
             if y1 - y2 > MONOTONE_FALL_SIGMAS * se:
@@ -227,8 +240,9 @@ def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
                     "weighing noise "
                     f"({run_cv * 100:.1f} %): the readings are inconsistent; repeat set "
                     f"point(s) {_names(k1 + k2)}")
-            n = n1 + n2
-            merged[-2:] = [(k1 + k2, n, (n1 * x1 + n2 * x2) / n, (n1 * y1 + n2 * y2) / n)]
+            t = t1 + t2
+            merged[-2:] = [(k1 + k2, n1 + n2, (t1 * x1 + t2 * x2) / t,
+                            (t1 * y1 + t2 * y2) / t, t)]
     points = tuple((b[2], b[3]) for b in merged)
     if len(points) < 2 or any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
         raise CalibrationError(f"{what}: the set points do not spread over a range")
@@ -348,7 +362,8 @@ def grams_per_rev_by_speed(runs: Sequence[RotationRun]) -> list[tuple[float, flo
     if len(set(keys)) < MIN_POINTS_MONOTONE:
         return None
     fit = fit_monotone([r.rpm for r in runs], [r.mass_g / (r.seconds / 60.0) for r in runs],
-                       "delivered g/min against r/min", groups=keys)
+                       "delivered g/min against r/min", groups=keys,
+                       weights=[r.seconds for r in runs])
     return [(n, q / n) for n, q in fit.points]
 
 
@@ -430,15 +445,20 @@ class PaperAFit:
 
 
 def fit_paper_a(duties: Sequence[float], rpm: Sequence[float], rates: Sequence[float],
-                working_range: tuple[float, float]) -> PaperAFit:
+                working_range: tuple[float, float],
+                seconds: Sequence[float] | None = None) -> PaperAFit:
     """Paper A's rotation test: with ``MIN_POINTS_MONOTONE`` distinct duties or more, the
     drill's own monotone curves (its quadratic is then only shown: a monotonic drill with a
     knee is not refused because a parabola through it turns over); fewer, eq. 5 and eq. 6 as
-    the paper fits them, refused unless increasing. CalibrationError when it cannot fit."""
+    the paper fits them, refused unless increasing. CalibrationError when it cannot fit.
+
+    ``rpm`` and ``rates`` are per run (turns and catch over that run's own length);
+    ``seconds``: the runs' lengths when set points ran for different ones, the own curves'
+    knots then weighting each run by its length (``fit_monotone``)."""
     line = fit_motor_line(duties, rpm)
     if len(set(duties)) >= MIN_POINTS_MONOTONE:
-        motor_own = fit_monotone(duties, rpm, "duty -> r/min")
-        meter_own = fit_monotone(rpm, rates, "r/min -> g/min", groups=duties)
+        motor_own = fit_monotone(duties, rpm, "duty -> r/min", weights=seconds)
+        meter_own = fit_monotone(rpm, rates, "r/min -> g/min", groups=duties, weights=seconds)
         quad = fit_quadratic(rpm, rates)
         # the R² gates judge the line and the quadratic, which the own curves replace
         problems = paper_a_problems(line, quad, duties, rpm, min_motor_r2=-math.inf,
