@@ -663,10 +663,13 @@ def before_power_cut() -> None:
     kill qemu: what a power cut leaves is checked by after_power_cut on the next boot."""
     sh("systemctl", "stop", "mosquitto")
     _, _, hi0 = store_ids()
+    # the rate is over the time since hi0 was read: the records before "started-before-cut"
+    # count too (timed from the flag alone, 428 records in 15 ms read as 27 651 records/s and
+    # allowed 41 477 lost)
+    outage = time.monotonic()
     flag("operate-before-cut")
     wait_host("started-before-cut", 30)
     end = time.monotonic() + 60
-    outage = time.monotonic()
     _, lo, hi = store_ids()
     while time.monotonic() < end and hi < hi0 + 200:
         time.sleep(1)
