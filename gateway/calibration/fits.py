@@ -30,12 +30,23 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from gateway.core.errors import GatewayError
 from gateway.core.monotone import MonotoneCurve
+
+_V = TypeVar("_V")
+
+
+def by_set_point(set_points: Sequence[float], values: Sequence[_V]) -> dict[float, list[_V]]:
+    """``values`` grouped by their run's set point, in run order: a rotation test repeats each
+    set point, and every judgement of its repeats (scatter, means, weighing) starts here."""
+    out: dict[float, list[_V]] = {}
+    for k, v in zip(set_points, values, strict=True):
+        out.setdefault(float(k), []).append(v)
+    return out
 
 CALIBRATION_FILE = "calibration.json"
 FILE_VERSION = 1
@@ -207,9 +218,7 @@ def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
     keys = list(groups) if groups is not None else x.tolist()
     if len(keys) != len(x):
         raise CalibrationError(f"{what}: {len(keys)} set points for {len(x)} runs")
-    by_key: dict[float, list[int]] = {}
-    for i, k in enumerate(keys):
-        by_key.setdefault(float(k), []).append(i)
+    by_key = by_set_point(keys, range(len(keys)))
     if len(by_key) < MIN_POINTS_MONOTONE:
         raise CalibrationError(
             f"{what}: the drill's own curve needs at least {MIN_POINTS_MONOTONE} distinct set "
@@ -272,9 +281,7 @@ def imprecise_set_points(set_points: Sequence[float], rates: Sequence[float],
     """The repeated set points whose mean flow is known to worse than ``limit_pct`` (the
     scatter of their own repeats): a warning with what to repeat, not a refusal — the
     readings are consistent, only too few or too small for the rate wanted."""
-    by_key: dict[float, list[float]] = {}
-    for k, q in zip(set_points, rates, strict=True):
-        by_key.setdefault(float(k), []).append(float(q))
+    by_key = by_set_point(set_points, [float(q) for q in rates])
     out = []
     for k, qs in sorted(by_key.items()):
         mean = statistics.fmean(qs)

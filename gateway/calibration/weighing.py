@@ -26,7 +26,7 @@ import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from gateway.calibration.fits import SET_POINT_SE_LIMIT_PCT
+from gateway.calibration.fits import SET_POINT_SE_LIMIT_PCT, by_set_point
 
 # paper A weighs each catch on a scale of ±2 g (taken as one standard deviation)
 DEFAULT_SCALE_G = 2.0
@@ -171,9 +171,8 @@ def weighing_advice(set_points: Sequence[float], masses_g: Sequence[float],
     if not (scale_g > 0 and target_pct > 0 and all(t > 0 for t in lengths)
             and (not isinstance(seconds, (int, float)) or seconds > 0)):
         raise ValueError("scale σ, run length and target must be positive")
-    by_key: dict[float, list[tuple[float, float]]] = {}
-    for k, m, t in zip(set_points, masses_g, lengths, strict=True):
-        by_key.setdefault(float(k), []).append((float(m), t))
+    by_key = by_set_point(set_points, [(float(m), t) for m, t in zip(masses_g, lengths,
+                                                                    strict=True)])
     points = []
     for k, mts in sorted(by_key.items()):
         mean = statistics.fmean(m for m, _ in mts)
@@ -208,9 +207,7 @@ def unexplained_scatter(set_points: Sequence[float], masses_g: Sequence[float],
     than weighing differs between their runs (timing, flow); repeat them. (Wheat's runs scatter
     by ~0.5 % of a kilogram catch from the operator's timing: beyond the scale, but its mean
     is within the target, so not named.)"""
-    by_key: dict[float, list[float]] = {}
-    for k, m in zip(set_points, masses_g, strict=True):
-        by_key.setdefault(float(k), []).append(float(m))
+    by_key = by_set_point(set_points, [float(m) for m in masses_g])
     out = []
     for k, ms in sorted(by_key.items()):
         mean = statistics.fmean(ms)

@@ -163,11 +163,15 @@ def test_the_cli_warns_with_the_numbers_saves_and_keeps_the_advice(tmp_path: Pat
     drill, duties, rpm = rapeseed_test(seed=12)
     masses = [round(m, 2) for m in catches(drill, duties, 60.0, random.Random(8))]
     expected = weighing.weighing_advice(duties, masses, 60.0, SCALE_G)
-    code, out = run_cli(["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel",
-                         "rapeseed", "--model", "paper_a", "--no-wait", "--seconds", "60",
-                         "--scale-g", "2", "--duties", ",".join(f"{d:.3f}" for d in duties),
-                         "--rpm", ",".join(f"{w:.4f}" for w in rpm),
-                         "--mass", ",".join(f"{m:.2f}" for m in masses)])
+
+    def calibrate(state_dir: Path, scale_g: str) -> tuple[int, str]:
+        return run_cli(["calibrate", "--state-dir", str(state_dir), "rotation", "--channel",
+                        "rapeseed", "--model", "paper_a", "--no-wait", "--seconds", "60",
+                        "--scale-g", scale_g, "--duties", ",".join(f"{d:.3f}" for d in duties),
+                        "--rpm", ",".join(f"{w:.4f}" for w in rpm),
+                        "--mass", ",".join(f"{m:.2f}" for m in masses)])
+
+    code, out = calibrate(tmp_path, "2")
     assert code == 0, out
     flat = " ".join(out.split())
     assert "the runs were too short for this scale" in flat
@@ -186,11 +190,7 @@ def test_the_cli_warns_with_the_numbers_saves_and_keeps_the_advice(tmp_path: Pat
     assert entry["weighing"]["scale_g"] == 2.0
 
     fine = tmp_path / "fine"
-    code, out = run_cli(["calibrate", "--state-dir", str(fine), "rotation", "--channel",
-                         "rapeseed", "--model", "paper_a", "--no-wait", "--seconds", "60",
-                         "--scale-g", "0.1", "--duties", ",".join(f"{d:.3f}" for d in duties),
-                         "--rpm", ",".join(f"{w:.4f}" for w in rpm),
-                         "--mass", ",".join(f"{m:.2f}" for m in masses)])
+    code, out = calibrate(fine, "0.1")
     assert code == 0, out
     flat = " ".join(out.split())
     assert "too short" not in flat and "every set point's mean within ±1 % on a ±0.1 g" in flat
