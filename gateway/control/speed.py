@@ -34,7 +34,6 @@ class MovingAverage:
 
     def reset(self) -> None:
         self._samples.clear()
-        self._line_from = max(3, (self._samples.maxlen or 0) // 2)
 
 
 class Hysteresis:
@@ -91,11 +90,10 @@ class TrendFilter:
     After a restart the output is the mean of what there is until half the window exists
     (6 readings, 2 s at 3 Hz; 3 readings when the filter is new): a slope through 3–5 noisy
     readings is mostly noise, and read at the newest reading it is multiplied by half their
-    span. With paper A's radar scatter and
-    the poll jitter of a loaded box, the 3-reading line overshot a return to 8 km/h by up to
-    6 % (the fault matrix's radar_speed_gap_1s row); the mean of a few readings cannot
-    overshoot what they read. Restarts follow steps and gaps, not ramps, so a pull-away from a
-    standstill keeps the line (no restart: it is reachable).
+    span. With paper A's radar scatter and the poll jitter of a loaded box, the 3-reading line
+    overshot a return to 8 km/h by up to 6 % (the fault matrix's radar_speed_gap_1s row); the
+    mean of a few readings cannot overshoot what they read. Restarts follow steps and gaps,
+    not ramps, so a pull-away from a standstill keeps the line (no restart: it is reachable).
     """
 
     def __init__(
@@ -113,6 +111,7 @@ class TrendFilter:
         self.restarts = 0  # window restarts after a gap or a step (for tests and diagnostics)
         # readings before the line is used: 3 when new, half the window after a restart
         self._line_from = 3
+        self._line_after_restart = max(3, n // 2)
 
     def add(self, value: float, t: float) -> float:
         if self._samples:
@@ -126,7 +125,7 @@ class TrendFilter:
             if dt > self.restart_after_s or dt < 0.0 or abs(value - estimate) > reachable:
                 self._samples.clear()
                 self.restarts += 1
-                self._line_from = max(3, (self._samples.maxlen or 0) // 2)
+                self._line_from = self._line_after_restart
         self._samples.append((t, value))
         return self.value
 
@@ -152,4 +151,4 @@ class TrendFilter:
 
     def reset(self) -> None:
         self._samples.clear()
-        self._line_from = max(3, (self._samples.maxlen or 0) // 2)
+        self._line_from = self._line_after_restart
