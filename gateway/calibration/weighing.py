@@ -87,7 +87,9 @@ def scale_for_seconds(catch_g_per_s: float, seconds: float, runs: int,
 def duration(seconds: float) -> str:
     """A test's length as a farmer reads it: '45 min', '4 h 18 min'."""
     minutes = math.ceil(seconds / 60.0 - 1e-9)
-    return f"{minutes} min" if minutes < 60 else f"{minutes // 60} h {minutes % 60:02d} min"
+    if minutes < 60:
+        return f"{minutes} min"
+    return f"{minutes // 60} h" + (f" {minutes % 60:02d} min" if minutes % 60 else "")
 
 
 @dataclass(frozen=True)
