@@ -128,7 +128,7 @@ class RotationTestSession:
         why = f" (+-{scale:g} g scale, {runs} runs here)" if seconds > floor else ""
         if seconds > PRACTICAL_RUN_S:
             finer = weighing.scale_for_seconds(rate, floor, runs)
-            why = (f" (+-{scale:g} g scale, {runs} runs here: {seconds * runs / 60:.0f} min; "
+            why = (f" (+-{scale:g} g scale, {runs} runs here take {seconds * runs / 60:.0f} min; "
                    f"a +-{finer:g} g scale does it in {floor:g} s)")
         return seconds, why
 
