@@ -17,7 +17,9 @@ Calibrations are done as a farmer does them, through the real CLI and the daemon
   farmer runs the whole test again with the run lengths it advised, one per set point
   (``weighing.advised_seconds_by_set_point`` in ``calibration.json``, the ``--seconds``
   list its warning says); that second test is the
-  calibration used, the first stays as a sensitivity row;
+  calibration used, the first stays as a sensitivity row; the farmer states the scale to the
+  CLI (``--scale-g``), and the kitchen-scale rows (σ 5 and 10 g, every draw) do the same
+  with that scale: paper A's runs alone, and the test again as advised however long it is;
 * speed calibration, live on a ``Controller`` as ``cmd/speed_cal`` does it: ``start`` at the
   first of two marks 50 m apart, ``finish`` with 50 m at the second (presses σ 0.15 s), at
   slow 3 with the radar at 3 Hz; the same radar log also goes through ``sowgate calibrate
@@ -41,7 +43,7 @@ import shutil
 import statistics
 import tempfile
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -50,7 +52,7 @@ import numpy as np
 from rich.console import Console
 
 from gateway.app.cli import build_parser
-from gateway.calibration import lots
+from gateway.calibration import lots, weighing
 from gateway.calibration.apply import apply_calibrations
 from gateway.calibration.cli import run_calibration
 from gateway.calibration.fits import CalibrationStore
@@ -193,7 +195,7 @@ def rotation_test(drill: DrillTruth, model: CropModel, protocol: Protocol, rng: 
             _cli(state_dir, "rotation", "--channel", drill.crop, "--model", "paper_a",
                  "--duties", _nums(r.duties), "--rpm", _nums(r.counted_rpm),
                  "--seconds", protocol.option(), "--mass", _nums(masses), "--no-wait",
-                 *force)
+                 "--scale-g", repr(protocol.scale_sigma_g), *force)
             return attempt + (1 if force else 0)
         except CalibrationRefused as exc:
             last = str(exc)
@@ -386,7 +388,13 @@ RADAR_BIASES = (-0.02, 0.0, 0.02)
 MOTOR_OFFSETS = (-1.0, 0.0, 1.0)  # r/min off paper A's eq. (5) intercept
 DRIFTS = (0.0, 0.01, 0.03, 0.05)
 KNEES = (0.03, 0.06, 0.12)  # the drill's knee forced to this (issue 25)
-SCALE_SIGMAS = (0.5, 2.0, 5.0, 10.0)
+SCALE_SIGMAS = (0.5, 2.0)  # the first drills only; the kitchen scales below over all draws
+# a kitchen or hand scale worse than paper A's ±2 g (issue 25 §3), over every draw: the farmer
+# ignoring the CLI's advice (paper A's 3 × 60 s) or following it (the test again at the run
+# lengths it advised for that scale, however long)
+KITCHEN_SIGMAS = (5.0, 10.0)
+KITCHEN_IGNORED = "3 × 60 s (advice ignored)"
+KITCHEN_ADVISED = "as the CLI advised for the scale"
 PROTOCOLS = tuple(Protocol(seconds=s, repeats=n) for n in (1, 3) for s in (30.0, 60.0, 120.0))
 
 
@@ -400,6 +408,9 @@ class Session:
     rotation_seconds: float = ROTATION_SECONDS  # the longest run the farmer's test ended with
     rotation_total_s: float = 0.0  # that test's runs end to end (repeats included)
     rotation_farmer_s: float = 0.0  # the farmer's whole time running: first test + advised
+    # the kitchen scales: σ label -> the advised test's length, the farmer's whole time, the
+    # longest advised run, whether the CLI called the advised test impractical (1/0)
+    kitchen: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def driver(self, drill: DrillTruth, settings: Settings | None = None,
                fixed: float = 0.0) -> Driver:
@@ -499,6 +510,7 @@ def build_session(drill: DrillTruth, seed: int, root: Path, costly: bool = True)
         cal = settings_for(crop, [rotate(truth, Protocol(), f"k{k}"), spd])
         sens += [Lane(("knee", f"{k:.0%}", "none"), drv["none"], truth),
                  Lane(("knee", f"{k:.0%}", "both"), s.driver(truth, cal), truth)]
+    sens += kitchen_lanes(s, drill, seed, main_runs, spd, newdir)
     if not costly:
         s.sensitivity = sens
         return s
@@ -512,6 +524,47 @@ def build_session(drill: DrillTruth, seed: int, root: Path, costly: bool = True)
         sens.append(Lane(("protocol", label, "both"), s.driver(drill, cal), drill))
     s.sensitivity = sens
     return s
+
+
+def kitchen_lanes(s: Session, drill: DrillTruth, seed: int, main_runs: MeterRuns, spd: Path,
+                  newdir: Callable[[str], Path]) -> list[Lane]:
+    """The kitchen-scale rows of one drill: for each σ, the farmer's first test (paper A's
+    runs, the same meter runs as the main test, weighed on that scale and stated to the CLI
+    with ``--scale-g``) and, where the CLI advised longer runs for it, the whole test again
+    at those lengths. Each test has its own random stream (the other rows see the same draws
+    with or without these), and ``s.kitchen`` keeps each test's length and what the CLI said
+    of it."""
+    crop = drill.crop
+    model0 = settings_for(crop, []).control.crops[crop]
+    lanes: list[Lane] = []
+    for j, sigma in enumerate(KITCHEN_SIGMAS):
+        label = f"σ {sigma:g} g"
+        first = newdir(f"kitchen{sigma}")
+        s.rotation_attempts.append(rotation_test(
+            drill, model0, Protocol(scale_sigma_g=sigma), random.Random(seed * 7919 + 11 + j),
+            first, main_runs))
+        ignored = s.driver(drill, settings_for(crop, [first, spd]))
+        lanes.append(Lane(("kitchen", label, KITCHEN_IGNORED), ignored, drill))
+        lengths = advised_seconds(first, crop)
+        entry = CalibrationStore(first).get(lots.rotation_key(crop, lots.DEFAULT_LOT))
+        assert entry is not None
+        first_s = sum(main_runs.seconds)
+        advised_s = ROTATION_REPEATS * sum(lengths)
+        if max(lengths) > ROTATION_SECONDS:
+            again = newdir(f"kitchen{sigma}-advised")
+            s.rotation_attempts.append(rotation_test(
+                drill, model0, Protocol(lengths=lengths, scale_sigma_g=sigma),
+                random.Random(seed * 7919 + 21 + j), again))
+            followed = s.driver(drill, settings_for(crop, [again, spd]))
+        else:  # nothing to lengthen: following the advice is the first test
+            followed, advised_s = ignored, first_s
+        lanes.append(Lane(("kitchen", label, KITCHEN_ADVISED), followed, drill))
+        w = entry["weighing"]
+        s.kitchen[label] = {"test_s": advised_s, "farmer_s": first_s + (
+            advised_s if followed is not ignored else 0.0),
+            "impractical": float(bool(w.get("impractical"))),
+            "longest_run_s": max(lengths)}
+    return lanes
 
 
 def run_session(drill: DrillTruth, s: Session, seed: int) -> dict[tuple[str, ...], list[float]]:
@@ -1139,6 +1192,44 @@ def _cell(xs: list[float]) -> str:
     return f"{m:.2f} / {p:.2f} / {w:+.2f}"
 
 
+def kitchen_markdown(by_crop: dict[str, dict[tuple[str, ...], list[float]]],
+                     summary: dict[str, object],
+                     sens_table: Callable[[str, str, list[str], list[tuple[str, str]]], None],
+                     ) -> list[str]:
+    """The kitchen-scale rows (over every draw) and how long the advised tests took."""
+    labels = [f"σ {sg:g} g" for sg in KITCHEN_SIGMAS]
+    sens_table("Kitchen or hand scale for the rotation test (σ stated to the CLI with "
+               "`--scale-g`; rotation test + speed calibration; all draws)", "kitchen scale",
+               labels, [(KITCHEN_IGNORED, "paper A's 3 × 60 s, advice ignored"),
+                        (KITCHEN_ADVISED, "as the CLI advised")])
+    out = []
+    for label in labels:
+        rape = by_crop["rapeseed"]
+        test = [t / 60.0 for t in rape[("kitchen_facts", label, "test_s")]]
+        farmer = [t / 60.0 for t in rape[("kitchen_facts", label, "farmer_s")]]
+        longest = rape[("kitchen_facts", label, "longest_run_s")]
+        said = sum(rape[("kitchen_facts", label, "impractical")])
+        wheat_longer = sum(t > ROTATION_SECONDS for t in
+                           by_crop["wheat"][("kitchen_facts", label, "longest_run_s")])
+        key = label.split()[1]
+        for c in CROPS:
+            for col, name in ((KITCHEN_IGNORED, "ignored"), (KITCHEN_ADVISED, "advised")):
+                summary[f"kitchen_{key}g_{c}_{name}_p90_abs_err_pct"] = _stats(
+                    by_crop[c][("kitchen", label, col)])[1]
+        summary[f"kitchen_{key}g_rapeseed_test_min_median"] = round(statistics.median(test), 1)
+        summary[f"kitchen_{key}g_rapeseed_test_min_longest"] = round(max(test), 1)
+        out.append(
+            f"{label}: rapeseed's advised test, every run end to end, median "
+            f"{statistics.median(test):.0f} min, longest {max(test):.0f} min (with the first "
+            f"60 s pass median {statistics.median(farmer):.0f} min; its longest run "
+            f"{_advised_span(longest)}); the CLI said the advised test was not practical "
+            f"(over {weighing.duration(weighing.PRACTICAL_TEST_S)}) and named a finer scale "
+            f"in {said:.0f} of {len(test)} rapeseed draws; wheat's kilogram catches needed "
+            f"longer runs in {wheat_longer} of {len(longest)} draws")
+    parts = ["; ".join(out) + ".\n"]
+    return parts
+
+
 def _advised_span(seconds: list[float]) -> str:
     """How long the farmers' runs ended up: '60 s' or '120–330 s (median 210 s)'."""
     lo, hi = min(seconds), max(seconds)
@@ -1243,6 +1334,9 @@ def run_draw(ci: int, crop: str, i: int, root: Path) -> Draw:
     per_draw[("rotation_s",)] = s.rotation_seconds
     per_draw[("rotation_total_s",)] = s.rotation_total_s
     per_draw[("rotation_farmer_s",)] = s.rotation_farmer_s
+    for label, facts in s.kitchen.items():
+        for what, value in facts.items():
+            per_draw[("kitchen_facts", label, what)] = value
     dirs = (root / f"{crop}-{seed}-rot", root / f"{crop}-{seed}-speed")
     per_draw.update(surface_rows(drill, list(dirs), gears[i % len(gears)], seed))
     row = (
@@ -1439,7 +1533,7 @@ def run() -> dict[str, object]:
                "motor offset": "offset",
                "seed-lot drift since the rotation test": "drift",
                "rotation-test scale σ": "scale", "rotation protocol": "protocol",
-               "rotation run length": "advice"}
+               "rotation run length": "advice", "kitchen scale": "kitchen"}
     sens_table("Discharge factor of the drill (its eq. 6 off by this)", "discharge factor",
                [f"{f:+.0%}" for f in FACTORS],
                [("none", "sowgate uncalibrated"), ("open_none", "open loop uncalibrated"),
@@ -1457,12 +1551,14 @@ def run() -> dict[str, object]:
                "seed-lot drift since the rotation test", [f"{d:.0%}" for d in DRIFTS],
                [("both", "rotation + speed")])
     parts += surface_markdown(by_crop, summary)
+    parts += kitchen_markdown(by_crop, summary, sens_table)
     parts.append(f"*The rows below: the first {N_DRILLS_COSTLY} drills of each crop only "
                  "(ten rotation tests per drill).*\n")
     sens_table("Rotation-test run length: paper A's protocol against the CLI's advice "
                "(σ 2 g; the first is the same test the advice was drawn from)",
                "rotation run length", [FIRST_PASS, ADVISED], [("both", "rotation + speed")])
-    sens_table("Scale noise of the rotation test (paper A protocol otherwise)",
+    sens_table("Scale noise of the rotation test (paper A protocol otherwise; σ 5 and 10 g "
+               "over all draws above)",
                "rotation-test scale σ", [f"{s:g} g" for s in SCALE_SIGMAS],
                [("both", "rotation + speed")])
     sens_table("Rotation-test protocol: repeats per set point × run length (σ 2 g)",

@@ -10,6 +10,16 @@ the crop on the screen and its active seed lot. A result more than ``LARGE_CHANG
 the value it replaces is shown and saved only on "save_confirmed". The saved calibration is
 applied at once (``LiveCalibration.reload``) and can be undone with ``sowgate calibrate undo``.
 
+Run lengths: the screen's frame carries a duty, not a length, so the daemon decides how long a
+run lasts and says it in the run's message. Without a known scale every run lasts
+``control.rotation_test_s``. With ``[calibration] scale_g`` each set point runs for what the
+CLI's weighing advice would ask of it (``weighing.run_seconds_needed``: its mean within 1 % at
+p90 over paper A's 3 runs, never shorter than ``rotation_test_s``): its first run from the
+catch the crop's current model predicts at that duty, its later runs from what its earlier
+runs caught. The small catches (rapeseed's low duties) run long, the large ones stay short, so
+the screen's test reaches the CLI's accuracy without the CLI's first 60 s pass; when a run
+alone is longer than ``PRACTICAL_RUN_S`` its message names the finer scale that would do.
+
 Safety: a run is only motor and fan duties laid over the controller's outputs for the run's
 length (``apply``): the PWM module is written by the control loop as ever (keep-alive,
 watchdog, safe-off at stop); "cancel", the stop button, a start of work or any mode other
@@ -34,11 +44,15 @@ from gateway.core.errors import CommandError
 log = logging.getLogger(__name__)
 
 MIN_RUNS = 3  # eq. 6 is a quadratic
+# one run longer than this (the runs of one set point at it take over an hour, the test over
+# the two hours of weighing.PRACTICAL_TEST_S) gets the finer scale named in its message
+PRACTICAL_RUN_S = 20 * 60.0
 
 
 @dataclass
 class _Run:
     duty_pct: float
+    seconds: float
     rpm: float | None = None
     mass_g: float | None = None
 
@@ -83,12 +97,40 @@ class RotationTestSession:
             raise CommandError(f"this test is of {self.crop}: save or cancel it first")
         if self.runs and (self.runs[-1].rpm is None or self.runs[-1].mass_g is None):
             raise CommandError(f"enter run {len(self.runs)}'s shaft r/min and mass first")
-        seconds = self.settings.control.rotation_test_s
+        seconds, why = self._run_seconds(crop, duty)
         self.crop = crop
-        self.runs.append(_Run(duty))
+        self.runs.append(_Run(duty, seconds))
         self.running_until = now + seconds
-        return (f"rotation run {len(self.runs)} ({crop}): duty {duty:g} % for {seconds:g} s, "
-                "then enter the shaft r/min and the mass of all outlets in g")
+        return (f"rotation run {len(self.runs)} ({crop}): duty {duty:g} % for {seconds:g} s"
+                f"{why}, then enter the shaft r/min and the mass of all outlets in g")
+
+    def _run_seconds(self, crop: str, duty: float) -> tuple[float, str]:
+        """How long a run at ``duty`` lasts, and what the message adds about it (see the
+        module docstring): ``rotation_test_s`` unless the scale is known."""
+        floor = self.settings.control.rotation_test_s
+        scale = self.settings.calibration.scale_g
+        if scale is None:
+            return floor, ""
+        same = [r for r in self.runs if abs(r.duty_pct - duty) < 1e-6 and r.mass_g]
+        if same:  # this set point's own catches beat any model
+            rate = sum(r.mass_g or 0.0 for r in same) / sum(r.seconds for r in same)
+        else:
+            m = self.settings.control.crops[crop]
+            w = m.motor_slope * duty + m.motor_intercept  # eq. 5, as calibrated so far
+            rate = (m.meter_a * w * w + m.meter_b * w + m.meter_c) / 60.0  # eq. 6, g/s
+        if rate <= 0:  # below the motor's dead band as modelled: the catch will say
+            return floor, ""
+        runs = max(weighing.PAPER_A_REPEATS, len(same) + 1)
+        # runs of this set point so far count: a short first run (the model over-predicted
+        # its catch) is made up by the ones after it
+        seconds = max(floor, weighing.remaining_run_seconds(
+            rate, scale, runs, [r.seconds for r in same]))
+        why = f" (+-{scale:g} g scale, {runs} runs here)" if seconds > floor else ""
+        if seconds > PRACTICAL_RUN_S:
+            finer = weighing.scale_for_seconds(rate, floor, runs)
+            why = (f" (+-{scale:g} g scale, {runs} runs here take {seconds * runs / 60:.0f} min; "
+                   f"a +-{finer:g} g scale does it in {floor:g} s)")
+        return seconds, why
 
     def _enter(self, what: str, value: float) -> str:
         if not self.runs:
@@ -113,11 +155,12 @@ class RotationTestSession:
             raise CommandError(f"need {MIN_RUNS} runs with shaft r/min and mass (have "
                                f"{len(done)})")
         crop = self.crop or self.controller.crop
-        seconds = self.settings.control.rotation_test_s
+        seconds = [r.seconds for r in done]
         duties = [r.duty_pct for r in done]
         rpm = [r.rpm for r in done if r.rpm is not None]
         masses = [r.mass_g for r in done if r.mass_g is not None]
-        rates = [m / (seconds / 60.0) for m in masses]  # whole machine: every outlet weighed
+        # whole machine: every outlet weighed
+        rates = [m / (t / 60.0) for m, t in zip(masses, seconds, strict=True)]
         wr = (min(rpm), max(rpm))
         try:
             fit = cal.fit_paper_a(duties, rpm, rates, wr)
@@ -134,7 +177,9 @@ class RotationTestSession:
                 f"{change:+.0f} % from the value it replaces (more than "
                 f"{cal.LARGE_CHANGE_PCT:g} %): check the masses; confirm to save anyway"
             )
-        advice = weighing.weighing_advice(duties, masses, seconds)  # paper A's ±2 g scale
+        scale = self.settings.calibration.scale_g
+        advice = weighing.weighing_advice(  # unknown scale: paper A's ±2 g
+            duties, masses, seconds, weighing.DEFAULT_SCALE_G if scale is None else scale)
         key = lots.rotation_key(crop, lot)
         entry = cal.to_entry(
             fit.result(),
@@ -153,10 +198,28 @@ class RotationTestSession:
         mine = [n for n in notes if crop in n]
         if advice.short:  # the CLI says it at length (gateway.calibration.weighing)
             log.warning("%s: %s", key, " ".join(advice.messages(crop, "{:.4g} % duty")))
-            mine.append(f"runs too short for a +-{advice.scale_g:g} g scale: "
-                        f"rotation_test_s {advice.advised_seconds:g}")
+            note = advice.practical_note(crop)
+            if note is not None:
+                log.warning("%s: %s", key, note)
+            mine.append(self._short_note(advice, scale))
         return (f"saved {key}: R = {line.slope:.4f}K {line.intercept:+.2f}, R2 {line.r2:.3f}/"
                 f"{quad.r2:.3f}; {'; '.join(mine) or 'applied'}")
+
+    @staticmethod
+    def _short_note(advice: weighing.WeighingAdvice, scale: float | None) -> str:
+        """What the screen (ASCII, one line) says when runs were too short for the scale."""
+        if advice.impractical:
+            return (f"runs too short for a +-{advice.scale_g:g} g scale, the test would take "
+                    f"{weighing.duration(advice.test_seconds())}: weigh on a "
+                    f"+-{advice.practical_scale_g:g} g scale")
+        if scale is None:  # every run lasts rotation_test_s: the one length that would do
+            return (f"runs too short for a +-{advice.scale_g:g} g scale: "
+                    f"rotation_test_s {advice.advised_seconds:g} (or set calibration.scale_g)")
+        # lengths were per set point already: the model's catch was off; the next test
+        # runs each set point from the catches just saved, so name the ones to repeat
+        return (f"runs too short for a +-{advice.scale_g:g} g scale at "
+                + ", ".join(f"{p.set_point:g} %" for p in advice.short)
+                + " duty: repeat those set points")
 
     def _change(self, crop: str, lot: str, line: cal.LineFit, fit: cal.PaperAFit,
                 duties: list[float], wr: tuple[float, float]) -> tuple[float, dict[str, Any]]:

@@ -110,9 +110,10 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
                    "channel's [[channel]] outlets in --config, 1 without one; paper A: all "
                    "machine.rows). g/rev is stored "
                    "per outlet; paper A's eq. 6 is scaled to the whole machine by rows/N")
-    r.add_argument("--scale-g", type=float, default=weighing.DEFAULT_SCALE_G, metavar="G",
+    r.add_argument("--scale-g", type=float, default=None, metavar="G",
                    help="the scale's stated error per weighing, ± G grams (taken as one "
-                   "standard deviation; default %(default)g, paper A's): each set point's "
+                   "standard deviation; default: --config's [calibration] scale_g, else "
+                   f"{weighing.DEFAULT_SCALE_G:g}, paper A's): each set point's "
                    "uncertainty and the run length it needs are worked out from it")
     r.add_argument("--accept-poor-fit", action="store_true",
                    help="save a fit that fails a quality gate (CV, R², set-point span); "
@@ -606,6 +607,9 @@ def _weighing_advice(args: argparse.Namespace, console: Console, set_points: Seq
         console.print("[yellow]warning[/]: the runs were too short for this scale:")
         for line in lines:
             console.print(f"  - {line}", highlight=False)
+    note = advice.practical_note(args.channel)
+    if note is not None:  # hours of runs: the scale, not the farmer's patience, is the fix
+        console.print(f"[bold yellow]warning[/]: {note}", highlight=False)
     elif advice.set_points:
         worst = max(advice.set_points, key=lambda p: p.se_pct)
         console.print(
@@ -625,9 +629,12 @@ def _weighing_advice(args: argparse.Namespace, console: Console, set_points: Seq
 
 
 def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], float]) -> int:
-    if not args.scale_g > 0:  # before the runs, not after twenty minutes of them
+    if args.scale_g is not None and not args.scale_g > 0:  # before the runs, not after them
         raise cal.CalibrationError(f"--scale-g must be > 0 g (got {args.scale_g:g})")
     settings = _settings(args)
+    if args.scale_g is None:  # the config's scale (the touchscreen's test uses it too)
+        configured = settings.calibration.scale_g if settings is not None else None
+        args.scale_g = weighing.DEFAULT_SCALE_G if configured is None else configured
     _check_rotation_target(settings, args.channel, args.model)
     outlets = _outlets(args, settings)
     store = _store(args)

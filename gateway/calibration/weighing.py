@@ -43,6 +43,53 @@ SCATTER_FACTOR = 2.0
 # per set point) there is no longer the longest run's margin on the others: at one σ =
 # 1 %, bench_rate's rapeseed came out at 1.05 % p90 rate error
 P90_Z = 1.645
+# a rotation test whose runs take longer than this end to end is not one a farmer runs before
+# sowing (a kitchen scale of ±5–10 g on rapeseed asks for 2–4 h): past it the advice says so
+# and names the finer scale that brings the test under it
+PRACTICAL_TEST_S = 2 * 3600.0
+# paper A's runs per set point: what a run length is worked out for before any is weighed
+# (the touchscreen's test, where each run is timed by the daemon)
+PAPER_A_REPEATS = 3
+
+
+def run_seconds_needed(catch_g_per_s: float, scale_g: float, runs: int,
+                       target_pct: float = SET_POINT_SE_LIMIT_PCT) -> float:
+    """The run length (rounded up to ``ROUND_SECONDS``) at which ``runs`` weighings of a set
+    point catching ``catch_g_per_s`` on a ±``scale_g`` scale give its mean within
+    ``target_pct`` at p90: σ / (catch · √runs) ≤ target / 1.645. The one formula of the CLI's
+    advice and of the touchscreen's run lengths."""
+    if not (catch_g_per_s > 0 and scale_g > 0 and runs > 0 and target_pct > 0):
+        raise ValueError("catch, scale σ, runs and target must be positive")
+    return _round_up(scale_g * 100.0 * P90_Z / (catch_g_per_s * target_pct * math.sqrt(runs)))
+
+
+def remaining_run_seconds(catch_g_per_s: float, scale_g: float, runs: int,
+                          done_s: Sequence[float] = (),
+                          target_pct: float = SET_POINT_SE_LIMIT_PCT) -> float:
+    """The length of each run of a set point still to come, when ``done_s`` of its ``runs``
+    are run: what brings the set point's mean catch (the catches over the mean length, as
+    ``weighing_advice`` judges it) to ``run_seconds_needed``. Runs already made shorter than
+    that are made up by longer ones (rounded up; never shorter than 0)."""
+    left = runs - len(done_s)
+    if left <= 0:
+        raise ValueError(f"{len(done_s)} runs done of {runs}: none left")
+    mean = run_seconds_needed(catch_g_per_s, scale_g, runs, target_pct)
+    return _round_up(max(0.0, (runs * mean - sum(done_s)) / left))
+
+
+def scale_for_seconds(catch_g_per_s: float, seconds: float, runs: int,
+                      target_pct: float = SET_POINT_SE_LIMIT_PCT) -> float:
+    """The coarsest usual scale (``SCALE_STEPS_G``) with which runs of ``seconds`` do."""
+    se = 100.0 / (catch_g_per_s * seconds * math.sqrt(runs))  # per gram of scale σ
+    return _scale_for(1.0, se, target_pct / P90_Z)
+
+
+def duration(seconds: float) -> str:
+    """A test's length as a farmer reads it: '45 min', '4 h 18 min'."""
+    minutes = math.ceil(seconds / 60.0 - 1e-9)
+    if minutes < 60:
+        return f"{minutes} min"
+    return f"{minutes // 60} h" + (f" {minutes % 60:02d} min" if minutes % 60 else "")
 
 
 @dataclass(frozen=True)
@@ -67,6 +114,7 @@ class WeighingAdvice:
     set_points: tuple[SetPointWeighing, ...]
     # each set point's run length, in the order the test ran them (first run of each)
     lengths: tuple[tuple[float, float], ...] = ()
+    counts: tuple[int, ...] = ()  # runs per set point, in the order of ``lengths``
 
     @property
     def limit_pct(self) -> float:
@@ -99,6 +147,58 @@ class WeighingAdvice:
         if len(set(ts)) <= 1:
             return f"{self.advised_seconds:g}"
         return ",".join(f"{t:g}" for t in ts)
+
+    def test_seconds(self, scale_g: float | None = None) -> float:
+        """The advised test end to end (every run of every set point at its advised length,
+        as many runs as now) on this scale, or on a ±``scale_g`` one: the catches stay, the
+        scale's error per weighing scales with it; no set point runs shorter than now."""
+        ratio = 1.0 if scale_g is None else scale_g / self.scale_g
+        points = {p.set_point: p for p in self.set_points}
+        total = 0.0
+        for (k, t), n in zip(self.lengths, self.counts, strict=True):
+            p = points.get(k)
+            need = t
+            if p is not None and p.se_pct * ratio > self.limit_pct * (1 + 1e-9):
+                need = max(t, run_seconds_needed(p.mean_mass_g / p.seconds, self.scale_g * ratio,
+                                                 p.runs, self.target_pct))
+            total += n * need
+        return total
+
+    @property
+    def impractical(self) -> bool:
+        """The advised test runs longer than ``PRACTICAL_TEST_S`` end to end."""
+        return bool(self.short) and self.test_seconds() > PRACTICAL_TEST_S
+
+    @property
+    def practical_scale_g(self) -> float:
+        """The coarsest usual scale finer than this one whose advised test takes at most
+        ``PRACTICAL_TEST_S`` (the finest usual scale when none does)."""
+        finer = [s for s in SCALE_STEPS_G if s < self.scale_g * (1 - 1e-9)]
+        for s in reversed(finer):
+            if self.test_seconds(s) <= PRACTICAL_TEST_S:
+                return s
+        return SCALE_STEPS_G[0]
+
+    def practical_note(self, what: str) -> str | None:
+        """When the advised test is impractical, that said plainly with the finer scales
+        that bring it back: the one for a test under ``PRACTICAL_TEST_S`` and the one with
+        which the runs as made already do. ``None`` when the test is practical."""
+        if not self.impractical:
+            return None
+        runs = sum(self.counts)
+        fine = self.practical_scale_g
+        as_made = min(p.scale_needed_g for p in self.short)
+        masses = [p.mean_mass_g for p in self.set_points]
+        lengths = sorted({t for _, t in self.lengths})
+        made = (f"{lengths[0]:g} s" if len(lengths) == 1
+                else f"{lengths[0]:g}–{lengths[-1]:g} s")
+        return (
+            f"{what}: the advised test runs {duration(self.test_seconds())} end to end "
+            f"({runs} runs) on a ±{self.scale_g:g} g scale, more than "
+            f"{duration(PRACTICAL_TEST_S)}: not practical. Catches of {min(masses):.3g}–"
+            f"{max(masses):.3g} g need a finer scale: on a ±{fine:g} g scale the advised "
+            f"test takes {duration(self.test_seconds(fine))}; on a ±{as_made:g} g scale the "
+            f"runs as made ({made}) do")
 
     def messages(self, what: str, label: str = "{:g}") -> list[str]:
         """The advice as sentences, one per short set point, then what to do.
@@ -139,6 +239,8 @@ class WeighingAdvice:
                 "seconds_by_set_point": [[k, t] for k, t in self.lengths],
                 "advised_seconds_by_set_point": [[k, t] for k, t in self.advised_by_set_point],
                 "advised_seconds_option": self.seconds_option,
+                "advised_test_s": self.test_seconds(),
+                "impractical": self.impractical,
                 "short_set_points": [p.set_point for p in self.short],
                 "se_pct": {f"{p.set_point:g}": round(p.se_pct, 3) for p in self.set_points}}
 
@@ -183,11 +285,14 @@ def weighing_advice(set_points: Sequence[float], masses_g: Sequence[float],
         se = per / math.sqrt(len(mts))
         # the catch grows with the run, the scale's error does not: se ∝ 1 / seconds
         limit = target_pct / P90_Z
-        needed = _round_up(length * se / limit) if se > limit * (1 + 1e-9) else length
+        needed = (run_seconds_needed(mean / length, scale_g, len(mts), target_pct)
+                  if se > limit * (1 + 1e-9) else length)
         points.append(SetPointWeighing(k, len(mts), mean, per, se, needed,
                                        _scale_for(scale_g, se, limit), length))
     order = tuple((k, statistics.fmean(t for _, t in mts)) for k, mts in by_key.items())
-    return WeighingAdvice(scale_g, max(lengths, default=0.0), target_pct, tuple(points), order)
+    counts = tuple(len(mts) for mts in by_key.values())
+    return WeighingAdvice(scale_g, max(lengths, default=0.0), target_pct, tuple(points), order,
+                          counts)
 
 
 @dataclass(frozen=True)

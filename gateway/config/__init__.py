@@ -30,6 +30,7 @@ from gateway.config.farm import (
 from gateway.config.farm_task import FarmSection
 from gateway.config.machine import (
     ActuatorsSection,
+    CalibrationSection,
     ControlSection,
     CropModel,
     HmiSection,
@@ -78,6 +79,7 @@ __all__ = [
     "STORE_FILE",
     "ActuatorsSection",
     "AgOpenGpsSection",
+    "CalibrationSection",
     "CanSection",
     "ChannelSection",
     "CommandsSection",
@@ -142,6 +144,7 @@ class Settings(BaseSettings):
     hmi: HmiSection = Field(default_factory=HmiSection)
     speed: SpeedSection = Field(default_factory=SpeedSection)
     control: ControlSection = Field(default_factory=ControlSection)
+    calibration: CalibrationSection = Field(default_factory=CalibrationSection)
     gnss: GnssSection = Field(default_factory=GnssSection)
     seed_sensors: SeedSensorsSection = Field(default_factory=SeedSensorsSection)
     positioning: PositioningSection = Field(default_factory=PositioningSection)

@@ -361,13 +361,43 @@ def default_crops() -> dict[str, CropModel]:
     }
 
 
+# the rotation test's scale, ± grams per weighing: from a jeweller's 0.01 g to a bathroom
+# scale's 50 g (gateway.calibration.weighing names its usual steps; the config cannot import it)
+SCALE_G_RANGE = (0.01, 50.0)
+
+
+class CalibrationSection(Section):
+    """What the rotation test's advice needs to know about the farm's own tools.
+
+    ``scale_g``: the stated error of the scale the catches are weighed on (± grams, taken as
+    one standard deviation). Set, the touchscreen's rotation test (F=09) runs each set point
+    for the length that scale needs for the rate to land within 1 % (``gateway.calibration.
+    weighing``: the catch predicted from the crop's model, then from that set point's own
+    runs), and ``sowgate calibrate rotation --config`` takes it as its ``--scale-g``. Unset,
+    every touchscreen run lasts ``control.rotation_test_s`` and the CLI assumes paper A's 2 g.
+    """
+
+    scale_g: float | None = None
+
+    @field_validator("scale_g")
+    @classmethod
+    def _scale_in_range(cls, value: float | None) -> float | None:
+        lo, hi = SCALE_G_RANGE
+        if value is not None and not lo <= value <= hi:
+            raise ValueError(
+                f"the scale's error per weighing must be {lo:g}..{hi:g} g (± grams, one "
+                "standard deviation)")
+        return value
+
+
 class ControlSection(Section):
     crop: str = "rapeseed"
     rate_kg_ha: float | None = None  # None -> the crop's default rate
     emptying_timeout_s: float = Field(120.0, gt=0, le=3600)
     emptying_motor_pct: float = Field(100.0, ge=0, le=100)
     start_working: bool = False  # start in the "work" mode without an HMI start press
-    # one run of the rotation test started from the touchscreen (paper A weighs 60 s runs)
+    # one run of the rotation test started from the touchscreen (paper A weighs 60 s runs);
+    # with [calibration] scale_g the shortest run, each set point running as long as it needs
     rotation_test_s: float = Field(60.0, ge=1, le=600)
     crops: dict[str, CropModel] = Field(default_factory=default_crops)
     # keys older versions accepted and that never did anything: key -> value in the file

@@ -295,3 +295,80 @@ def test_time_weighted_knots_are_total_catch_over_total_time() -> None:
     assert x0 == pytest.approx((300 * 10.0 + 60 * 11.0) / 360)
     plain = cal.fit_monotone(xs, ys, "flow")
     assert plain.points[0][1] == pytest.approx((100.0 + 99.5) / 2)
+
+
+def test_a_kitchen_scale_makes_the_advised_test_impractical_and_the_finer_scale_is_named(
+) -> None:
+    """A knee drill's rapeseed test at 60 s weighed on a ±10 g scale: the advised runs take
+    hours end to end (summed here from the advice's own per-set-point lengths), said plainly;
+    the scale it names brings the test, run again on the truth with that scale's noise, under
+    the practical limit; on paper A's ±2 g the same drill's advice is practical and says
+    nothing of it."""
+    drill, duties, _ = rapeseed_test()
+    rng = random.Random(21)
+    coarse = weighing.weighing_advice(duties, catches(drill, duties, 60.0, rng, 10.0), 60.0,
+                                      10.0)
+    hours = sum(per_run(coarse, duties))
+    assert coarse.test_seconds() == pytest.approx(hours) and hours > weighing.PRACTICAL_TEST_S
+    assert coarse.impractical
+    note = coarse.practical_note("rapeseed")
+    assert note is not None
+    fine = coarse.practical_scale_g
+    assert fine < 10.0
+    assert (f"the advised test runs {weighing.duration(hours)} end to end ({len(duties)} "
+            f"runs) on a ±10 g scale") in note and "not practical" in note
+    assert f"on a ±{fine:g} g scale the advised test takes" in note
+    # the named scale, on the truth: its own advice from its own catches is practical
+    again = weighing.weighing_advice(duties, catches(drill, duties, 60.0, rng, fine), 60.0,
+                                     fine)
+    assert again.test_seconds() <= weighing.PRACTICAL_TEST_S * 1.1
+    paper_a = weighing.weighing_advice(duties, catches(drill, duties, 60.0, rng), 60.0, 2.0)
+    assert paper_a.short and not paper_a.impractical
+    assert paper_a.practical_note("rapeseed") is None
+
+
+def test_later_runs_of_a_set_point_make_up_a_short_first_one() -> None:
+    """A first run of 60 s where the catch needs 300 s over three runs: the two runs left run
+    (3 × 300 − 60) / 2 = 420 s, and the three together are within the target by the advice's
+    own judgement of their catches; a first run long enough leaves the others at nothing more
+    than it needs."""
+    rate = 38.0 / 60.0  # g/s: 38 g in 60 s
+    assert weighing.run_seconds_needed(rate, 2.0, 3) == 300.0
+    left = weighing.remaining_run_seconds(rate, 2.0, 3, [60.0])
+    assert left == 420.0
+    lengths = [60.0, left, left]
+    advice = weighing.weighing_advice([20.0] * 3, [rate * t for t in lengths], lengths, 2.0)
+    assert advice.short == ()
+    # one 30 s step less for the two and the set point is short again: 420 is the shortest
+    shorter = [60.0, left - 30.0, left - 30.0]
+    assert weighing.weighing_advice([20.0] * 3, [rate * t for t in shorter], shorter,
+                                    2.0).short
+    assert weighing.remaining_run_seconds(rate, 2.0, 3, [900.0]) == 0.0
+
+
+def test_the_cli_takes_the_configured_scale_and_says_when_the_test_is_impractical(
+    tmp_path: Path,
+) -> None:
+    """`calibrate rotation --config` with `[calibration] scale_g = 10` and no `--scale-g`:
+    the advice is for ±10 g (kept in the entry), and the hours it would take are said with
+    the scale to weigh on instead."""
+    drill, duties, rpm = rapeseed_test(seed=12)
+    masses = [round(m, 2) for m in catches(drill, duties, 60.0, random.Random(8), 10.0)]
+    config = tmp_path / "sowgate.toml"
+    config.write_text("[calibration]\nscale_g = 10\n")
+    code, out = run_cli(["calibrate", "--config", str(config), "--state-dir", str(tmp_path),
+                         "rotation", "--channel", "rapeseed", "--model", "paper_a",
+                         "--no-wait", "--seconds", "60",
+                         "--duties", ",".join(f"{d:.3f}" for d in duties),
+                         "--rpm", ",".join(f"{w:.4f}" for w in rpm),
+                         "--mass", ",".join(f"{m:.2f}" for m in masses)])
+    assert code == 0, out
+    flat = " ".join(out.split())
+    expected = weighing.weighing_advice(duties, masses, 60.0, 10.0)
+    assert expected.impractical
+    assert "on a ±10 g scale is" in flat and "not practical" in flat
+    assert (f"on a ±{expected.practical_scale_g:g} g scale the advised test takes "
+            f"{weighing.duration(expected.test_seconds(expected.practical_scale_g))}") in flat
+    entry = cal.CalibrationStore(tmp_path).get("rotation.rapeseed")
+    assert entry is not None and entry["weighing"]["scale_g"] == 10.0
+    assert entry["weighing"]["impractical"] is True

@@ -468,3 +468,23 @@ def test_row_monitor_keys_out_of_range_are_named_with_their_range(
     with pytest.raises(ConfigError) as info:
         parse_config({"row_monitor": table})
     assert info.value.problems[0].startswith(problem), info.value.problems
+
+
+@pytest.mark.parametrize("value", [0, -1, 0.005, 51, 100])
+def test_the_rotation_test_scale_out_of_range_is_a_config_error_naming_key_and_range(
+    tmp_path: Path, value: float, capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``[calibration] scale_g``: a scale of no error, or one coarser than any scale weighs a
+    catch with, is a config error (exit 78) that names the key and the range."""
+    from gateway.app.cli import main
+
+    path = tmp_path / "sowgate.toml"
+    path.write_text(f"[calibration]\nscale_g = {value}\n")
+    assert main(["check-config", str(path)]) == 78
+    err = capsys.readouterr().err
+    assert "calibration.scale_g" in err and "0.01..50 g" in err and f"got {value}" in err
+
+
+def test_the_rotation_test_scale_is_optional_and_kept() -> None:
+    assert parse_config({}).calibration.scale_g is None
+    assert parse_config({"calibration": {"scale_g": 5}}).calibration.scale_g == 5.0
