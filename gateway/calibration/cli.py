@@ -28,7 +28,7 @@ import logging
 import signal
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -693,12 +693,9 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
                                   previous[1], args, console)
         replaces = (None if previous is None
                     else {"grams_per_rev": previous[0], "from": previous[1]})
-        result = asdict(fit)
-        if by_speed is not None:  # new files say their model; older readers use the mean
-            result.update(gpr_model="per_speed_curve",
-                          grams_per_rev_curve=[list(p) for p in by_speed])
         store.save(key, cal.to_entry(
-            result, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
+            cal.grams_per_rev_result(fit, by_speed), channel=args.channel, crop=crop,
+            seed_lot=lot, model="grams_per_rev",
             outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
             replaces=replaces, accepted_poor_fit=problems,
             accepted_large_change=large, weighing=advice))

@@ -374,6 +374,20 @@ def grams_per_rev_by_speed(runs: Sequence[RotationRun]) -> list[tuple[float, flo
     return [(n, q / n) for n, q in fit.points]
 
 
+def grams_per_rev_result(fit: GramsPerRevFit,
+                         by_speed: list[tuple[float, float]] | None) -> dict[str, Any]:
+    """What a paper-B rotation test saves as its entry's ``result``: the fit, and the g/rev
+    curve when the test had enough set speeds. One builder for ``sowgate calibrate rotation``
+    and the benchmark that judges it (bench_multichannel), so the figures are measured on
+    what the daemon applies, not on a copy of it. New files say their model
+    (``gpr_model``); older readers use the mean."""
+    result = asdict(fit)
+    if by_speed is not None:
+        result.update(gpr_model="per_speed_curve",
+                      grams_per_rev_curve=[list(p) for p in by_speed])
+    return result
+
+
 def grams_per_rev_problems(fit: GramsPerRevFit, *, max_cv_pct: float = MAX_GPR_CV_PCT,
                            min_r2: float = MIN_GPR_R2) -> list[str]:
     """Why a g/rev fit should not be trusted (empty: it passes every gate)."""
