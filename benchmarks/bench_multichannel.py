@@ -458,8 +458,8 @@ def markdown(result: dict[str, Any]) -> str:
     lines = [
         f"Paper B's dynamic test over {n} independent draws (seeds 1…{n}). Each draw gives "
         "every channel's meter its own law, unlike the controller's model: g/rev at 10 r/min "
-        f"within ±{GPR_SPREAD:.0%} of paper B's, a change from 10 to 60 r/min drawn in "
-        f"{CHANGE_RANGE[0]:+.0%}…{CHANGE_RANGE[1]:+.0%} (drawn here: {lo_change:+.1f}…"
+        f"within ±{GPR_SPREAD * 100:g} % of paper B's, a change from 10 to 60 r/min drawn "
+        f"in {CHANGE_RANGE[0] * 100:+g}…{CHANGE_RANGE[1] * 100:+g} % (drawn: {lo_change:+.1f}…"
         f"{hi_change:+.1f} %), reached along a power law of exponent "
         f"{FILL_SHAPE_RANGE[0]:g}–{FILL_SHAPE_RANGE[1]:g} from a knee drawn in "
         f"{KNEE_RANGE_RPM[0]:g}–{KNEE_RANGE_RPM[1]:g} r/min (cells full up to it: a kink "
@@ -509,12 +509,12 @@ def markdown(result: dict[str, Any]) -> str:
         f"{chans[worst_cv]['sowgate']['cv_pct'][1]:.2f} % against "
         f"{chans[worst_cv]['paper_cv_pct']:.1f} %; largest p90 |bias|: {worst_bias}, "
         f"{chans[worst_bias]['sowgate']['bias_pct'][1]:.2f} %. Rotation tests the CLI would "
-        f"have refused without `--accept-poor-fit` (g/rev CV or R² gates): {poor} of "
-        f"{n * len(chans)}. Open loop = fixed shaft speed from nominal 5 km/h and paper B's "
-        "g/rev + 5 % as a catalogue value (its bias is that 5 % plus the drawn meter's own "
-        "g/rev at its speed). The plant's pulsation and spread are assumptions, not "
-        "measurements: this compares control strategies on plants unlike the controller's "
-        "model; it does not predict a field CV.")
+        f"have refused without `--accept-poor-fit` (g/rev CV or R² gates; applied here as "
+        f"with it): {poor} of {n * len(chans)}. Open loop = fixed shaft speed from nominal "
+        "5 km/h and paper B's g/rev + 5 % as a catalogue value (its bias is that 5 % plus "
+        "the drawn meter's own g/rev at its speed). The plant's pulsation and spread are "
+        "assumptions, not measurements: this compares control strategies on plants unlike "
+        "the controller's model; it does not predict a field CV.")
     one = result["one_draw"]
     one_cv = ", ".join(f"{k} {v['sowgate']['cv_pct']:.2f}"
                        for k, v in one["channels"].items())
