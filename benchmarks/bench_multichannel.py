@@ -277,6 +277,13 @@ def summarise(draws: list[dict[str, Any]]) -> dict[str, Any]:
                           max(c["true_g_per_rev_10"] for c in per)),
             "change_range_pct": (min(changes) * 100, max(changes) * 100),
             "poor_fits": sum(1 for c in per if c["calibration_problems"]),
+            # which gate: both judge the constant g/rev's line, not the curve that is saved
+            "poor_fits_r2": sum(1 for c in per
+                                if any("MIN_GPR_R2" in p for p in c["calibration_problems"])),
+            "poor_fits_worst_bias": max((abs(c["sowgate"]["bias_pct"]) for c in per
+                                         if c["calibration_problems"]), default=None),
+            "poor_fits_cv": sum(1 for c in per if any("MAX_GPR_CV_PCT" in p
+                                                      for p in c["calibration_problems"])),
         }
         for strat in STRATEGIES:
             ch[strat] = {"cv_pct": _dist([c[strat]["cv_pct"] for c in per]),
@@ -501,6 +508,12 @@ def markdown(result: dict[str, Any]) -> str:
     worst_bias = max(chans, key=lambda k: chans[k]["sowgate"]["bias_pct"][1])
     all_met = all(c["cv_met"] and c["bias_met"] for c in chans.values())
     poor = sum(c["poor_fits"] for c in chans.values())
+    poor_r2 = sum(c["poor_fits_r2"] for c in chans.values())
+    poor_cv = sum(c["poor_fits_cv"] for c in chans.values())
+    poor_bias = [c["poor_fits_worst_bias"] for c in chans.values()
+                 if c["poor_fits_worst_bias"] is not None]
+    poor_note = ("" if not poor_bias else
+                 f"; those channels' worst |bias| on the curve: {max(poor_bias):.2f} %")
     lines.append("")
     lines.append(
         f"- Target (judged on p90, every channel): sowgate CV ≤ paper B's CV for the channel "
@@ -509,8 +522,10 @@ def markdown(result: dict[str, Any]) -> str:
         f"{chans[worst_cv]['sowgate']['cv_pct'][1]:.2f} % against "
         f"{chans[worst_cv]['paper_cv_pct']:.1f} %; largest p90 |bias|: {worst_bias}, "
         f"{chans[worst_bias]['sowgate']['bias_pct'][1]:.2f} %. Rotation tests the CLI would "
-        f"have refused without `--accept-poor-fit` (g/rev CV or R² gates; applied here as "
-        f"with it): {poor} of {n * len(chans)}. Open loop = fixed shaft speed from nominal "
+        f"have refused without `--accept-poor-fit` (applied here as with it): {poor} of "
+        f"{n * len(chans)} ({poor_r2} on the R² gate, {poor_cv} on the g/rev CV gate); both "
+        "gates judge the constant g/rev's line through the runs, not the curve that is "
+        f"saved and sown with{poor_note}. Open loop = fixed shaft speed from nominal "
         "5 km/h and paper B's g/rev + 5 % as a catalogue value (its bias is that 5 % plus "
         "the drawn meter's own g/rev at its speed). The plant's pulsation and spread are "
         "assumptions, not measurements: this compares control strategies on plants unlike "

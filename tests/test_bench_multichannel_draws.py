@@ -146,3 +146,21 @@ def test_two_draws_of_the_dynamic_test_differ_and_a_seed_repeats(
     a, b = two_draws
     assert a["channels"]["seed"]["sowgate"]["cv_pct"] != b["channels"]["seed"]["sowgate"]["cv_pct"]
     assert mc.one_draw(2)["channels"] == a["channels"]
+
+
+def test_rotation_tests_the_cli_would_refuse_are_counted_by_gate() -> None:
+    n = 20
+    cv = {name: [1.0] * n for name in mc.PAPER_CV}
+    bias = {name: [0.1] * n for name in mc.PAPER_CV}
+    bias["deep"][4] = -0.7
+    draws = _draws(cv, bias)
+    draws[4]["channels"]["deep"]["calibration_problems"] = [
+        "delivered g/min does not follow r/min: R² 0.900 < 0.95 (MIN_GPR_R2)"]
+    s = mc.summarise(draws)
+    assert (s["deep"]["poor_fits"], s["deep"]["poor_fits_r2"], s["deep"]["poor_fits_cv"]) == (
+        1, 1, 0)
+    assert s["deep"]["poor_fits_worst_bias"] == 0.7 and s["seed"]["poor_fits"] == 0
+    md = mc.markdown({"draws_n": n, "window_s": mc.WINDOW_S, "duration_s": mc.RUN_S,
+                      "alarms_closed_loop": 0, "channels": s, "seed": 1, "one_draw": draws[0]})
+    assert "1 of 60 (1 on the R² gate, 0 on the g/rev CV gate)" in md
+    assert "worst |bias| on the curve: 0.70 %" in md
