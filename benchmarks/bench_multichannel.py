@@ -54,15 +54,19 @@ from typing import Any
 
 from gateway.calibration.apply import apply_entries
 from gateway.calibration.fits import (
+    OFF_CURVE_SIGMAS,
     CalibrationError,
     RotationRun,
     grams_per_rev,
     grams_per_rev_by_speed,
     grams_per_rev_problems,
     grams_per_rev_result,
+    grams_per_rev_test_problems,
+    speeds_on_curve,
     to_entry,
 )
 from gateway.calibration.lots import rotation_key
+from gateway.calibration.weighing import DEFAULT_SCALE_G
 from gateway.config import ChannelSection, parse_config
 from gateway.metering.channels import ChannelSupervisor, channel_target_rpm, target_shaft_rpm
 from protocol import can_metering as cm
@@ -122,30 +126,43 @@ def draw_meter(name: str, g_nominal: float, seed: int) -> MeterLaw:
 
 
 def calibrated_channels(runs: dict[str, list[RotationRun]]) -> tuple[
-        dict[str, ChannelSection], dict[str, list[str]]]:
+        dict[str, ChannelSection], dict[str, dict[str, Any]]]:
     """The channels as the daemon sows them after paper B's rotation tests: each test fitted
     and saved as ``sowgate calibrate rotation`` saves it, the entries laid over a config with
-    paper B's g/rev by ``apply_entries`` (the daemon's path); also the quality gates' problems
-    per channel (a test the CLI would refuse without ``--accept-poor-fit``)."""
+    paper B's g/rev by ``apply_entries`` (the daemon's path); also, per channel, what the
+    CLI's quality gate says of the test (``problems``: refused without ``--accept-poor-fit``;
+    judged as the CLI judges it, on the curve it saves, the catch of all 10 outlets on its
+    default ±2 g scale), what the constant g/rev's gates would have said (``constant_gates``,
+    the gate before), and the largest of the speeds' distances from the curve through the
+    others in σ (``worst_sigmas``; the gate is at ``OFF_CURVE_SIGMAS``)."""
     settings = parse_config({"channel": [
         {"name": name, "node_id": node, "target_rate_kg_ha": target, "grams_per_rev": g,
          "outlets": OUTLETS} for name, node, target, g in CHANNELS]})
     entries: dict[str, Any] = {}
-    problems: dict[str, list[str]] = {}
+    gates: dict[str, dict[str, Any]] = {}
     for name, channel_runs in runs.items():
         fit = grams_per_rev(channel_runs)
+        constant = grams_per_rev_problems(fit)
         try:
             by_speed = grams_per_rev_by_speed(channel_runs)
         except CalibrationError as exc:  # the CLI refuses the test: the config value stays
-            problems[name] = [str(exc)]
+            gates[name] = {"problems": [str(exc)], "constant_gates": constant,
+                           "worst_sigmas": None}
             continue
-        problems[name] = grams_per_rev_problems(fit)
+        judged = speeds_on_curve(channel_runs, scale_g=DEFAULT_SCALE_G,
+                                 outlets_weighed=OUTLETS)[0] if by_speed is not None else []
+        gates[name] = {
+            "problems": grams_per_rev_test_problems(fit, channel_runs, by_speed,
+                                                    scale_g=DEFAULT_SCALE_G,
+                                                    outlets_weighed=OUTLETS),
+            "constant_gates": constant,
+            "worst_sigmas": max((j.sigmas for j in judged), default=None)}
         entries[rotation_key(name)] = to_entry(grams_per_rev_result(fit, by_speed),
                                                channel=name, model="grams_per_rev")
     notes, refused = apply_entries(settings, entries)
     if refused or any("not applied" in n for n in notes):
         raise RuntimeError(f"calibration not applied: {notes} {refused}")
-    return {ch.name: ch for ch in settings.channel}, problems
+    return {ch.name: ch for ch in settings.channel}, gates
 
 
 def _stats(target: float, mass: list[float], dist: list[float]) -> dict[str, float]:
@@ -176,7 +193,7 @@ def one_draw(seed: int) -> dict[str, Any]:
     # the rotation test runs on the meter itself (its own noise stream)
     runs = {name: rotation_runs(laws[name].plant(random.Random(seed * 100 + nodes[name] + 50)))
             for name in targets}
-    sowgate, problems = calibrated_channels(runs)
+    sowgate, gates = calibrated_channels(runs)
     channels = {
         "sowgate": sowgate,
         "constant": {n: ch.model_copy(update={"grams_per_rev_curve": None})
@@ -238,7 +255,9 @@ def one_draw(seed: int) -> dict[str, Any]:
             "true_g_per_rev_60": truth.per_rev_g(60.0),
             "fitted_g_per_rev": round(sowgate[name].grams_per_rev, 3),
             "fitted_curve": None if curve is None else [list(p) for p in curve],
-            "calibration_problems": problems[name],
+            "calibration_problems": gates[name]["problems"],
+            "constant_gate_problems": gates[name]["constant_gates"],
+            "curve_worst_sigmas": gates[name]["worst_sigmas"],
             **{strat: _stats(targets[name], mass[strat][name], dists) for strat in STRATEGIES},
             "paper_cv_pct": PAPER_CV[name],
         }
@@ -276,14 +295,21 @@ def summarise(draws: list[dict[str, Any]]) -> dict[str, Any]:
             "g10_range": (min(c["true_g_per_rev_10"] for c in per),
                           max(c["true_g_per_rev_10"] for c in per)),
             "change_range_pct": (min(changes) * 100, max(changes) * 100),
+            # the CLI's gate, on the curve that is saved: a run off the curve through the
+            # others, or (fewer speeds) the constant's CV / R²
             "poor_fits": sum(1 for c in per if c["calibration_problems"]),
-            # which gate: both judge the constant g/rev's line, not the curve that is saved
-            "poor_fits_r2": sum(1 for c in per
-                                if any("MIN_GPR_R2" in p for p in c["calibration_problems"])),
+            "poor_fits_off_curve": sum(1 for c in per if any(
+                "OFF_CURVE_SIGMAS" in p for p in c["calibration_problems"])),
             "poor_fits_worst_bias": max((abs(c["sowgate"]["bias_pct"]) for c in per
                                          if c["calibration_problems"]), default=None),
-            "poor_fits_cv": sum(1 for c in per if any("MAX_GPR_CV_PCT" in p
-                                                      for p in c["calibration_problems"])),
+            # the gate before: the constant g/rev's line through the runs, whatever is saved
+            "constant_gate_refusals": sum(1 for c in per if c.get("constant_gate_problems")),
+            "constant_gate_worst_bias": max((abs(c["sowgate"]["bias_pct"]) for c in per
+                                             if c.get("constant_gate_problems")),
+                                            default=None),
+            "curve_worst_sigmas": max((c["curve_worst_sigmas"] for c in per
+                                       if c.get("curve_worst_sigmas") is not None),
+                                      default=None),
         }
         for strat in STRATEGIES:
             ch[strat] = {"cv_pct": _dist([c[strat]["cv_pct"] for c in per]),
@@ -508,12 +534,21 @@ def markdown(result: dict[str, Any]) -> str:
     worst_bias = max(chans, key=lambda k: chans[k]["sowgate"]["bias_pct"][1])
     all_met = all(c["cv_met"] and c["bias_met"] for c in chans.values())
     poor = sum(c["poor_fits"] for c in chans.values())
-    poor_r2 = sum(c["poor_fits_r2"] for c in chans.values())
-    poor_cv = sum(c["poor_fits_cv"] for c in chans.values())
+    poor_curve = sum(c["poor_fits_off_curve"] for c in chans.values())
     poor_bias = [c["poor_fits_worst_bias"] for c in chans.values()
                  if c["poor_fits_worst_bias"] is not None]
     poor_note = ("" if not poor_bias else
-                 f"; those channels' worst |bias| on the curve: {max(poor_bias):.2f} %")
+                 f"; those channels' worst |bias|: {max(poor_bias):.2f} %")
+    old_gate = sum(c.get("constant_gate_refusals", 0) for c in chans.values())
+    old_bias = [c["constant_gate_worst_bias"] for c in chans.values()
+                if c.get("constant_gate_worst_bias") is not None]
+    old_note = ("" if not old_bias else
+                f", channels that sow within {max(old_bias):.2f} % on the curve")
+    sigmas = [c["curve_worst_sigmas"] for c in chans.values()
+              if c.get("curve_worst_sigmas") is not None]
+    sigma_note = ("" if not sigmas else
+                  f"; the furthest any speed came from the curve through the others: "
+                  f"{max(sigmas):.1f} σ (the gate: {OFF_CURVE_SIGMAS:g} σ)")
     lines.append("")
     lines.append(
         f"- Target (judged on p90, every channel): sowgate CV ≤ paper B's CV for the channel "
@@ -521,11 +556,13 @@ def markdown(result: dict[str, Any]) -> str:
         f"to its CV target: {worst_cv}, p90 CV "
         f"{chans[worst_cv]['sowgate']['cv_pct'][1]:.2f} % against "
         f"{chans[worst_cv]['paper_cv_pct']:.1f} %; largest p90 |bias|: {worst_bias}, "
-        f"{chans[worst_bias]['sowgate']['bias_pct'][1]:.2f} %. Rotation tests the CLI would "
-        f"have refused without `--accept-poor-fit` (applied here as with it): {poor} of "
-        f"{n * len(chans)} ({poor_r2} on the R² gate, {poor_cv} on the g/rev CV gate); both "
-        "gates judge the constant g/rev's line through the runs, not the curve that is "
-        f"saved and sown with{poor_note}. Open loop = fixed shaft speed from nominal "
+        f"{chans[worst_bias]['sowgate']['bias_pct'][1]:.2f} %. Rotation tests the CLI "
+        f"refuses without `--accept-poor-fit` (applied here as with it), judged as it judges "
+        f"them on the g/rev curve it saves (each speed against the curve through the others, "
+        f"the 10 outlets' catch on its default ±{DEFAULT_SCALE_G:g} g scale, turns to ±¼): "
+        f"{poor} of {n * len(chans)} ({poor_curve} with a run off the curve){poor_note}"
+        f"{sigma_note}. The constant g/rev's CV / R² gates, which judged these tests before, "
+        f"refuse {old_gate} of them{old_note}. Open loop = fixed shaft speed from nominal "
         "5 km/h and paper B's g/rev + 5 % as a catalogue value (its bias is that 5 % plus "
         "the drawn meter's own g/rev at its speed). The plant's pulsation and spread are "
         "assumptions, not measurements: this compares control strategies on plants unlike "

@@ -148,19 +148,34 @@ def test_two_draws_of_the_dynamic_test_differ_and_a_seed_repeats(
     assert mc.one_draw(2)["channels"] == a["channels"]
 
 
-def test_rotation_tests_the_cli_would_refuse_are_counted_by_gate() -> None:
+def test_rotation_tests_the_cli_refuses_are_counted_apart_from_the_constant_gate() -> None:
+    """The page counts what the CLI refuses now (judged on the curve it saves) and, apart,
+    what the constant g/rev's gates refused before, with how far from the curve the runs came
+    and how those channels sow."""
     n = 20
     cv = {name: [1.0] * n for name in mc.PAPER_CV}
     bias = {name: [0.1] * n for name in mc.PAPER_CV}
     bias["deep"][4] = -0.7
+    bias["seed"][7] = 0.4
     draws = _draws(cv, bias)
+    for d in draws:
+        for c in d["channels"].values():
+            c["curve_worst_sigmas"] = 1.5
     draws[4]["channels"]["deep"]["calibration_problems"] = [
-        "delivered g/min does not follow r/min: R² 0.900 < 0.95 (MIN_GPR_R2)"]
+        "repeat the 40 r/min run: the 40 r/min g/rev 30.1 is +9.8 % off the curve through the "
+        "others (27.4 there), 4.2 times what ... explain (±2.3 %, OFF_CURVE_SIGMAS 3)"]
+    draws[4]["channels"]["deep"]["curve_worst_sigmas"] = 4.2
+    for i, name in ((4, "deep"), (7, "seed")):
+        draws[i]["channels"][name]["constant_gate_problems"] = [
+            "delivered g/min does not follow r/min: R² 0.900 < 0.95 (MIN_GPR_R2)"]
     s = mc.summarise(draws)
-    assert (s["deep"]["poor_fits"], s["deep"]["poor_fits_r2"], s["deep"]["poor_fits_cv"]) == (
-        1, 1, 0)
+    assert (s["deep"]["poor_fits"], s["deep"]["poor_fits_off_curve"]) == (1, 1)
     assert s["deep"]["poor_fits_worst_bias"] == 0.7 and s["seed"]["poor_fits"] == 0
+    assert (s["deep"]["constant_gate_refusals"], s["seed"]["constant_gate_refusals"]) == (1, 1)
+    assert s["seed"]["constant_gate_worst_bias"] == 0.4
+    assert s["deep"]["curve_worst_sigmas"] == 4.2 and s["seed"]["curve_worst_sigmas"] == 1.5
     md = mc.markdown({"draws_n": n, "window_s": mc.WINDOW_S, "duration_s": mc.RUN_S,
                       "alarms_closed_loop": 0, "channels": s, "seed": 1, "one_draw": draws[0]})
-    assert "1 of 60 (1 on the R² gate, 0 on the g/rev CV gate)" in md
-    assert "worst |bias| on the curve: 0.70 %" in md
+    assert "1 of 60 (1 with a run off the curve); those channels' worst |bias|: 0.70 %" in md
+    assert "4.2 σ (the gate: 3 σ)" in md
+    assert "refuse 2 of them, channels that sow within 0.70 % on the curve" in md
