@@ -469,7 +469,7 @@ def _speed_points(runs: Sequence[RotationRun], scale_g: float,
         catch = sum(r.mass_g for r in grp) * outlets_weighed
         turns = sum(r.rpm * r.seconds / 60.0 for r in grp)
         n = len(grp)
-        var = (n * scale_g**2 / catch**2 if catch > 0 else math.inf) + (
+        var = (n * scale_g**2 / catch**2 if catch > 0 else 0.0) + (  # none: not the scale
             n * TURN_COUNT_SIGMA**2 / turns**2) + RUN_FLOOR_CV**2 / n
         cv = max(math.sqrt(var), scatter / math.sqrt(n))
         out.append(_SpeedPoint(k, n, turns / minutes, sum(r.mass_g for r in grp) / minutes,
@@ -532,7 +532,7 @@ def _against_others(point: _SpeedPoint, others: Sequence[_SpeedPoint]) -> SpeedO
 
     ys = [o.flow for o in others]
     base = predict(ys)
-    if base is None or base <= 0 or point.flow <= 0:
+    if base is None or base <= 0:
         return None
     spread = 0.0
     for i, o in enumerate(others):

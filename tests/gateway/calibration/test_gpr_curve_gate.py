@@ -216,3 +216,13 @@ def test_the_tests_own_scatter_between_repeats_widens_what_is_explained() -> Non
 
     assert cal.speeds_on_curve(runs(0.0), scale_g=0.1)[1][0].set_rpm == 40.0
     assert cal.speeds_on_curve(runs(0.04), scale_g=0.1)[1] == []
+
+
+def test_a_run_with_nothing_weighed_is_named_not_saved_as_a_knot() -> None:
+    """An empty bag at 10 r/min still rises in g/min (0 then more): the curve through the
+    others says it is a run to repeat, whatever the scale."""
+    meter = KneeMeter(20.0, 30.0, -0.10)
+    runs = [cal.RotationRun(n, SECONDS, 0.0 if n == 10.0 else
+                            meter.grams_per_rev(n) * n * SECONDS / 60.0) for n in SPEEDS]
+    off = cal.speeds_on_curve(runs, scale_g=SCALE_G)[1]
+    assert [(s.set_rpm, s.off_pct) for s in off] == [(10.0, -100.0)]
