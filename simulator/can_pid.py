@@ -82,8 +82,11 @@ class MeterPlant:
     # the controller's piecewise cubic; p < 1 falls early, p > 1 late), and ``lot_factor``
     # for the seed lot (grain size, moisture) against the one calibrated with.
     # ``grams_per_rev`` is the value at 10 r/min. Defaults: a constant g/rev.
+    # ``fill_knee_rpm`` above 10: the cells fill fully up to this speed (g/rev flat) and the
+    # power law runs from it to 60 r/min instead (a kink no set of knots sits on).
     fill_fall: float = 0.0
     fill_shape: float = 1.0
+    fill_knee_rpm: float = 0.0
     lot_factor: float = 1.0
     # the controller's cycle; benchmarks that run thousands of simulated minutes may take
     # 5 ms (the loop stays stable: motor τ 80 ms, derivative filter 15 ms)
@@ -133,8 +136,9 @@ class MeterPlant:
     def per_rev_g(self, rpm: float) -> float:
         """True grams per turn of one outlet at a shaft speed (the fill and the lot)."""
         p = self.fill_shape
-        lo = math.pow(10.0 / 60.0, p)
-        shape = (math.pow(max(0.0, rpm) / 60.0, p) - lo) / (1.0 - lo)
+        knee = self.fill_knee_rpm
+        lo = math.pow(max(10.0, knee) / 60.0, p)
+        shape = (math.pow(max(0.0, knee, rpm) / 60.0, p) - lo) / (1.0 - lo)
         return self.grams_per_rev * self.lot_factor * (1.0 - self.fill_fall * shape)
 
     def _deliver(self, drev: float) -> None:

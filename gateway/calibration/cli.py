@@ -4,9 +4,10 @@ The timed runs show a rich progress bar; the operator then weighs the catch and 
 mass (or passes ``--mass`` for scripted use). Which mass is asked for is said in ``--help``
 and in every prompt: the catch of ``--outlets-weighed N`` outlets (default all of the
 channel's); g/rev is stored per outlet, paper A's eq. 6 for the whole machine. A fit outside
-the quality gates (``fits.MAX_GPR_CV_PCT`` ...) or a result more than ``fits.LARGE_CHANGE_PCT``
-from the value it replaces is shown and refused unless ``--accept-poor-fit`` /
-``--accept-large-change``.
+the quality gates (paper B's g/rev curve: each speed against the curve through the others,
+``fits.OFF_CURVE_SIGMAS``; its constant g/rev, ``fits.MAX_GPR_CV_PCT`` ...) or a result more
+than ``fits.LARGE_CHANGE_PCT`` from the value it replaces is shown and refused unless
+``--accept-poor-fit`` / ``--accept-large-change``.
 
 Who runs the meter: with ``--drive modbus`` the CLI drives paper A's motor on the RS485 PWM
 module (fan at its working duty, watchdog armed), with ``--drive can`` a ``can_pid`` channel's
@@ -28,7 +29,7 @@ import logging
 import signal
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -116,7 +117,9 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
                    f"{weighing.DEFAULT_SCALE_G:g}, paper A's): each set point's "
                    "uncertainty and the run length it needs are worked out from it")
     r.add_argument("--accept-poor-fit", action="store_true",
-                   help="save a fit that fails a quality gate (CV, R², set-point span); "
+                   help="save a fit that fails a quality gate (a paper-B run off the g/rev "
+                   "curve through the others; the constant g/rev's CV and R² when fewer than "
+                   "5 speeds; paper A's R² and set-point span); "
                    "logged and recorded in the entry")
     r.add_argument("--accept-large-change", action="store_true",
                    help=f"save a result more than {cal.LARGE_CHANGE_PCT:g} percent away from the "
@@ -687,11 +690,19 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
         console.print(f"g/rev = {fit.grams_per_rev:.2f}  CV {fit.cv_pct:.2f} %  R² {fit.r2:.4f}")
         console.print(f"{fit.grams_per_rev:.2f} g/rev per outlet ({outlets.describe()})")
         advice = _weighing_advice(args, console, speeds, weighed, seconds, "{:.4g} r/min")
-        problems = cal.grams_per_rev_problems(fit)
         by_speed = cal.grams_per_rev_by_speed(runs)
         if by_speed is not None:
             console.print("g/rev per outlet by shaft speed (used instead of the mean): "
                           + ", ".join(f"{g:.2f} at {n:.0f} r/min" for n, g in by_speed))
+            judged, _off = cal.speeds_on_curve(runs, scale_g=args.scale_g,
+                                               outlets_weighed=outlets.weighed)
+            console.print("each speed's g/rev against the curve through the others: "
+                          + ", ".join(f"{s.set_rpm:g} r/min {s.off_pct:+.1f} % (±"
+                                      f"{s.sigma_pct:.1f} %)" for s in judged),
+                          highlight=False)
+        # judged on what is saved: the curve when there is one, else the constant
+        problems = cal.grams_per_rev_test_problems(fit, runs, by_speed, scale_g=args.scale_g,
+                                                   outlets_weighed=outlets.weighed)
         _check_quality(problems, args, console)
         previous = _previous_gpr(store, settings, args.channel, lot)
         large = False
@@ -700,12 +711,9 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
                                   previous[1], args, console)
         replaces = (None if previous is None
                     else {"grams_per_rev": previous[0], "from": previous[1]})
-        result = asdict(fit)
-        if by_speed is not None:  # new files say their model; older readers use the mean
-            result.update(gpr_model="per_speed_curve",
-                          grams_per_rev_curve=[list(p) for p in by_speed])
         store.save(key, cal.to_entry(
-            result, channel=args.channel, crop=crop, seed_lot=lot, model="grams_per_rev",
+            cal.grams_per_rev_result(fit, by_speed), channel=args.channel, crop=crop,
+            seed_lot=lot, model="grams_per_rev",
             outlets_weighed=outlets.weighed, outlets=outlets.total, weighed_mass_g=weighed,
             replaces=replaces, accepted_poor_fit=problems,
             accepted_large_change=large, weighing=advice))

@@ -75,6 +75,20 @@ def test_grams_per_turn_fall_with_shaft_speed_and_move_with_the_lot() -> None:
             1.03 * p.per_rev_g(rpm), rel=0.005)
 
 
+def test_a_knee_keeps_the_cells_full_up_to_it_then_the_change_runs_to_60_rpm() -> None:
+    """bench_multichannel's drawn meters: g/rev flat up to ``fill_knee_rpm``, the whole change
+    between it and 60 r/min (so a straight line from 10 to 60 r/min misses it); a knee at or
+    below 10 r/min is the plain power law."""
+    k = MeterPlant(grams_per_rev=11.2, fill_fall=0.15, fill_shape=1.2, fill_knee_rpm=30.0)
+    assert k.per_rev_g(12.0) == k.per_rev_g(30.0) == pytest.approx(11.2)
+    assert k.per_rev_g(60.0) == pytest.approx(11.2 * 0.85)
+    assert k.per_rev_g(45.0) < 11.2
+    plain = MeterPlant(grams_per_rev=11.2, fill_fall=0.15, fill_shape=1.2)
+    assert plain.per_rev_g(30.0) < k.per_rev_g(30.0)
+    rise = MeterPlant(grams_per_rev=11.2, fill_fall=-0.05, fill_knee_rpm=20.0)
+    assert rise.per_rev_g(60.0) == pytest.approx(11.2 * 1.05)
+
+
 def test_a_5_ms_cycle_still_regulates() -> None:
     p = MeterPlant(grams_per_rev=16.97, outlets=10, inner_dt_s=0.005)
     commanded(p, 40.0, 5.0)
