@@ -67,6 +67,7 @@ from drivers.gnss_reader import EpochAssembler, GnssEpoch
 from gateway.config.recording import HitchSection, PositioningSection
 from gateway.core.records import SeedDrop
 from gateway.recording.positioning import Landing, SeedPositioner
+from gateway.recording.positioning.implement_track import ImplementTrack
 from gateway.recording.positioning.survey import (
     Sown,
     SurveyError,
@@ -329,17 +330,20 @@ def calibrate(run: FieldRun, landings: list[Landing], settings: PositioningSecti
     gateway's ``fit_survey`` on the stored records of the surveyed seeds and their surveyed
     lat/lon, the fit laid over ``settings`` (``SurveyFit.settings``, as the calibration file
     does), every record re-positioned with it (``reposition``)."""
-    sown = Sown.empty()
+    sown = Sown.empty(settings)  # with a hitch: the implement's heading along the records
     for la in landings:
         sown.add(la.drop)
+        sown.keep(la.drop)
     fit = fit_survey([p.record for p in pairs],
                      [(p.surveyed_lat, p.surveyed_lon) for p in pairs], settings,
                      fit_delay=fit_delay, sown=sown)
     new = fit.settings(settings)
     lat, lon, kept = [], [], 0
+    track = ImplementTrack(new)
     for la in landings:
+        implement = track.heading(la.drop)
         if repositionable(la.drop):
-            a, b = reposition(la.drop, new)
+            a, b = reposition(la.drop, new, implement)
         else:
             a, b, kept = la.drop.lat, la.drop.lon, kept + 1
         lat.append(a)

@@ -37,6 +37,7 @@ from gateway.config import ConfigError, Settings, load_config, parse_config, sta
 from gateway.core.errors import GatewayError
 from gateway.core.records import SeedRecord
 from gateway.recording.export import parse_time
+from gateway.recording.positioning.implement_track import ImplementTrack
 from gateway.recording.positioning.survey import (
     Sown,
     SurveyError,
@@ -139,6 +140,8 @@ def match_survey(
         s_id = by_id.get(r.id)
         if s_id is not None:
             found[s_id.line] = r
+            if sown is not None:
+                sown.keep(r)
             continue
         if not by_ms:
             continue
@@ -151,6 +154,8 @@ def match_survey(
                 if s.line in found:
                     ambiguous.add(s.line)
                 found[s.line] = r
+                if sown is not None:
+                    sown.keep(r)
     matched: list[SeedRecord] = []
     surveyed: list[tuple[float, float]] = []
     problems: list[str] = []
@@ -205,7 +210,7 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
         current = calibrated_settings(settings, state)
         seeds = read_survey(Path(args.survey))
         path = store_path(settings, state)
-        sown = Sown.empty()
+        sown = Sown.empty(current.positioning)  # with a hitch: the implement's track
         with RecordStore.open_readonly(path, settings.machine.id) as store:
             records, surveyed, problems = match_survey(seeds, store.query_seeds(), sown)
         for p in problems:
@@ -271,18 +276,22 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
 
 @dataclass
 class Repositioner:
-    """Re-positions records for export; counts those that keep no raw data (left as stored)."""
+    """Re-positions records for export, in stored order (a trailed implement's heading is
+    followed along the records' antenna track: ``ImplementTrack``); counts those that keep
+    no raw data (left as stored)."""
 
     settings: Settings
     kept_as_stored: int = 0
 
     def __call__(self, records: Iterable[SeedRecord]) -> Iterator[SeedRecord]:
         positioning = self.settings.positioning
+        track = ImplementTrack(positioning)
         for r in records:
+            implement = track.heading(r)
             if not repositionable(r):
                 self.kept_as_stored += 1
                 yield r
                 continue
-            lat, lon = reposition(r, positioning)
+            lat, lon = reposition(r, positioning, implement)
             update: dict[str, Any] = {"lat": lat, "lon": lon}
             yield r.model_copy(update=update)
