@@ -131,9 +131,10 @@ def test_calibrate_runs_from_the_real_command_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """`sowgate calibrate ...` dispatches (it used to fail with "no attribute func")."""
-    # paper B: 30 s runs, m = 2M/n; the 10 r/min run is unstable and excluded
+    # paper B: 30 s runs, m = 2M/n; the 10 r/min run (4 % over, within what 5 turns on a
+    # ±2 g scale explain) is left out of the constant g/rev as unstable
     masses = [11.2 * n / 2 for n in (10, 20, 30, 40, 50, 60)]
-    masses[0] *= 1.4
+    masses[0] *= 1.04
     argv = ["calibrate", "--state-dir", str(tmp_path), "rotation", "--channel", "seed",
             "--mass", ",".join(f"{m:.3f}" for m in masses), "--no-wait"]
     assert main(argv) == 0
