@@ -5,9 +5,13 @@ screen the operator runs the same test through the daemon's own control loop: wi
 machine stopped (mode ``stopped``), "run" turns the metering motor at the given duty, with the
 fan at the crop's seeding duty, for ``control.rotation_test_s``, then off; the operator reads
 the shaft speed and weighs the catch of all ``machine.rows`` outlets and types both; after a
-few runs "save" fits eq. 5 and eq. 6 with the CLI's gates (``gateway.calibration.fits``), for
-the crop on the screen and its active seed lot. A result more than ``LARGE_CHANGE_PCT`` from
-the value it replaces is shown and saved only on "save_confirmed". The saved calibration is
+few runs "save" fits them with the CLI's own function and gates
+(``gateway.calibration.fits.fit_rotation_test``: from 5 set points on the drill's own monotone
+curves, each run weighted by its length, below that eq. 5 and eq. 6), for the crop on the
+screen and its active seed lot, so a drill with a knee gets the same curve here as at the CLI.
+Readings that contradict each other are refused with the duties to repeat first on the one
+message line. A result more than ``LARGE_CHANGE_PCT`` from the value it replaces (the CLI's
+rows, ``paper_a_changes``) is shown and saved only on "save_confirmed". The saved calibration is
 applied at once (``LiveCalibration.reload``) and can be undone with ``sowgate calibrate undo``.
 
 Run lengths: the screen's frame carries a duty, not a length, so the daemon decides how long a
@@ -159,18 +163,20 @@ class RotationTestSession:
         duties = [r.duty_pct for r in done]
         rpm = [r.rpm for r in done if r.rpm is not None]
         masses = [r.mass_g for r in done if r.mass_g is not None]
-        # whole machine: every outlet weighed
-        rates = [m / (t / 60.0) for m, t in zip(masses, seconds, strict=True)]
-        wr = (min(rpm), max(rpm))
-        try:
-            fit = cal.fit_paper_a(duties, rpm, rates, wr)
+        try:  # the CLI's own fit and gates; every outlet weighed: the whole machine
+            fit = cal.fit_rotation_test(duties, rpm, masses, seconds)
+        except cal.InconsistentSetPoints as exc:  # the screen's one line names them first
+            raise CommandError(
+                "not saved: repeat duty " + ", ".join(f"{k:g}" for k in exc.set_points)
+                + f" % (readings inconsistent: {exc.what} falls beyond the weighing noise)"
+            ) from None
         except cal.CalibrationError as exc:
             raise CommandError(f"not saved: {exc}") from None
         line, quad, problems = fit.line, fit.quad, fit.problems
         if problems:
             raise CommandError("not saved, repeat the runs: " + "; ".join(problems))
         lot = self.live.lot_of(crop)
-        change, replaces = self._change(crop, lot, line, fit, duties, wr)
+        change, replaces = self._change(crop, fit, duties)
         large = abs(change) > cal.LARGE_CHANGE_PCT
         if large and not confirmed:
             raise CommandError(
@@ -221,10 +227,10 @@ class RotationTestSession:
                 + ", ".join(f"{p.set_point:g} %" for p in advice.short)
                 + " duty: repeat those set points")
 
-    def _change(self, crop: str, lot: str, line: cal.LineFit, fit: cal.PaperAFit,
-                duties: list[float], wr: tuple[float, float]) -> tuple[float, dict[str, Any]]:
-        """The largest change in % against what it replaces (eq. 5 at mid duty, eq. 6 at mid
-        speed), and that value as the entry's ``replaces``."""
+    def _change(self, crop: str, fit: cal.PaperAFit,
+                duties: list[float]) -> tuple[float, dict[str, Any]]:
+        """The largest change in % against what it replaces (the CLI's rows,
+        ``paper_a_changes``), and that value as the entry's ``replaces``."""
         entry = self.live.active_rotation(crop)
         if entry is not None and entry.get("model") == "paper_a":
             motor, meter, source = entry["result"]["motor"], entry["result"]["meter"], (
@@ -234,11 +240,9 @@ class RotationTestSession:
             motor = {"slope": m.motor_slope, "intercept": m.motor_intercept}
             meter = {"a": m.meter_a, "b": m.meter_b, "c": m.meter_c}
             source = "config"
-        mid_duty, mid_w = (min(duties) + max(duties)) / 2, (wr[0] + wr[1]) / 2
-        old_w = motor["slope"] * mid_duty + motor["intercept"]
-        old_q = meter["a"] * mid_w * mid_w + meter["b"] * mid_w + meter["c"]
-        change = max((cal.change_pct(line.predict(mid_duty), old_w),
-                      cal.change_pct(fit.predict_flow(mid_w), old_q)), key=abs)
+        change = max((cal.change_pct(new, old)
+                      for _, old, new in cal.paper_a_changes(motor, meter, fit, duties)),
+                     key=abs)
         return change, {"motor": dict(motor), "meter": dict(meter), "from": source}
 
     def stop(self) -> None:

@@ -100,9 +100,10 @@ def add_calibration_commands(subparsers: Any) -> argparse.ArgumentParser:
     r.add_argument("--rpm", type=_floats, default=None,
                    help="paper A: measured shaft r/min per run (default: the set speeds)")
     r.add_argument("--seconds", type=_floats, default=None, metavar="S[,S...]",
-                   help="run length (B 30 s, A 60 s): one for every run, or one per set point "
+                   help="run length (B 30 s, A 60 s): one for every run, one per set point "
                    "in the order of --duties/--speeds (repeats of a set point take its "
-                   "length), e.g. 300,240,120,60,60,60 as the weighing advice says")
+                   "length), e.g. 300,240,120,60,60,60 as the weighing advice says, or one "
+                   "per run (the touchscreen's runs, each as long as it lasted)")
     r.add_argument("--mass", type=_floats, default=None,
                    help="weighed grams per run, in run order (skips the prompts): the catch "
                    "of --outlets-weighed outlets together")
@@ -580,8 +581,10 @@ def _tell_daemon(console: Console, state: Path, key: str | None) -> None:
 
 def _run_lengths(args: argparse.Namespace, set_points: Sequence[float],
                  default: float, option: str) -> list[float]:
-    """Each run's length from ``--seconds``: one value for every run, or one per distinct set
-    point in the order they first appear (``option``: where the set points came from)."""
+    """Each run's length from ``--seconds``: one value for every run, one per distinct set
+    point in the order they first appear (``option``: where the set points came from), or
+    one per run (a test run at the touchscreen, whose runs of one set point may differ:
+    a short first run is made up by the next)."""
     given = list(args.seconds) if args.seconds is not None else [default]
     bad = [t for t in given if not t > 0]
     if bad:
@@ -589,11 +592,13 @@ def _run_lengths(args: argparse.Namespace, set_points: Sequence[float],
     keys = list(dict.fromkeys(float(k) for k in set_points))
     if len(given) == 1:
         return [given[0]] * len(set_points)
+    if len(given) == len(set_points):  # one per run (without repeats: one per set point too)
+        return given
     if len(given) != len(keys):
         raise cal.CalibrationError(
             f"--seconds has {len(given)} lengths for {len(keys)} set points: give one length "
-            f"for every run, or one per set point in the order of {option} (its repeats run "
-            "as long)")
+            f"for every run, one per set point in the order of {option} (its repeats run "
+            f"as long), or one per run ({len(set_points)})")
     by_key = dict(zip(keys, given, strict=True))
     return [by_key[float(k)] for k in set_points]
 
@@ -753,13 +758,13 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     weighed = done.masses
     # eq. 6 is the whole machine's discharge: a catch from fewer rows scales up by rows/N
     scale = 1.0 if outlets.total is None else outlets.total / outlets.weighed
-    # each run's catch over its own length: set points may run for different lengths
-    rates = [m * scale / (t / 60.0) for m, t in zip(weighed, seconds, strict=True)]
-    wr = tuple(args.working_range) if args.working_range else (min(rpm), max(rpm))
-    if len(wr) != 2:
+    wr = tuple(args.working_range) if args.working_range else None
+    if wr is not None and len(wr) != 2:
         raise cal.CalibrationError("--working-range takes two numbers: lo,hi r/min")
-    pfit = cal.fit_paper_a(duties, rpm, rates, (wr[0], wr[1]), seconds=seconds)
-    line, quad, meter_own = pfit.line, pfit.quad, pfit.meter_own
+    # the touchscreen's "save" fits the same way (gateway.app.rotation_test)
+    pfit = cal.fit_rotation_test(duties, rpm, weighed, seconds, whole_machine=scale,
+                                 working_range=None if wr is None else (wr[0], wr[1]))
+    line, quad, meter_own, rates = pfit.line, pfit.quad, pfit.meter_own, pfit.rates_g_min
     console.print(_table(f"rotation test {args.channel} (paper A)",
                          ("duty %", "r/min", "g/min whole machine", "speed resid.",
                           "rate resid."),
@@ -781,17 +786,8 @@ def _rotation(args: argparse.Namespace, console: Console, ask: Callable[[str], f
     large = False
     if previous_a is not None:
         motor, meter, source = previous_a
-        mid_duty = (min(duties) + max(duties)) / 2
-        mid_w = (wr[0] + wr[1]) / 2
-
-        def q(m: dict[str, float], w: float) -> float:
-            return m["a"] * w * w + m["b"] * w + m["c"]
-
-        large = _check_change([
-            (f"r/min at {mid_duty:.0f} % duty (eq. 5)",
-             motor["slope"] * mid_duty + motor["intercept"], line.predict(mid_duty)),
-            (f"g/min at {mid_w:.0f} r/min (eq. 6)", q(meter, mid_w), pfit.predict_flow(mid_w)),
-        ], source, args, console)
+        large = _check_change(cal.paper_a_changes(motor, meter, pfit, duties), source, args,
+                              console)
     replaces_a = None if previous_a is None else {
         "motor": previous_a[0], "meter": previous_a[1], "from": previous_a[2]}
     store.save(key, cal.to_entry(

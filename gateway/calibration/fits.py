@@ -83,6 +83,17 @@ class CalibrationError(GatewayError):
     """A calibration cannot be accepted; the message tells the operator why."""
 
 
+class InconsistentSetPoints(CalibrationError):
+    """The readings of a rotation test contradict each other (a fall beyond the weighing
+    noise): the message says it at length for the CLI; ``set_points`` are the ones to repeat,
+    so a one-line display (the touchscreen's, 255 ASCII bytes) can name them first."""
+
+    def __init__(self, message: str, what: str, set_points: Sequence[float]) -> None:
+        super().__init__(message)
+        self.what = what
+        self.set_points = tuple(sorted(float(k) for k in set_points))
+
+
 @dataclass(frozen=True)
 class LineFit:
     slope: float
@@ -246,12 +257,12 @@ def fit_monotone(xs: Sequence[float], ys: Sequence[float], what: str,
             level = max(abs(y1), abs(y2), 1e-9)
             se = run_cv * level * math.sqrt(1.0 / n1 + 1.0 / n2)
             if y1 - y2 > MONOTONE_FALL_SIGMAS * se:
-                raise CalibrationError(
+                raise InconsistentSetPoints(
                     f"{what} is not increasing: falls from {y1:.4g} at set point(s) "
                     f"{_names(k1)} to {y2:.4g} at {_names(k2)}, {(y1 - y2) / se:.1f} times the "
                     "weighing noise "
                     f"({run_cv * 100:.1f} %): the readings are inconsistent; repeat set "
-                    f"point(s) {_names(k1 + k2)}")
+                    f"point(s) {_names(k1 + k2)}", what, k1 + k2)
             t = t1 + t2
             merged[-2:] = [(k1 + k2, n1 + n2, (t1 * x1 + t2 * x2) / t,
                             (t1 * y1 + t2 * y2) / t, t)]
@@ -697,6 +708,7 @@ class PaperAFit:
     meter_own: MonotoneFit | None
     problems: list[str]
     working_range: tuple[float, float]
+    rates_g_min: tuple[float, ...] = ()  # each run's discharge, as fitted
 
     def predict_flow(self, rpm: float) -> float:
         return self.meter_own.predict(rpm) if self.meter_own else self.quad.predict(rpm)
@@ -733,10 +745,52 @@ def fit_paper_a(duties: Sequence[float], rpm: Sequence[float], rates: Sequence[f
         # the R² gates judge the line and the quadratic, which the own curves replace
         problems = paper_a_problems(line, quad, duties, rpm, min_motor_r2=-math.inf,
                                     min_meter_r2=-math.inf)
-        return PaperAFit(line, quad, motor_own, meter_own, problems, working_range)
+        return PaperAFit(line, quad, motor_own, meter_own, problems, working_range,
+                         tuple(rates))
     quad = fit_meter_quadratic(rpm, rates, working_range)
     return PaperAFit(line, quad, None, None, paper_a_problems(line, quad, duties, rpm),
-                     working_range)
+                     working_range, tuple(rates))
+
+
+def fit_rotation_test(duties: Sequence[float], rpm: Sequence[float],
+                      catches_g: Sequence[float], seconds: Sequence[float], *,
+                      whole_machine: float = 1.0,
+                      working_range: tuple[float, float] | None = None) -> PaperAFit:
+    """Paper A's rotation test as typed, fitted: the one fit behind ``calibrate rotation``
+    and the touchscreen's "save" (F=09 ``04``), so a drill calibrated at either gets the same
+    curves (a knee drill its own monotone curves from ``MIN_POINTS_MONOTONE`` set points on,
+    with the same refusals, ``fit_paper_a``).
+
+    Per run: its duty, the shaft r/min read, the catch weighed and the run's length (set
+    points run for different lengths: each rate is its catch over its own length, and the
+    own curves' knots weight each run by that length). ``whole_machine``: the factor from
+    the outlets weighed to all of them (eq. 6 is the whole machine's discharge).
+    ``working_range``: r/min, default the speeds read."""
+    if not len(duties) == len(rpm) == len(catches_g) == len(seconds):
+        raise CalibrationError(
+            f"rotation test: {len(duties)} duties, {len(rpm)} shaft speeds, "
+            f"{len(catches_g)} catches and {len(seconds)} run lengths")
+    if not all(t > 0 for t in seconds):
+        raise CalibrationError("rotation test: every run must last more than 0 s")
+    rates = [m * whole_machine / (t / 60.0) for m, t in zip(catches_g, seconds, strict=True)]
+    wr = working_range if working_range is not None else (min(rpm), max(rpm))
+    return fit_paper_a(duties, rpm, rates, wr, seconds=seconds)
+
+
+def paper_a_changes(motor: dict[str, float], meter: dict[str, float], fit: PaperAFit,
+                    duties: Sequence[float]) -> list[tuple[str, float, float]]:
+    """What a paper-A result changes against the eq. 5 / eq. 6 it replaces: (what, old, new)
+    for the motor at the middle duty and the discharge at the middle of the working range
+    (the new one on the drill's own curve when it has one). ``LARGE_CHANGE_PCT`` judges these
+    rows at the CLI and at the touchscreen alike."""
+    mid_duty = (min(duties) + max(duties)) / 2
+    mid_w = (fit.working_range[0] + fit.working_range[1]) / 2
+    old_q = meter["a"] * mid_w * mid_w + meter["b"] * mid_w + meter["c"]
+    return [
+        (f"r/min at {mid_duty:.0f} % duty (eq. 5)",
+         motor["slope"] * mid_duty + motor["intercept"], fit.line.predict(mid_duty)),
+        (f"g/min at {mid_w:.0f} r/min (eq. 6)", old_q, fit.predict_flow(mid_w)),
+    ]
 
 
 def change_pct(new: float, old: float) -> float:
