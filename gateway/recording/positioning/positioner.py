@@ -305,10 +305,10 @@ class SeedPositioner:
         replayed: list[Landing] = []
         while self._before_fix:
             replayed += self.add_edge(*self._before_fix.popleft())
-        # in a batch (defer_resolution) the epochs after this one may be next in it: the
-        # recorder's poll expires what is overdue once the batch is in
-        expired = [] if self._defer else self._expire(epoch.t_mono)
-        return out + replayed + self._resolve_ready() + expired
+        # this epoch's seeds first (interpolated, not expired), in order; in a batch
+        # (defer_resolution) the recorder's poll expires what is overdue once it is in
+        out += replayed + self._resolve_ready()
+        return out + ([] if self._defer else self._expire(epoch.t_mono))
 
     def add_attitude(self, t_mono: float, roll_deg: float) -> None:
         """An inclinometer roll reading (degrees, as the sensor reads it) taken at ``t_mono``;
