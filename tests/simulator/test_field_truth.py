@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import subprocess
 import sys
@@ -211,7 +212,7 @@ def test_multipath_bursts_have_their_stated_sizes_and_durations_and_come_and_go(
     mp = Multipath()
     bursts = mp.bursts(seed=3, until_s=3600.0)
     assert len(bursts) > 40  # an hour at one burst every 30–100 s
-    for a, b in zip(bursts, bursts[1:], strict=False):
+    for a, b in itertools.pairwise(bursts):
         assert b.start_s > a.start_s + a.duration_s  # one reflection at a time
     for b in bursts:
         assert 10.0 <= b.duration_s <= 40.0
