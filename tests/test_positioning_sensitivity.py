@@ -59,3 +59,17 @@ def test_the_table_marks_a_p90_above_its_target() -> None:
     cells = first.split(" | ")
     assert "**" not in cells[1] and cells[2].startswith("40.0 / **40.0**")
     assert "| 20 |" in first
+
+
+def test_the_reading_names_what_breaks_a_target_and_the_floors_parts() -> None:
+    def rows(cal16: float, or16: float) -> list[dict[str, object]]:
+        return [{"calibrated": {"4–12 km/h": 10.0, "16 km/h": cal16},
+                 "oracle": {"4–12 km/h": 10.0, "16 km/h": or16}} for _ in range(20)]
+
+    results = [rows(10.0, 10.0) for _ in ps.CONDITIONS]
+    results[3] = rows(45.0, 40.0)  # retained speed breaks 16 km/h, the oracle too
+    text = ps.markdown(results, rows(36.0, 31.0))
+    assert ("Targets broken by a condition (p90 after survey calibration): furrow retained "
+            "speed +0.15 (16 km/h; the oracle too at 16 km/h).") in text
+    assert "the oracle's p90 is 31.0 mm (sowgate after survey calibration 36.0)" in text
+    assert ", multipath (" not in text and ": multipath (" not in text
