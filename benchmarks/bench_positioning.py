@@ -242,9 +242,10 @@ def oracle_errors(run: FieldRun) -> Errors:
             for ep in run.epochs]
     t = np.array([s.expected_t_land for s in run.seeds])
     ge, gn = run.antenna_ground_at(t)
+    times = [x.t for x in errs]
     pts = [
         oracle_landing((s.expected_east, s.expected_north), (float(e), float(n)), s.expected_t_land,
-                       errs)
+                       errs, times)
         for s, e, n in zip(run.seeds, ge.tolist(), gn.tolist(), strict=True)
     ]
     return _decompose(run, np.array([p[0] for p in pts]), np.array([p[1] for p in pts]))
@@ -651,11 +652,18 @@ def run(seed: int = 1) -> dict[str, Any]:
                                                            configured),
         "sensitivity": sensitivity(seed),
     }
-    od = over_draws(int(os.environ.get("SOWGATE_POSITION_DRAWS", str(DRAWS))))
+    n = int(os.environ.get("SOWGATE_POSITION_DRAWS",
+                           os.environ.get("SOWGATE_BENCH_DRAWS", str(DRAWS))))
+    od = over_draws(n)
     head, met = draws_markdown(od)
+    from benchmarks import positioning_sensitivity as ps  # it imports this module
+
+    conditions = ps.over_draws(n, _pool_map)
     result["over_draws"] = od
+    result["conditions"] = conditions
     result["targets_met"] = met
-    result["markdown"] = head + "\n" + _markdown(result, truth)
+    result["markdown"] = (head + "\n" + ps.markdown(conditions, od["draws"]) + "\n"
+                          + _markdown(result, truth))
     return result
 
 

@@ -31,12 +31,15 @@ class EpochError:
     heading_deg: float  # machine heading error, clockwise positive
 
 
-def interpolated_error(t: float, errors: Sequence[EpochError]) -> tuple[float, float, float]:
+def interpolated_error(t: float, errors: Sequence[EpochError],
+                       times: Sequence[float] | None = None) -> tuple[float, float, float]:
     """(east, north, heading) error at ``t``: linear between the bracketing epochs, the
-    nearest epoch's outside their range. ``errors`` sorted by time."""
+    nearest epoch's outside their range. ``errors`` sorted by time; ``times`` their instants
+    if the caller has them (a drive's seeds share one list instead of one per seed)."""
     if not errors:
         raise ValueError("oracle needs at least one epoch")
-    times = [x.t for x in errors]
+    if times is None:
+        times = [x.t for x in errors]
     i = bisect.bisect_right(times, t)
     if i == 0 or i >= len(errors):
         x = errors[0 if i == 0 else -1]
@@ -55,6 +58,7 @@ def oracle_landing(
     pivot: tuple[float, float],
     t: float,
     errors: Sequence[EpochError],
+    times: Sequence[float] | None = None,
 ) -> tuple[float, float]:
     """The oracle's landing point for one seed.
 
@@ -65,7 +69,7 @@ def oracle_landing(
     interpolated heading error (clockwise), then the whole is shifted by the interpolated
     position error.
     """
-    de, dn, dh = interpolated_error(t, errors)
+    de, dn, dh = interpolated_error(t, errors, times)
     ve, vn = expected[0] - pivot[0], expected[1] - pivot[1]
     c, s = math.cos(math.radians(dh)), math.sin(math.radians(dh))
     return pivot[0] + ve * c + vn * s + de, pivot[1] - ve * s + vn * c + dn

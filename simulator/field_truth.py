@@ -41,6 +41,10 @@ or off leaves the draws of the others unchanged):
 - ``Receiver``: first-order Gauss–Markov position error (σ, τ) plus white noise, heading and
   baseline-pitch noise, float windows (a larger, faster-wandering error, flagged float) and
   dropouts (no epoch at all);
+- ``Multipath`` (optional, off by default): reflections off a tree line or a building beside
+  the field, bursts of a few centimetres of position step and a few tenths of a degree of
+  heading and baseline-pitch bias lasting tens of seconds, while the receiver still reports
+  RTK fixed;
 - ``Timing``: receiver output latency (solution time varying by a few ms), USB jitter with
   bursts, sensor and line latency of the edges, the host clock's drift;
 - ``FitterErrors``: what a fitter with a tape measure and a datasheet configures
@@ -49,6 +53,7 @@ or off leaves the draws of the others unchanged):
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -70,7 +75,7 @@ SOWING_MIN_KMH = 1.0  # the metering stops below this
 # independent random streams (one per process), see module docstring
 _STREAM = {
     "terrain": 1, "metering": 2, "lot": 3, "furrow": 4, "rtk": 5, "heading": 6,
-    "timing": 7, "survey": 8, "edges": 9,
+    "timing": 7, "survey": 8, "edges": 9, "multipath": 10,
 }
 
 
@@ -406,6 +411,75 @@ class Furrow:
 
 
 @dataclass(frozen=True)
+class MultipathBurst:
+    """One burst: its window and the error it holds during its plateau (reported minus
+    true)."""
+
+    start_s: float
+    duration_s: float
+    east_m: float
+    north_m: float
+    up_m: float
+    heading_deg: float
+    pitch_deg: float  # the baseline's elevation (#HEADINGA pitch)
+
+
+@dataclass(frozen=True)
+class Multipath:
+    """Reflections off a tree line or a building next to the field (off unless configured).
+
+    Why a burst of steps and not more Gauss–Markov noise: a reflected carrier biases the
+    fixed solution by a few centimetres for as long as the geometry of antenna, reflector and
+    satellite lasts, then lets go, and the receiver still says RTK fixed; a dual-antenna
+    heading sees the difference of the two antennas' reflections. So each burst is a constant
+    error vector (random direction and sign, magnitudes uniform in the stated ranges) reached
+    and left over ``ramp_s`` (the tracking loops follow the reflection), bursts arriving at
+    random (exponential gaps of mean ``gap_s``). Defaults (stated ranges, see
+    ``benchmarks.positioning_sensitivity``): horizontal step 2–5 cm (a carrier's multipath
+    error is at most a quarter wavelength, 4.8 cm at L1, per satellite), height 1.5× that,
+    heading 0.2–0.6° (OxTS RT3000 manual, table 28: a 1 m baseline near trees or buildings
+    1–2° 3σ against 0.6° in open sky), bursts of 10–40 s (an assumption).
+    """
+
+    gap_s: tuple[float, float] = (20.0, 60.0)  # mean gap between bursts, uniform per field
+    duration_s: tuple[float, float] = (10.0, 40.0)
+    step_m: tuple[float, float] = (0.02, 0.05)
+    height_ratio: float = 1.5
+    heading_deg: tuple[float, float] = (0.2, 0.6)
+    pitch_deg: tuple[float, float] = (0.2, 0.6)
+    ramp_s: float = 1.0
+    position: bool = True  # the position step (False: heading and pitch bursts only)
+    attitude: bool = True  # the heading and pitch bursts (False: position steps only)
+
+    def bursts(self, seed: int, until_s: float) -> list[MultipathBurst]:
+        """The bursts of a drive of ``until_s`` seconds (its own random stream)."""
+        rng = _rng(seed, "multipath")
+        gap = rng.uniform(*self.gap_s)
+        out: list[MultipathBurst] = []
+        t = rng.exponential(gap)
+        while t < until_s:
+            dur = rng.uniform(*self.duration_s)
+            step = rng.uniform(*self.step_m) * self.position
+            direction = rng.uniform(0.0, 2.0 * math.pi)
+            up = step * self.height_ratio * rng.choice((-1.0, 1.0))
+            hd = rng.uniform(*self.heading_deg) * rng.choice((-1.0, 1.0)) * self.attitude
+            pd = rng.uniform(*self.pitch_deg) * rng.choice((-1.0, 1.0)) * self.attitude
+            out.append(MultipathBurst(float(t), float(dur), float(step * math.sin(direction)),
+                                      float(step * math.cos(direction)), float(up), float(hd),
+                                      float(pd)))
+            t += dur + rng.exponential(gap)
+        return out
+
+    def profile(self, burst: MultipathBurst, t: Array) -> Array:
+        """0 outside the burst, 1 on its plateau, linear over ``ramp_s`` at either end."""
+        tt = np.asarray(t, float) - burst.start_s
+        ramp = max(min(self.ramp_s, burst.duration_s / 2.0), 1e-9)
+        up = np.clip(tt / ramp, 0.0, 1.0)
+        down = np.clip((burst.duration_s - tt) / ramp, 0.0, 1.0)
+        return np.asarray(np.minimum(up, down), float)
+
+
+@dataclass(frozen=True)
 class Receiver:
     rate_hz: float = 10.0
     rtk_sigma_m: float = 0.012  # Gauss–Markov σ per horizontal axis (fixed RTK)
@@ -420,6 +494,7 @@ class Receiver:
     # (start, duration) in simulated seconds
     float_windows: tuple[tuple[float, float], ...] = ()
     dropout_windows: tuple[tuple[float, float], ...] = ()
+    multipath: Multipath | None = None  # reflections beside the field (RTK still fixed)
 
     def degraded(self, t: Array, margin_s: float = 0.5) -> npt.NDArray[np.bool_]:
         tt = np.asarray(t, float)
@@ -671,6 +746,11 @@ def _receiver_epochs(cfg: FieldConfig, drive: FieldDrive) -> list[ReceiverEpoch]
     err_h = hrng.normal(0.0, rx.heading_sigma_deg, count)
     err_p = hrng.normal(0.0, rx.pitch_sigma_deg, count)
     err_v = hrng.normal(0.0, rx.speed_sigma_kmh, count)
+    if rx.multipath is not None:
+        for b in rx.multipath.bursts(cfg.seed, float(t[-1])):
+            w = rx.multipath.profile(b, t)
+            err_e, err_n, err_u = err_e + w * b.east_m, err_n + w * b.north_m, err_u + w * b.up_m
+            err_h, err_p = err_h + w * b.heading_deg, err_p + w * b.pitch_deg
     trng = _rng(cfg.seed, "timing")
     latency = timing.gnss_latency_s + trng.uniform(0.0, timing.gnss_latency_spread_s, count)
     jitter = trng.exponential(timing.usb_jitter_mean_s, count) if timing.usb_jitter_mean_s else (
@@ -791,10 +871,18 @@ def mean_fall_time_s(cfg: FieldConfig, speed_kmh: Array) -> Array:
     return np.asarray(t_tube + free_fall_s(cfg.tube.outlet_height_m, v_exit * math.cos(beta)))
 
 
+@functools.lru_cache(maxsize=4)
+def _field_drive(spec: DriveSpec, machine: Machine) -> FieldDrive:
+    """The drive of ``spec`` with ``machine``: a pure function of the two, kept for the next
+    run of the same field (sensitivity rows change the seeds or the receiver, not the
+    drive; building it is a tenth of a run)."""
+    return FieldDrive(spec, machine)
+
+
 def simulate(cfg: FieldConfig | None = None) -> FieldRun:
     """Drive the field: receiver epochs and seeds (truth and host-stamped edges)."""
     cfg = cfg or FieldConfig()
-    drive = FieldDrive(cfg.drive, cfg.machine)
+    drive = _field_drive(cfg.drive, cfg.machine)
     epochs = _receiver_epochs(cfg, drive)
     t_edge, rows = _edges(cfg, drive)
     lrng = _rng(cfg.seed, "lot")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import subprocess
 import sys
@@ -18,6 +19,7 @@ from simulator.field_truth import (
     FitterErrors,
     Furrow,
     Machine,
+    Multipath,
     Receiver,
     SeedLot,
     Terrain,
@@ -201,3 +203,64 @@ def test_a_fitter_configures_the_lever_arm_and_latency_off_by_the_stated_errors(
     assert conf.outlet_behind_antenna_m == pytest.approx(m.outlet_behind_antenna_m + 0.03)
     assert conf.row_lateral_m[0] == pytest.approx(m.row_lateral_m[0] - 0.02)
     assert conf.gnss_output_latency_ms == pytest.approx(50.0)
+
+
+# ------------------------------------------------------------------ multipath (issue 25)
+
+
+def test_multipath_bursts_have_their_stated_sizes_and_durations_and_come_and_go() -> None:
+    mp = Multipath()
+    bursts = mp.bursts(seed=3, until_s=3600.0)
+    assert len(bursts) > 40  # an hour at one burst every 30–100 s
+    for a, b in itertools.pairwise(bursts):
+        assert b.start_s > a.start_s + a.duration_s  # one reflection at a time
+    for b in bursts:
+        assert 10.0 <= b.duration_s <= 40.0
+        step = math.hypot(b.east_m, b.north_m)
+        assert 0.02 <= step <= 0.05
+        assert abs(b.up_m) == pytest.approx(1.5 * step)
+        assert 0.2 <= abs(b.heading_deg) <= 0.6 and 0.2 <= abs(b.pitch_deg) <= 0.6
+    # random direction and sign, not a fixed offset a calibration could take out
+    assert min(b.east_m for b in bursts) < 0 < max(b.east_m for b in bursts)
+    assert min(b.heading_deg for b in bursts) < 0 < max(b.heading_deg for b in bursts)
+    inside = sum(b.duration_s for b in bursts) / 3600.0
+    assert 0.2 < inside < 0.6
+
+
+def test_multipath_puts_its_step_on_the_epochs_while_the_receiver_says_fixed() -> None:
+    mp = Multipath(gap_s=(4.0, 4.0), duration_s=(6.0, 8.0))
+    cfg = short_field(receiver=replace(QUIET, multipath=mp), terrain=FLAT)
+    run = simulate(cfg)
+    bursts = mp.bursts(cfg.seed, run.epochs[-1].t)
+    assert bursts
+    on_plateau = outside = 0
+    for ep in run.epochs:
+        assert ep.fix == "rtk_fixed"
+        b = next((b for b in bursts if b.start_s <= ep.t <= b.start_s + b.duration_s), None)
+        if b is None:
+            outside += 1
+            assert abs(ep.err_east_m) < 1e-9 and abs(ep.err_heading_deg) < 1e-6
+        elif b.start_s + mp.ramp_s <= ep.t <= b.start_s + b.duration_s - mp.ramp_s:
+            on_plateau += 1
+            assert ep.err_east_m == pytest.approx(b.east_m, abs=1e-6)
+            assert ep.err_north_m == pytest.approx(b.north_m, abs=1e-6)
+            assert ep.err_heading_deg == pytest.approx(b.heading_deg, abs=1e-6)
+    assert on_plateau > 50 and outside > 10
+
+
+def test_multipath_is_off_by_default_and_moves_no_other_draw() -> None:
+    assert Receiver().multipath is None
+    a = simulate(short_field(receiver=replace(Receiver(), multipath=None)))
+    b = simulate(short_field(receiver=replace(Receiver(), multipath=Multipath(gap_s=(4.0, 4.0)))))
+    assert [s.east for s in a.seeds] == [s.east for s in b.seeds]
+    assert [s.t_host for s in a.seeds] == [s.t_host for s in b.seeds]
+    assert [ep.t_host for ep in a.epochs] == [ep.t_host for ep in b.epochs]
+    assert [ep.lat for ep in a.epochs] != [ep.lat for ep in b.epochs]
+
+
+def test_multipath_position_only_and_attitude_only_split_the_burst() -> None:
+    pos = Multipath(attitude=False).bursts(seed=5, until_s=600.0)
+    att = Multipath(position=False).bursts(seed=5, until_s=600.0)
+    assert [b.start_s for b in pos] == [b.start_s for b in att]
+    assert all(b.heading_deg == 0 and b.pitch_deg == 0 and b.east_m != 0 for b in pos)
+    assert all(b.east_m == 0 and b.up_m == 0 and b.heading_deg != 0 for b in att)
