@@ -26,6 +26,7 @@ from gateway.recording.positioning import Landing, LocalFrame, SeedPositioner
 from simulator.plant import Drive, Leg
 from simulator.seed_tubes import PlanterModel, SeedTubeEmulator
 from simulator.um982 import Um982Emulator
+from tests.helpers import eventually
 
 ORIGIN = (45.7536, 126.6339, 150.0)
 OUTPUT_LATENCY_S = 0.02
@@ -45,7 +46,11 @@ async def test_predicted_landing_points_match_ground_truth_over_ptys() -> None:
     def on_epoch(epoch: GnssEpoch) -> None:
         landed.extend(positioner.add_epoch(epoch))
 
+    edges_seen = 0
+
     def on_edge(edge: SeedEdgeEvent) -> None:
+        nonlocal edges_seen
+        edges_seen += 1
         landed.extend(positioner.add_edge(edge.row, edge.t_mono))
 
     t0 = time.monotonic() + START_DELAY_S
@@ -65,7 +70,11 @@ async def test_predicted_landing_points_match_ground_truth_over_ptys() -> None:
         try:
             async with GnssReader(gnss.device_path, on_epoch=on_epoch):
                 await tubes.wait_done()
-                await asyncio.sleep(0.5)  # the epochs after the last seed's landing
+                # every seed line read (a loaded loop gets to the pty late), then the epochs
+                # after the last seed's landing
+                await eventually(lambda: edges_seen >= len(tubes.truth), 30.0,
+                                 "every seed line read")
+                await asyncio.sleep(0.5)
         finally:
             sensor_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):

@@ -48,6 +48,25 @@ DRIVE = Drive(
 )
 
 
+async def every_seed_stored(daemon: Daemon, machine: SimulatedMachine,
+                            task: asyncio.Task[None]) -> None:
+    """Wait until the daemon has stored a record for every seed the tubes sowed.
+
+    The seed lines are read from a pty as the loop gets to them: on a loaded machine the
+    last lines can still be unread a second after the simulator wrote them, and a daemon
+    stopped then never saw those seeds. The drive stands on after the last seed, so the
+    epochs that position them keep coming.
+    """
+    await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
+    sown = len(machine.seed_tubes.truth)
+
+    def stored() -> int:
+        return 0 if daemon.parts.seeds is None else daemon.parts.seeds.records_stored
+
+    await eventually(lambda: stored() >= sown, 30.0, f"all {sown} seeds stored",
+                     unless=task, detail=lambda: f"{stored()} stored")
+
+
 def fitter_config(machine: SimulatedMachine) -> dict[str, object]:
     return machine.config(
         control={"start_working": True},
@@ -81,9 +100,9 @@ async def sow(tmp_path: Path) -> tuple[Path, list[SeedTruth]]:
         config.write_text(tomli_w.dumps(data))
         # parse_config, not machine.settings(): the daemon is told a lever arm the simulated
         # planter does not have (machine.settings refuses that, rightly, everywhere else)
-        async with daemon_task(Daemon(parse_config(data), tmp_path / "state")):
-            await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
-            await asyncio.sleep(1.0)  # the epochs after the last landing, one flush
+        daemon = Daemon(parse_config(data), tmp_path / "state")
+        async with daemon_task(daemon) as task:
+            await every_seed_stored(daemon, machine, task)
         truth = list(machine.seed_tubes.truth)
         assert machine.seed_tubes.late_writes <= len(truth) // 20, "the simulator was starved"
     return config, truth
@@ -163,9 +182,9 @@ async def test_the_inclinometer_roll_axis_corrects_seeds_on_a_side_slope(tmp_pat
     async with machine:
         data = machine.config(control={"start_working": True}, positioning={
             "antenna_height_m": ANTENNA_HEIGHT_M, "attitude_source": "inclinometer"})
-        async with daemon_task(Daemon(parse_config(data), tmp_path / "state")):
-            await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
-            await asyncio.sleep(1.0)
+        daemon = Daemon(parse_config(data), tmp_path / "state")
+        async with daemon_task(daemon) as task:
+            await every_seed_stored(daemon, machine, task)
         truth = list(machine.seed_tubes.truth)
     records = stored_seeds(tmp_path / "state")
     true = truth_by_id(records, truth)
@@ -204,8 +223,7 @@ async def test_a_position_calibration_saved_while_sowing_positions_the_next_seed
             assert daemon.parts.seeds is not None
             switched_at = daemon.parts.seeds.records_stored
             assert daemon.settings.positioning.outlet_behind_antenna_m == TRUE_BEHIND_M
-            await asyncio.wait_for(machine.seed_tubes.wait_done(), 30.0)
-            await asyncio.sleep(1.0)
+            await every_seed_stored(daemon, machine, task)
         truth = list(machine.seed_tubes.truth)
         assert machine.seed_tubes.late_writes <= len(truth) // 20, "the simulator was starved"
     records = stored_seeds(state)
