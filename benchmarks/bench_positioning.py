@@ -598,7 +598,8 @@ def calibration_sensitivity(truth: FieldRun, landings: list[Landing],
             row["cli"] = ("refuses: " if cal.fit.problems() else "warns: ") + "; ".join(
                 cal.fit.problems() or cal.fit.coverage_warnings)
         row["fit"] = {"delay_ms": cal.fit.delay_ms, "behind_mm": cal.fit.behind_m * 1000.0,
-                      "right_mm": cal.fit.right_m * 1000.0}
+                      "right_mm": cal.fit.right_m * 1000.0,
+                      "ms_per_kmh": cal.fit.delay_ms_per_kmh, "ref_kmh": cal.fit.speed_ref_kmh}
         row["stats"] = {k: dataclasses.asdict(Stats.of(cal.errors, masks[k]))
                         for k in ("4–12 km/h", "16 km/h", "4–16 km/h")}
         rows.append(row)
@@ -750,7 +751,8 @@ def _markdown(result: dict[str, Any], truth: FieldRun) -> str:
         "Survey calibration sensitivity (same drive, other surveys; each evaluated on the "
         "seeds it did not survey), mean mm (p95):",
         "",
-        "| survey | fit: delay / behind / right | 4–12 km/h | 16 km/h | 4–16 km/h |",
+        "| survey | fit: delay (with a speed slope: at the surveyed median speed) / behind / "
+        "right | 4–12 km/h | 16 km/h | 4–16 km/h |",
         "|---|---|---:|---:|---:|",
     ]
     for row in result["calibration_sensitivity"]:
@@ -761,7 +763,10 @@ def _markdown(result: dict[str, Any], truth: FieldRun) -> str:
         cells = [f"{_fmt(row['stats'][k]['mean_mm'])} ({_fmt(row['stats'][k]['p95_mm'])})"
                  for k in ("4–12 km/h", "16 km/h", "4–16 km/h")]
         name = row["survey"] + (f" (`calibrate positions` {row['cli']})" if "cli" in row else "")
-        lines.append(f"| {name} | {f['delay_ms']:+.1f} ms / {f['behind_mm']:+.0f} mm"
+        delay = f"{f['delay_ms']:+.1f} ms"
+        if f.get("ms_per_kmh"):
+            delay += f" at {f['ref_kmh']:.0f} km/h, {f['ms_per_kmh']:+.2f} ms per km/h"
+        lines.append(f"| {name} | {delay} / {f['behind_mm']:+.0f} mm"
                      f" / {f['right_mm']:+.0f} mm | " + " | ".join(cells) + " |")
     lines += [
         "",
