@@ -7,7 +7,8 @@ from __future__ import annotations
 import asyncio
 import random
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from pathlib import Path
 
 import pytest
@@ -149,12 +150,10 @@ async def timed_run(rig: Rig, skip: list[float], duty: float,
     return seconds
 
 
-async def test_with_the_scale_known_each_set_point_runs_as_long_as_it_needs(
-    tmp_path: Path,
-) -> None:
-    """[calibration] scale_g: the screen's test runs the small catches long and the large
-    ones short, makes up a first run the model misjudged, and ends within the CLI's target
-    at every set point in one test (the CLI needs a 60 s pass first to know)."""
+@asynccontextmanager
+async def fast_forward_rig(tmp_path: Path) -> AsyncIterator[tuple[Rig, list[float]]]:
+    """The daemon on rapeseed with a ±SCALE_G scale configured and a clock the test can move
+    on (``skip[0]`` seconds ahead), the screen showing STOPPED: long runs without waiting."""
     skip = [0.0]
     machine = SimulatedMachine(drive=steady_drive(), crop="rapeseed")
     async with machine:
@@ -163,15 +162,26 @@ async def test_with_the_scale_known_each_set_point_runs_as_long_as_it_needs(
         daemon = Daemon(settings, tmp_path / "state", clock=lambda: time.monotonic() + skip[0])
         async with daemon_task(daemon) as task:
             rig = Rig(machine, daemon, task)
-            hmi = machine.hmi
-            assert hmi is not None
-            await hmi.wait_text("t_state", lambda s: s == "STOPPED")
-            lengths: dict[float, list[float]] = {}
-            for duty in RAPE_DUTIES:
-                for _ in range(3):  # paper A's 3 runs per set point
-                    lengths.setdefault(duty, []).append(await timed_run(rig, skip, duty))
-            hmi.rotation_test("save")
-            saved = await hmi.wait_text("t_msg", lambda s: s.startswith("saved rotation."))
+            assert machine.hmi is not None
+            await machine.hmi.wait_text("t_state", lambda s: s == "STOPPED")
+            yield rig, skip
+
+
+async def test_with_the_scale_known_each_set_point_runs_as_long_as_it_needs(
+    tmp_path: Path,
+) -> None:
+    """[calibration] scale_g: the screen's test runs the small catches long and the large
+    ones short, makes up a first run the model misjudged, and ends within the CLI's target
+    at every set point in one test (the CLI needs a 60 s pass first to know)."""
+    async with fast_forward_rig(tmp_path) as (rig, skip):
+        hmi = rig.machine.hmi
+        assert hmi is not None
+        lengths: dict[float, list[float]] = {}
+        for duty in RAPE_DUTIES:
+            for _ in range(3):  # paper A's 3 runs per set point
+                lengths.setdefault(duty, []).append(await timed_run(rig, skip, duty))
+        hmi.rotation_test("save")
+        saved = await hmi.wait_text("t_msg", lambda s: s.startswith("saved rotation."))
     low, mid, high = (lengths[d] for d in RAPE_DUTIES)
     assert low[0] > mid[0] > high[0] >= 30.0  # each set point its own length
     assert low[1] > low[0]  # the catch came in under the model: the later runs make it up
@@ -244,25 +254,18 @@ async def test_a_drill_with_a_knee_gets_the_clis_curve_at_the_screen(tmp_path: P
     differ in length): "save" stores the model `calibrate rotation` stores from the same runs,
     the drill's own curves, and the daemon sows on them within 1 % at every set point, where
     paper A's quadratic through the same catches misses by more."""
-    rng, skip = random.Random(25), [0.0]
+    rng = random.Random(25)
     runs: list[tuple[float, float, float, float]] = []
     read = knee_reading(rng, runs)
-    machine = SimulatedMachine(drive=steady_drive(), crop="rapeseed")
-    async with machine:
-        settings = machine.settings(control={"crop": "rapeseed", "rotation_test_s": 30.0},
-                                    calibration={"scale_g": SCALE_G})
-        daemon = Daemon(settings, tmp_path / "state", clock=lambda: time.monotonic() + skip[0])
-        async with daemon_task(daemon) as task:
-            rig = Rig(machine, daemon, task)
-            hmi = machine.hmi
-            assert hmi is not None
-            await hmi.wait_text("t_state", lambda s: s == "STOPPED")
-            for duty in KNEE_DUTIES:
-                for _ in range(3):
-                    await timed_run(rig, skip, duty, read)
-            hmi.rotation_test("save")
-            await hmi.wait_text("t_msg", lambda s: s.startswith("saved rotation.rapeseed"))
-            applied = daemon.controller.crop_model
+    async with fast_forward_rig(tmp_path) as (rig, skip):
+        hmi = rig.machine.hmi
+        assert hmi is not None
+        for duty in KNEE_DUTIES:
+            for _ in range(3):
+                await timed_run(rig, skip, duty, read)
+        hmi.rotation_test("save")
+        await hmi.wait_text("t_msg", lambda s: s.startswith("saved rotation.rapeseed"))
+        applied = rig.daemon.controller.crop_model
     # a set point's runs differ in length (its later runs make up the first): the knots are
     # its catch over its run time, not the plain mean of its runs' rates
     assert any(len({t for d, t, _, _ in runs if d == k}) > 1 for k in KNEE_DUTIES)
