@@ -42,7 +42,8 @@ from typing import Any
 import numpy as np
 
 from benchmarks.positioning_draws import Draw, draws, summary
-from simulator.field_truth import FieldConfig, Multipath
+from gateway.recording.positioning.survey import SurveyError
+from simulator.field_truth import FieldConfig, Multipath, simulate
 
 KEYS = ("4–12 km/h", "16 km/h")
 TARGET_P90_MM = {"4–12 km/h": 25.0, "16 km/h": 30.0}
@@ -165,7 +166,7 @@ def evaluate(d: Draw) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     for which, cond in enumerate(CONDITIONS):
         cfg = cond.apply(d.config)
-        run = bp.simulate(cfg)
+        run = simulate(cfg)
         settings = bp.section(d.fitter.configured(cfg.machine, cfg.timing),
                               pitch_track_m=bp.PITCH_TRACK_M)
         key = _gateway_key(cfg)
@@ -187,7 +188,7 @@ def evaluate(d: Draw) -> list[dict[str, Any]]:
                 for b in mp.bursts(cfg.seed, end)) / end
         try:
             cal = bp.calibrate(run, landings, settings, pairs)
-        except bp.SurveyError as exc:
+        except SurveyError as exc:
             r["calibrated"] = {k: math.nan for k in KEYS}
             r["failed"] = str(exc)
         else:
