@@ -176,7 +176,8 @@ def section(conf: Configured, fall_table: Sequence[tuple[float, float]] | None =
             and conf.outlets_behind_hitch_m is not None):
         kw["hitch"] = HitchSection(behind_antenna_m=conf.hitch_behind_antenna_m,
                                    outlets_behind_hitch_m=conf.outlets_behind_hitch_m,
-                                   height_m=conf.hitch_height_m or 0.0)
+                                   height_m=conf.hitch_height_m or 0.0,
+                                   wheels_behind_hitch_m=conf.wheels_behind_hitch_m)
     return PositioningSection(
         outlet_behind_antenna_m=conf.outlet_behind_antenna_m,
         row_lateral_m=list(conf.row_lateral_m),
@@ -345,7 +346,7 @@ def calibrate(run: FieldRun, landings: list[Landing], settings: PositioningSecti
                      fit_delay=fit_delay, sown=sown)
     new = fit.settings(settings)
     lat, lon, kept = [], [], 0
-    track = ImplementTrack(new)
+    track = ImplementTrack(new, made_with=settings)  # the records' own, read back at restarts
     for d in drops:
         implement = track.heading(d)
         if repositionable(d):
