@@ -346,7 +346,7 @@ def calibrate(run: FieldRun, landings: list[Landing], settings: PositioningSecti
                      fit_delay=fit_delay, sown=sown)
     new = fit.settings(settings)
     lat, lon, kept = [], [], 0
-    track = ImplementTrack(new, made_with=settings)  # the records' own, read back at restarts
+    track = ImplementTrack(new, made_with=new)  # read back at restarts, as export does
     for d in drops:
         implement = track.heading(d)
         if repositionable(d):

@@ -289,7 +289,9 @@ class Repositioner:
 
     def __call__(self, records: Iterable[SeedRecord]) -> Iterator[SeedRecord]:
         positioning = self.settings.positioning
-        track = ImplementTrack(positioning)
+        # where the track restarts, the implement is read back from the records as made with
+        # these settings (the ones a calibration left, or centimetres from them)
+        track = ImplementTrack(positioning, made_with=positioning)
         # the attitude each record keeps, estimated again with the records after it
         for r in smooth_attitude(records, positioning, self.settings.gnss.heading_offset_deg):
             implement = track.heading(r)

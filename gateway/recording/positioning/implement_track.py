@@ -53,8 +53,10 @@ class ImplementTrack:
 
     def __init__(self, settings: PositioningSection,
                  made_with: PositioningSection | None = None) -> None:
-        """``made_with``: the positioning the records were made with, if known (the read-back
-        at a restart needs its hitch, rows and lean); None: restart straight behind."""
+        """``made_with``: the positioning the records were made with (the read-back at a
+        restart needs its hitch, rows and lean); None: restart straight behind. Settings a
+        survey calibration moved by a few centimetres read back a heading a fraction of a
+        degree off, which decays over the wheels' distance like the turn's articulation."""
         self.hitch = settings.hitch
         self.made_with = made_with
         self._attitude = EpochAttitude(settings)
