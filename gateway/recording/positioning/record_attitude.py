@@ -17,7 +17,10 @@ records after each one too. :func:`smooth_attitude` gives every record the mean 
 records within ``ROLL_HALF_WINDOW_M`` of it along the track (the noise averaged, the ground's
 slope left: a mean over ±1.5 m of a 40 m wave changes it by under 1 %), and, where the pitch
 came from the track, the mean pitch of the records ``L/2`` further on (within
-``PITCH_HALF_WINDOW_M``), whose windows are centred on it: the lag is gone. The distance along
+``PITCH_HALF_WINDOW_M``), whose windows are centred on it: the lag is gone. The first metres
+of a track (the drive's start, after a float fix or a dropout), which the positioner sowed
+without pitch (its window not yet filled: counted as level, up to 2.5 m · sin 1.5° = 65 mm
+on a slope along the pass), get the nearest pitch ahead. The distance along
 the track comes from the records' own speed and time; a gap in the records (a raised turn, a
 stop of the metering) longer than ``GAP_S`` starts a new stretch, and no window reaches across.
 Where a window holds no measured value the record keeps its own; a record that cannot be
@@ -93,13 +96,22 @@ def _smooth_stretch(records: Sequence[R], lag_m: float) -> list[R]:
                       for r, m in zip(records, measured, strict=True)], dtype=np.float64)[order]
     new_roll = _window_mean(s, roll, s, ROLL_HALF_WINDOW_M)
     new_pitch = _window_mean(s, pitch, s + lag_m, PITCH_HALF_WINDOW_M)
+    if lag_m > 0.0:
+        # the track's first metres (a start, an outage) had no pitch yet: the nearest
+        # window ahead, within one track window of the centred one
+        have = np.flatnonzero(np.isfinite(pitch))
+        if len(have):
+            near = have[np.minimum(np.searchsorted(s[have], s + lag_m), len(have) - 1)]
+            ahead = np.abs(s[near] - (s + lag_m)) <= 2.0 * lag_m
+            new_pitch = np.where(np.isnan(new_pitch) & ahead, pitch[near], new_pitch)
     out = list(records)
     for k, i in enumerate(order.tolist()):
         r = records[i]
         update: dict[str, float] = {}
         if r.roll_deg is not None and measured[i] and np.isfinite(new_roll[k]):
             update["roll_deg"] = float(new_roll[k])
-        if r.pitch_deg is not None and measured[i] and np.isfinite(new_pitch[k]):
+        if measured[i] and np.isfinite(new_pitch[k]) and (r.pitch_deg is not None
+                                                           or lag_m > 0.0):
             update["pitch_deg"] = float(new_pitch[k])
         if update:
             out[i] = r.model_copy(update=update)

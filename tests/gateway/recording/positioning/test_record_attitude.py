@@ -153,3 +153,30 @@ def test_no_window_reaches_across_a_gap_and_records_without_raw_data_pass_as_sto
     assert got[len(first)] is paper
     assert all(r.roll_deg == -2.0 for r in got[len(first) + 1:])
     assert [(r.utc, r.row) for r in got] == [(r.utc, r.row) for r in [*first, paper, *second]]
+
+
+def test_the_first_metres_of_a_track_get_the_pitch_ahead_instead_of_level() -> None:
+    """The drive's first 4 m (the track's window not yet filled) were sown without pitch,
+    counted as level: on 1.5° along the pass that is 68 mm at 2.6 m. Re-estimated, they get
+    the climb measured just ahead."""
+    slope = math.tan(math.radians(1.5))
+    att = EpochAttitude(settings(), baseline_offset_deg=-90.0)
+    records = []
+    for k in range(200):  # 20 s at 4 km/h
+        t, n = k * 0.1, k * 0.1 * 4.0 / 3.6
+        up = slope * n + H * math.cos(math.radians(1.5))
+        pitch = att.track_pitch(0.0, n, up, _Epoch(t, up))  # type: ignore[arg-type]
+        records.append(SeedDrop(
+            row=1, utc=T0 + timedelta(seconds=t), lat=45.0 + n / 111_000.0, lon=126.0,
+            fix="rtk_fixed", speed_kmh=4.0, heading_deg=0.0, heading_source="dual_antenna",
+            method="interpolated", attitude="dual_antenna", roll_deg=0.0, pitch_deg=pitch,
+            delay_ms=120.0, offset_east_m=0.0, offset_north_m=-3.0,
+        ))
+    unmeasured = [i for i, r in enumerate(records) if r.pitch_deg is None]
+    assert len(unmeasured) > 30
+    got = list(smooth_attitude(records, settings(), -90.0))
+    for i in unmeasured:
+        assert got[i].pitch_deg is not None and abs(got[i].pitch_deg - 1.5) < 0.01
+    # with the pitch measured by the baseline (fore and aft), a missing one stays missing
+    kept = list(smooth_attitude(records, settings(), 0.0))
+    assert all(kept[i].pitch_deg is None for i in unmeasured)
