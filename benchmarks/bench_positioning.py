@@ -68,6 +68,7 @@ from gateway.config.recording import HitchSection, PositioningSection
 from gateway.core.records import SeedDrop
 from gateway.recording.positioning import Landing, SeedPositioner
 from gateway.recording.positioning.implement_track import ImplementTrack
+from gateway.recording.positioning.record_attitude import smooth_attitude
 from gateway.recording.positioning.survey import (
     Sown,
     SurveyError,
@@ -175,7 +176,8 @@ def section(conf: Configured, fall_table: Sequence[tuple[float, float]] | None =
             and conf.outlets_behind_hitch_m is not None):
         kw["hitch"] = HitchSection(behind_antenna_m=conf.hitch_behind_antenna_m,
                                    outlets_behind_hitch_m=conf.outlets_behind_hitch_m,
-                                   height_m=conf.hitch_height_m or 0.0)
+                                   height_m=conf.hitch_height_m or 0.0,
+                                   wheels_behind_hitch_m=conf.wheels_behind_hitch_m)
     return PositioningSection(
         outlet_behind_antenna_m=conf.outlet_behind_antenna_m,
         row_lateral_m=list(conf.row_lateral_m),
@@ -331,22 +333,26 @@ def calibrate(run: FieldRun, landings: list[Landing], settings: PositioningSecti
     gateway's ``fit_survey`` on the stored records of the surveyed seeds and their surveyed
     lat/lon, the fit laid over ``settings`` (``SurveyFit.settings``, as the calibration file
     does), every record re-positioned with it (``reposition``)."""
+    # the records' attitude estimated again with the records after each (as the CLI does)
+    drops = list(smooth_attitude([la.drop for la in landings], settings,
+                                 baseline_offset_deg(run)))
+    by_id = {id(la.drop): d for la, d in zip(landings, drops, strict=True)}
     sown = Sown.empty(settings)  # with a hitch: the implement's heading along the records
-    for la in landings:
-        sown.add(la.drop)
-        sown.keep(la.drop)
-    fit = fit_survey([p.record for p in pairs],
+    for d in drops:
+        sown.add(d)
+        sown.keep(d)
+    fit = fit_survey([by_id[id(p.record)] for p in pairs],
                      [(p.surveyed_lat, p.surveyed_lon) for p in pairs], settings,
                      fit_delay=fit_delay, sown=sown)
     new = fit.settings(settings)
     lat, lon, kept = [], [], 0
-    track = ImplementTrack(new)
-    for la in landings:
-        implement = track.heading(la.drop)
-        if repositionable(la.drop):
-            a, b = reposition(la.drop, new, implement)
+    track = ImplementTrack(new, made_with=new)  # read back at restarts, as export does
+    for d in drops:
+        implement = track.heading(d)
+        if repositionable(d):
+            a, b = reposition(d, new, implement)
         else:
-            a, b, kept = la.drop.lat, la.drop.lon, kept + 1
+            a, b, kept = d.lat, d.lon, kept + 1
         lat.append(a)
         lon.append(b)
     pe, pn = run.to_enu(np.array(lat), np.array(lon))

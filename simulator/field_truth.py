@@ -545,10 +545,11 @@ class FitterErrors:
         """The settings as entered. A trailed implement is entered as hitch geometry
         (distances and the hitch's height); ``outlet_behind_antenna_m`` is then the
         straight-line sum."""
-        hitch = outlets = height = None
+        hitch = outlets = height = wheels = None
         if machine.trailed:
             hitch = machine.hitch_behind_m + self.hitch_behind_m
             outlets = machine.outlets_behind_hitch_m + self.behind_m
+            wheels = machine.implement_wheels_behind_hitch_m + self.behind_m  # the same tape
             height = machine.hitch_height_m + self.hitch_height_m
         return Configured(
             outlet_behind_antenna_m=machine.outlet_behind_antenna_m + self.behind_m
@@ -560,6 +561,7 @@ class FitterErrors:
             hitch_behind_antenna_m=hitch,
             outlets_behind_hitch_m=outlets,
             hitch_height_m=height,
+            wheels_behind_hitch_m=wheels,
         )
 
 
@@ -575,6 +577,7 @@ class Configured:
     hitch_behind_antenna_m: float | None = None  # None: a mounted implement
     outlets_behind_hitch_m: float | None = None
     hitch_height_m: float | None = None
+    wheels_behind_hitch_m: float | None = None  # the implement's wheels, behind the hitch
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,7 @@ from gateway.core.errors import GatewayError
 from gateway.core.records import SeedRecord
 from gateway.recording.export import parse_time
 from gateway.recording.positioning.implement_track import ImplementTrack
+from gateway.recording.positioning.record_attitude import smooth_attitude
 from gateway.recording.positioning.survey import (
     Sown,
     SurveyError,
@@ -212,7 +213,10 @@ def main_calibrate_positions(args: argparse.Namespace, console: Console | None =
         path = store_path(settings, state)
         sown = Sown.empty(current.positioning)  # with a hitch: the implement's track
         with RecordStore.open_readonly(path, settings.machine.id) as store:
-            records, surveyed, problems = match_survey(seeds, store.query_seeds(), sown)
+            # each record's roll and pitch again from the records around it (lag, noise)
+            smoothed = smooth_attitude(store.query_seeds(), current.positioning,
+                                       settings.gnss.heading_offset_deg)
+            records, surveyed, problems = match_survey(seeds, smoothed, sown)
         for p in problems:
             con.print(f"[yellow]skipped[/yellow] {escape(p)}")
         fit = fit_survey(records, surveyed, current.positioning,
@@ -285,8 +289,11 @@ class Repositioner:
 
     def __call__(self, records: Iterable[SeedRecord]) -> Iterator[SeedRecord]:
         positioning = self.settings.positioning
-        track = ImplementTrack(positioning)
-        for r in records:
+        # where the track restarts, the implement is read back from the records as made with
+        # these settings (the ones a calibration left, or centimetres from them)
+        track = ImplementTrack(positioning, made_with=positioning)
+        # the attitude each record keeps, estimated again with the records after it
+        for r in smooth_attitude(records, positioning, self.settings.gnss.heading_offset_deg):
             implement = track.heading(r)
             if not repositionable(r):
                 self.kept_as_stored += 1

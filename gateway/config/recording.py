@@ -130,6 +130,11 @@ class HitchSection(Section):
     behind_antenna_m: float = Field(ge=0, le=20)
     # the implement's outlets (its axle line, where the seeds fall): this far behind the hitch
     outlets_behind_hitch_m: float = Field(gt=0, le=30)
+    # the implement's wheel axle, this far behind the hitch (m; omitted: at the outlets). The
+    # wheels steer a trailed implement (they roll without slipping sideways), so its heading
+    # follows the hitch over this length: gauge wheels 2.2 m behind the hitch leave it 1-2 deg
+    # off the tractor's heading for metres after a turn where 1.4 m would have straightened it.
+    wheels_behind_hitch_m: float | None = Field(None, gt=0, le=30)
     # the hitch point's height above the ground (m). With terrain compensation (an attitude
     # source and antenna_height_m), the tractor's roll swings the hitch, and the implement
     # with it, downhill by height·sin(roll): 26 mm at 0.5 m and 3 deg.

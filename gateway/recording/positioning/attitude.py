@@ -145,17 +145,28 @@ class EpochAttitude:
             return None
         return math.degrees(math.atan2(up - track[0][1], run))
 
-    def follow_hitch(self, east: float, north: float, heading: float | None) -> float | None:
+    def restarts_hitch(self, east: float, north: float, heading: float) -> bool:
+        """Whether ``follow_hitch`` would restart the implement at this point."""
+        if self.hitch is None or self._hitch_at is None or self._axle is None:
+            return True
+        at = hitch_point(east, north, heading, self.hitch.behind_antenna_m)
+        return math.dist(self._hitch_at, at) > HITCH_RESET_M
+
+    def follow_hitch(self, east: float, north: float, heading: float | None,
+                     start: float | None = None) -> float | None:
         """Pull the trailed implement after the hitch to this epoch; its heading (None
-        without a hitch or a tractor heading)."""
+        without a hitch or a tractor heading). ``start``: where the implement points if it
+        restarts here (``ImplementTrack``: as a record says the positioner had it), else
+        straight behind the tractor."""
         hitch = self.hitch
         if hitch is None or heading is None:
             return None
         at = hitch_point(east, north, heading, hitch.behind_antenna_m)
-        length = hitch.outlets_behind_hitch_m
+        # the wheels steer the implement: its heading follows the hitch over their distance
+        length = hitch.wheels_behind_hitch_m or hitch.outlets_behind_hitch_m
         last, axle = self._hitch_at, self._axle
         if last is None or axle is None or math.dist(last, at) > HITCH_RESET_M:
-            axle = hitch_point(at[0], at[1], heading, length)  # straight behind
+            axle = hitch_point(at[0], at[1], heading if start is None else start, length)
         else:
             steps = max(1, math.ceil(math.dist(last, at) / HITCH_STEP_M))
             for k in range(1, steps + 1):

@@ -456,7 +456,8 @@ class Sown:
     @classmethod
     def empty(cls, settings: PositioningSection | None = None) -> Sown:
         """``settings``: the positioning the records are fitted against (its hitch)."""
-        track = None if settings is None or settings.hitch is None else ImplementTrack(settings)
+        track = None if settings is None or settings.hitch is None else ImplementTrack(
+            settings, made_with=settings)  # the records were made with them
         return cls([], [], [], [], track)
 
     def keep(self, record: SeedDrop) -> None:
