@@ -59,6 +59,10 @@ SUMMARY_INTERVAL_S = 60.0  # an INFO line with the counters and the gaps
 # that sent seeds meanwhile (two ingest processes publish in any order: the retained one may be
 # the older of two, until this puts the database's newest coverage on top again)
 WATERMARK_REFRESH_S = 5.0
+# ... and every machine's every this many seconds: a retained watermark the broker lost while
+# ingest stayed connected (a broker restarted in less than the keepalive, a retained store
+# cleared by hand) is put back although no cab sends anything (a few bytes a machine)
+WATERMARK_FULL_REFRESH_S = 30.0
 # Back-pressure (docs/farm-server.md). Ingest acknowledges a QoS 1 message once its records
 # are queued (not on receipt, paho's default), and reads nothing while ``max_queued_rows``
 # wait for the database (or are being committed). MQTT 5 Receive Maximum: the broker sends
@@ -378,7 +382,8 @@ class Ingest:
         """QoS 1 and retained, handed to paho without waiting for the PUBACK: ingest may have
         stopped reading its socket (back-pressure), and a flush must not wait on that. The
         broker takes one connection's publishes in order, so a machine's watermarks never
-        overtake; a lost one is published again (every WATERMARK_REFRESH_S, and at connect)."""
+        overtake; a lost one is published again (every WATERMARK_REFRESH_S for the machines that
+        sent seeds, every WATERMARK_FULL_REFRESH_S for all, and at connect)."""
         info = client._client.publish(
             f"{self.prefix}/{result.machine_id}/ingested", self.watermark_payload(result),
             qos=1, retain=True)
@@ -513,7 +518,12 @@ class Ingest:
     async def _flush_loop(self, client: aiomqtt.Client) -> None:
         next_summary = time.monotonic() + SUMMARY_INTERVAL_S
         next_refresh = time.monotonic() + WATERMARK_REFRESH_S
+        next_full_refresh = time.monotonic() + WATERMARK_FULL_REFRESH_S
         while True:
+            if time.monotonic() >= next_full_refresh:
+                next_full_refresh = next_refresh = time.monotonic() + WATERMARK_FULL_REFRESH_S
+                self._active = set()
+                await self.refresh_watermarks(client)
             if time.monotonic() >= next_refresh:
                 next_refresh = time.monotonic() + WATERMARK_REFRESH_S
                 active, self._active = self._active, set()
