@@ -74,6 +74,9 @@ async def watermarks(broker: Mosquitto) -> AsyncIterator[dict[str, dict[str, obj
             await c.subscribe("sowgate/+/ingested", qos=1)
             async for m in c.messages:
                 assert isinstance(m.payload, bytes)
+                if not m.payload:  # a retained watermark deleted
+                    seen.pop(m.topic.value.split("/")[1], None)
+                    continue
                 seen[m.topic.value.split("/")[1]] = json.loads(m.payload)
 
     task = asyncio.create_task(run())
@@ -313,3 +316,43 @@ async def test_a_flood_while_the_database_is_away_stays_bounded_and_loses_nothin
         assert ingest.stats.peak_unread_messages <= UNREAD_MAXIMUM + 16
     assert rows(database, "SELECT count(*), count(DISTINCT id), max(id) FROM seed_records") \
         == [(batches * per, batches * per, batches * per)]
+
+
+async def retained_watermark(broker: Mosquitto, machine: str, wait_s: float = 0.5) -> object:
+    """What a cab connecting now is told: the retained watermark's committed_through, or None
+    when the broker holds none (nothing retained arrives within ``wait_s``)."""
+    async with aiomqtt.Client(broker.host, broker.port, username="sowgate-ingest") as c:
+        await c.subscribe(f"sowgate/{machine}/ingested", qos=1)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait_s):
+                async for m in c.messages:
+                    if m.retain and isinstance(m.payload, bytes) and m.payload:
+                        return json.loads(m.payload).get("committed_through")
+    return None
+
+
+async def test_a_retained_watermark_the_broker_lost_comes_back_with_no_cab_sending(
+    database: str, broker: Mosquitto, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A broker restarted within ingest's keepalive (or a retained store cleared) loses the
+    watermark while ingest stays connected and every cab's records are committed: nobody
+    sends, so the active machines' refresh never runs; the full refresh puts it back."""
+    from gateway.farm_server import ingest as ingest_module
+
+    monkeypatch.setattr(ingest_module, "WATERMARK_FULL_REFRESH_S", 1.0)
+    async with running_ingest(database, broker) as ingest, watermarks(broker) as seen:
+        async with cab(broker, "seeder-05") as client:
+            await client.publish("sowgate/seeder-05/seeds", batch("seeder-05", 1, 100), qos=1)
+            await eventually(lambda: through(seen, "seeder-05") == 100, 30, "watermark 100")
+        assert await retained_watermark(broker, "seeder-05") == 100
+        # the cab's activity has been refreshed for: from now on nobody sends
+        await eventually(lambda: "seeder-05" not in ingest._active, 10, "activity refreshed")
+        # the broker's retained copy gone (an empty retained payload deletes it)
+        async with aiomqtt.Client(broker.host, broker.port, username="sowgate-ingest") as c:
+            await c.publish("sowgate/seeder-05/ingested", b"", qos=1, retain=True)
+        # ingest's next full refresh retains it again (a cab connecting is told 100)
+        told = None
+        async with asyncio.timeout(15):
+            while told is None:
+                told = await retained_watermark(broker, "seeder-05")
+        assert told == 100
