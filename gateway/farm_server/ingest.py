@@ -521,7 +521,8 @@ class Ingest:
         next_full_refresh = time.monotonic() + WATERMARK_FULL_REFRESH_S
         while True:
             if time.monotonic() >= next_full_refresh:
-                next_full_refresh = next_refresh = time.monotonic() + WATERMARK_FULL_REFRESH_S
+                next_full_refresh = time.monotonic() + WATERMARK_FULL_REFRESH_S
+                next_refresh = time.monotonic() + WATERMARK_REFRESH_S
                 self._active = set()
                 await self.refresh_watermarks(client)
             if time.monotonic() >= next_refresh:
